@@ -1,0 +1,1 @@
+"""The HTTP API (FastAPI). Arrives with issue 3."""

@@ -1,0 +1,1 @@
+"""Benchmarks and evaluations; each writes JSON and a PNG under bench/results/."""

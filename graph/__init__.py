@@ -1,0 +1,1 @@
+"""Estimation core: bearing-only factor graph, landmark policies (numpy/GTSAM only)."""

@@ -1,0 +1,1 @@
+"""The application: map sessions, replay, data sources."""
