@@ -1,0 +1,70 @@
+"""Parameters of one map's estimator. Plain dataclass: no settings, no environment."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class SlamConfig:
+    """Estimator parameters; units SI (metres, radians) unless a name says otherwise."""
+
+    landmark_cap: int | None = 50
+    """Most live landmarks kept in the graph; None = uncapped."""
+    policy: str = "coverage"
+    """Name of the landmark-selection policy (see graph.policies)."""
+    pose_window: int | None = 100
+    """Poses kept per robot; older ones are marginalised. None = keep every pose."""
+    bearing_sigma_rad: float = math.radians(1.0)
+    """Default one-sigma bearing noise when an observation gives none."""
+    huber_k: float | None = 1.345
+    """Huber threshold in sigmas for bearing factors; None = plain Gaussian."""
+    odometry_sigma_floor: tuple[float, float, float] = (0.005, 0.005, math.radians(0.5))
+    """Odometry sigma (x m, y m, theta rad) of a motionless step."""
+    odometry_sigma_per_metre: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
+    """Odometry sigma growth per metre travelled (x, y, theta)."""
+    odometry_sigma_per_radian: float = 0.05
+    """Heading sigma growth per radian turned."""
+    initial_pose_sigma: tuple[float, float, float] = (0.01, 0.01, math.radians(0.5))
+    """Sigma of the prior placed from a robot's initial_pose."""
+    landmark_prior_sigma_m: float | None = 5.0
+    """Weak prior on each new landmark at its triangulated position; None = none."""
+    min_rays: int = 3
+    """Rays a candidate needs before it is triangulated."""
+    max_rays: int = 40
+    """Most rays a candidate keeps (oldest dropped first)."""
+    min_parallax_rad: float = math.radians(5.0)
+    """Smallest spread of ray directions that counts as enough parallax."""
+    min_depth_m: float = 0.2
+    max_depth_m: float = 15.0
+    max_residual_sigmas: float = 4.0
+    """Largest bearing residual of a triangulation, in sigmas."""
+    max_position_sigma_m: float = 0.3
+    """Largest one-sigma position error of a triangulated landmark."""
+    candidate_ttl_frames: int = 200
+    """A candidate not observed for this many frames (of any robot) expires."""
+    optimizer: str = "dogleg"
+    """iSAM2 step: 'dogleg' (Powell) or 'gauss_newton'."""
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+    allow_new_landmarks: bool = True
+    """False freezes the map (localisation mode): no candidates become landmarks."""
+
+    def __post_init__(self) -> None:
+        if self.landmark_cap is not None and self.landmark_cap < 1:
+            raise ValueError("landmark_cap must be >= 1 or None")
+        if self.pose_window is not None and self.pose_window < 2:
+            raise ValueError("pose_window must be >= 2 or None")
+        if not (self.bearing_sigma_rad > 0 and math.isfinite(self.bearing_sigma_rad)):
+            raise ValueError("bearing_sigma_rad must be a positive finite number")
+        if self.huber_k is not None and not self.huber_k > 0:
+            raise ValueError("huber_k must be > 0 or None")
+        if self.min_rays < 2 or self.max_rays < self.min_rays:
+            raise ValueError("need 2 <= min_rays <= max_rays")
+        if not 0 <= self.min_depth_m < self.max_depth_m:
+            raise ValueError("need 0 <= min_depth_m < max_depth_m")
+        if self.optimizer not in ("dogleg", "gauss_newton"):
+            raise ValueError("optimizer must be 'dogleg' or 'gauss_newton'")
+        if self.candidate_ttl_frames < 1:
+            raise ValueError("candidate_ttl_frames must be >= 1")

@@ -1,0 +1,87 @@
+"""Keys, noise models and the small functions that each build one kind of factor.
+
+Keys (gtsam.symbol_shorthand): X for poses, L for landmarks. Each robot owns a
+slot; its k-th pose is X(slot * POSES_PER_ROBOT + k), so one X chain per robot.
+"""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from graph.config import SlamConfig
+from graph.types import Odometry, Pose2D
+
+POSES_PER_ROBOT = 1 << 40
+_LANDMARK_CHR = ord("l")
+
+
+def pose_key(robot_slot: int, index: int) -> int:
+    """The key of a robot's index-th pose."""
+    return int(X(robot_slot * POSES_PER_ROBOT + index))
+
+
+def landmark_key(landmark_id: int) -> int:
+    """The key of a landmark (its stable API id)."""
+    return int(L(landmark_id))
+
+
+def is_landmark_key(key: int) -> bool:
+    return gtsam.Symbol(key).chr() == _LANDMARK_CHR
+
+
+def to_pose2(pose: Pose2D) -> gtsam.Pose2:
+    return gtsam.Pose2(pose.x, pose.y, pose.theta)
+
+
+def from_pose2(pose: gtsam.Pose2) -> Pose2D:
+    return Pose2D(float(pose.x()), float(pose.y()), float(pose.theta()))
+
+
+def odometry_sigmas(odometry: Odometry, config: SlamConfig) -> np.ndarray:
+    """One-sigma noise (x m, y m, theta rad), shape (3,): given, or growing with the motion."""
+    dist = math.hypot(odometry.dx, odometry.dy)
+    floor = np.asarray(config.odometry_sigma_floor)
+    per_m = np.asarray(config.odometry_sigma_per_metre)
+    model = floor + per_m * dist
+    model[2] += config.odometry_sigma_per_radian * abs(odometry.dtheta)
+    given = (odometry.sigma_x, odometry.sigma_y, odometry.sigma_theta)
+    return np.array([g if g is not None else m for g, m in zip(given, model, strict=True)])
+
+
+def odometry_factor(
+    previous: int, current: int, odometry: Odometry, config: SlamConfig
+) -> gtsam.BetweenFactorPose2:
+    noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(odometry, config))
+    motion = gtsam.Pose2(odometry.dx, odometry.dy, odometry.dtheta)
+    return gtsam.BetweenFactorPose2(previous, current, motion, noise)
+
+
+def pose_prior_factor(key: int, pose: Pose2D, config: SlamConfig) -> gtsam.PriorFactorPose2:
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(config.initial_pose_sigma))
+    return gtsam.PriorFactorPose2(key, to_pose2(pose), noise)
+
+
+def bearing_noise(sigma_rad: float, huber_k: float | None) -> gtsam.noiseModel.Base:
+    base = gtsam.noiseModel.Isotropic.Sigma(1, sigma_rad)
+    if huber_k is None:
+        return base
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), base)
+
+
+def bearing_factor(
+    pose: int, landmark: int, bearing_rad: float, sigma_rad: float, huber_k: float | None
+) -> gtsam.BearingFactor2D:
+    return gtsam.BearingFactor2D(
+        pose, landmark, gtsam.Rot2(bearing_rad), bearing_noise(sigma_rad, huber_k)
+    )
+
+
+def landmark_prior_factor(
+    key: int, position_xy: np.ndarray, sigma_m: float
+) -> gtsam.PriorFactorPoint2:
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, sigma_m)
+    return gtsam.PriorFactorPoint2(key, np.asarray(position_xy, dtype=float), noise)

@@ -1,0 +1,165 @@
+"""iSAM2 with factor bookkeeping and exact marginalisation by Schur complement.
+
+Marginalising a set of variables M (landmarks or old poses):
+
+1. take every factor that touches M, linearise it at iSAM2's linearisation
+   point theta;
+2. eliminate M from that small Gaussian graph
+   (``eliminatePartialSequential(Ordering(M))``); what remains is the marginal
+   (Schur complement) on M's neighbours;
+3. wrap it in a ``LinearContainerFactor`` at theta and hand it to iSAM2 in the
+   same update that removes M's factors. M's variables are then unused and
+   iSAM2 drops them itself.
+
+Why not ``ISAM2.marginalizeLeaves``: in the gtsam wheel its "is a leaf" check is
+compiled out (see GTSAM-NOTES.md); a key that is not a leaf of the Bayes tree
+silently deletes other cliques. Its "Asking to remove variables from the
+variable index that are not unused" error comes from the same place: with more
+than one key per call, or a key whose clique still carries a factor on another
+marginalised key, a marginal factor is re-attached to a key that is then asked
+to leave the variable index. The Schur route never touches the Bayes tree's
+structure, so neither failure can occur; tests pin it over many seeds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.config import SlamConfig
+from graph.errors import EstimationError
+from graph.factors import is_landmark_key
+
+
+def make_isam(config: SlamConfig) -> gtsam.ISAM2:
+    params = gtsam.ISAM2Params()
+    if config.optimizer == "dogleg":
+        params.setOptimizationParams(gtsam.ISAM2DoglegParams())
+    else:
+        params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams())
+    params.setRelinearizeThreshold(config.relinearize_threshold)
+    params.relinearizeSkip = config.relinearize_skip
+    params.findUnusedFactorSlots = True
+    return gtsam.ISAM2(params)
+
+
+class IncrementalGraph:
+    """An iSAM2 instance plus the index of which factor touches which key."""
+
+    def __init__(self, config: SlamConfig) -> None:
+        self._isam = make_isam(config)
+        self._factors: dict[int, gtsam.NonlinearFactor] = {}
+        self._key_factors: dict[int, set[int]] = {}
+        self._estimate: gtsam.Values | None = None
+
+    # ------------------------------------------------------------------ queries
+    def __contains__(self, key: int) -> bool:
+        return key in self._key_factors
+
+    @property
+    def num_factors(self) -> int:
+        return len(self._factors)
+
+    @property
+    def num_variables(self) -> int:
+        return len(self._key_factors)
+
+    def factors_of(self, key: int) -> list[int]:
+        return sorted(self._key_factors.get(key, ()))
+
+    def estimate(self) -> gtsam.Values:
+        """The current estimate of every variable (cached until the next update)."""
+        if self._estimate is None:
+            self._estimate = self._isam.calculateEstimate()
+        return self._estimate
+
+    def pose(self, key: int) -> gtsam.Pose2:
+        return self.estimate().atPose2(key)
+
+    def point(self, key: int) -> NDArray[np.float64]:
+        return np.asarray(self.estimate().atPoint2(key), dtype=np.float64)
+
+    def pose_covariance(self, key: int) -> NDArray[np.float64]:
+        """(3, 3) marginal covariance of a pose (x, y, theta in its own frame)."""
+        return np.asarray(self._isam.marginalCovariance(key))
+
+    def landmark_covariances(self, keys: Sequence[int]) -> NDArray[np.float64]:
+        """(N, 2, 2) marginal covariances of landmarks from one joint marginal."""
+        if not keys:
+            return np.zeros((0, 2, 2))
+        joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        return np.stack([np.asarray(joint.at(k, k)) for k in keys])
+
+    def nonlinear_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The current factors as one graph (for batch checks and snapshots)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for index in sorted(self._factors):
+            graph.add(self._factors[index])
+        return graph
+
+    def linearization_point(self) -> gtsam.Values:
+        return self._isam.getLinearizationPoint()
+
+    # ------------------------------------------------------------------ update
+    def update(
+        self,
+        factors: Iterable[gtsam.NonlinearFactor] = (),
+        values: gtsam.Values | None = None,
+        *,
+        marginalise: Sequence[int] = (),
+    ) -> None:
+        """Add factors (and new variables' initial values) and marginalise keys, in one step."""
+        new = gtsam.NonlinearFactorGraph()
+        added: list[gtsam.NonlinearFactor] = list(factors)
+        remove: list[int] = []
+        if marginalise:
+            remove, marginals = self._schur_complement(marginalise)
+            added.extend(marginals)
+        for factor in added:
+            new.add(factor)
+        try:
+            result = self._isam.update(new, values or gtsam.Values(), remove)
+        except RuntimeError as exc:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
+            raise EstimationError(str(exc)) from exc
+        self._estimate = None
+        for index in remove:
+            for key in self._factors.pop(index).keys():
+                keyed = self._key_factors[key]
+                keyed.discard(index)
+                if not keyed:
+                    del self._key_factors[key]
+        for index, factor in zip(result.getNewFactorsIndices(), added, strict=True):
+            self._factors[index] = factor
+            for key in factor.keys():
+                self._key_factors.setdefault(key, set()).add(index)
+
+    def _schur_complement(
+        self, keys: Sequence[int]
+    ) -> tuple[list[int], list[gtsam.LinearContainerFactor]]:
+        """Factor indices touching `keys`, and the marginal factors that replace them."""
+        missing = [k for k in keys if k not in self._key_factors]
+        if missing:
+            raise KeyError(f"cannot marginalise {[gtsam.DefaultKeyFormatter(k) for k in missing]}")
+        indices = sorted({i for k in keys for i in self._key_factors[k]})
+        theta = self._isam.getLinearizationPoint()
+        local = gtsam.NonlinearFactorGraph()
+        for index in indices:
+            local.add(self._factors[index])
+        linear = local.linearize(theta)
+        _, remaining = linear.eliminatePartialSequential(gtsam.Ordering(list(keys)))
+        marginals: list[gtsam.LinearContainerFactor] = []
+        for i in range(remaining.size()):
+            factor = remaining.at(i)
+            if factor is None or len(factor.keys()) == 0:
+                continue
+            point = gtsam.Values()
+            for key in factor.keys():
+                if is_landmark_key(key):
+                    point.insert(key, theta.atPoint2(key))
+                else:
+                    point.insert(key, theta.atPose2(key))
+            marginals.append(gtsam.LinearContainerFactor(factor, point))
+        return indices, marginals

@@ -1,0 +1,441 @@
+"""One map's estimator: frames in, a bounded bearing-only factor graph inside.
+
+`BearingSlam.process(frame)` runs steps 3-5 of DESIGN.md's frame pipeline for
+labelled observations: association by label, delayed landmark initialisation,
+one iSAM2 update (which also marginalises the pose leaving each robot's window),
+then the landmark budget: while more landmarks are live than the cap, the
+policy picks one and it is marginalised out (Schur complement, see graph.isam).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from array import array
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.angles import wrap_angle
+from graph.config import SlamConfig
+from graph.factors import (
+    bearing_factor,
+    from_pose2,
+    landmark_key,
+    landmark_prior_factor,
+    odometry_factor,
+    pose_key,
+    pose_prior_factor,
+    to_pose2,
+)
+from graph.isam import IncrementalGraph
+from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
+from graph.policies import LandmarkTable, Removal, get_policy, information_content
+from graph.triangulation import Triangulation, triangulate
+from graph.types import FrameInput, Pose2D
+from graph.validation import validate_frame
+
+_SWEEP_EVERY = 50
+
+
+@dataclass(slots=True)
+class _Robot:
+    slot: int
+    last_seq: int
+    last_stamp: float
+    next_index: int
+    window: deque[tuple[int, int]] = field(default_factory=deque)
+    """(pose key, frame index) of the robot's poses still in the graph, oldest first."""
+
+
+@dataclass(frozen=True, slots=True)
+class RemovalRecord:
+    """One entry of the removal log: which landmark left the graph, when and why."""
+
+    frame: int
+    stamp: float
+    landmark_id: int
+    label: str
+    position: tuple[float, float]
+    observed_from: tuple[float, float]
+    count: int
+    removal: Removal
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "frame": self.frame,
+            "stamp": self.stamp,
+            "landmark_id": self.landmark_id,
+            "label": self.label,
+            "x": self.position[0],
+            "y": self.position[1],
+            "observed_from": {
+                "x": self.observed_from[0],
+                "y": self.observed_from[1],
+                "n": self.count,
+            },
+            "policy": self.removal.policy,
+            "reason": self.removal.reason,
+            "details": self.removal.details,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class FrameOutcome:
+    """What one frame did to the map."""
+
+    frame_index: int
+    robot: str
+    seq: int
+    stamp: float
+    pose: Pose2D
+    covariance: NDArray[np.float64] | None
+    """(3, 3) covariance of (x, y, theta) in the robot frame, or None if not asked for."""
+    observed: tuple[int, ...]
+    added: tuple[int, ...]
+    marginalised: tuple[int, ...]
+    live: int
+    timing_ms: dict[str, float]
+
+
+@dataclass(frozen=True, slots=True)
+class _Plan:
+    """Everything a frame will change, prepared before anything changes."""
+
+    key: int
+    predicted: gtsam.Pose2
+    factors: list[gtsam.NonlinearFactor]
+    values: gtsam.Values
+    observed: list[tuple[int, float]]
+    candidates: dict[str, CandidateTrack]
+    new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]]
+    leaving: tuple[int, int] | None
+
+
+class BearingSlam:
+    """A bearing-only map with a landmark budget and a pose window per robot."""
+
+    def __init__(self, config: SlamConfig | None = None, *, rng: np.random.Generator) -> None:
+        self.config = config or SlamConfig()
+        self._policy = get_policy(self.config.policy)
+        self._rng = rng
+        self._graph = IncrementalGraph(self.config)
+        self._robots: dict[str, _Robot] = {}
+        self._landmarks: dict[int, LandmarkRecord] = {}
+        self._label_to_id: dict[str, int] = {}
+        self._candidates: dict[str, CandidateTrack] = {}
+        self._next_landmark_id = 0
+        self._frames = 0
+        self.removals: list[RemovalRecord] = []
+        # Per-frame trajectory: final estimates of marginalised poses, live keys looked up.
+        self._traj_robot = array("i")
+        self._traj_seq = array("q")
+        self._traj_stamp = array("d")
+        self._traj_pose = array("d")
+        self._live_frames: dict[int, int] = {}
+
+    # ---------------------------------------------------------------- queries
+    @property
+    def frame_count(self) -> int:
+        return self._frames
+
+    @property
+    def graph(self) -> IncrementalGraph:
+        return self._graph
+
+    @property
+    def landmarks(self) -> dict[int, LandmarkRecord]:
+        """Live landmarks by id (read-only view; do not mutate)."""
+        return self._landmarks
+
+    @property
+    def robots(self) -> list[str]:
+        return list(self._robots)
+
+    @property
+    def candidate_count(self) -> int:
+        return len(self._candidates)
+
+    def landmark_position(self, landmark_id: int) -> NDArray[np.float64]:
+        return self._graph.point(landmark_key(landmark_id))
+
+    def landmark_covariances(self, ids: list[int]) -> NDArray[np.float64]:
+        """(N, 2, 2) marginal covariances of live landmarks, m^2."""
+        return self._graph.landmark_covariances([landmark_key(i) for i in ids])
+
+    def trajectory(self, robot: str | None = None) -> dict[str, NDArray[np.float64]]:
+        """Per robot, an (N, 5) array of frames: seq, stamp, x, y, theta.
+
+        Poses still in the graph carry the current estimate; marginalised poses
+        keep the last estimate they had.
+        """
+        poses = np.frombuffer(self._traj_pose, dtype=np.float64).reshape(-1, 3).copy()
+        if self._live_frames:
+            estimate = self._graph.estimate()
+            for frame, key in self._live_frames.items():
+                p = estimate.atPose2(key)
+                poses[frame] = (p.x(), p.y(), p.theta())
+        robots = np.frombuffer(self._traj_robot, dtype=np.int32)
+        seq = np.frombuffer(self._traj_seq, dtype=np.int64).astype(np.float64)
+        stamp = np.frombuffer(self._traj_stamp, dtype=np.float64)
+        out: dict[str, NDArray[np.float64]] = {}
+        for name, state in self._robots.items():
+            if robot is not None and name != robot:
+                continue
+            mask = robots == state.slot
+            out[name] = np.column_stack([seq[mask], stamp[mask], poses[mask]])
+        return out
+
+    # ---------------------------------------------------------------- the pipeline
+    def process(self, frame: FrameInput, *, with_covariance: bool = True) -> FrameOutcome:
+        """Add one frame. Raises InvalidFrame (map unchanged) or EstimationError."""
+        t0 = time.perf_counter()
+        robot = self._robots.get(frame.robot)
+        validate_frame(
+            frame,
+            last_seq=robot.last_seq if robot else None,
+            last_stamp=robot.last_stamp if robot else None,
+        )
+        plan = self._plan(frame, robot)
+        t1 = time.perf_counter()
+        leaving_pose = None
+        if plan.leaving is not None:
+            leaving_pose = self._graph.pose(plan.leaving[0])
+        self._graph.update(
+            plan.factors,
+            plan.values,
+            marginalise=(plan.leaving[0],) if plan.leaving is not None else (),
+        )
+        t2 = time.perf_counter()
+        robot = self._commit(frame, robot, plan, leaving_pose)
+        marginalised = self._enforce_budget(frame)
+        t3 = time.perf_counter()
+        covariance = self._graph.pose_covariance(plan.key) if with_covariance else None
+        pose = from_pose2(self._graph.pose(plan.key))
+        t4 = time.perf_counter()
+        return FrameOutcome(
+            frame_index=self._frames - 1,
+            robot=frame.robot,
+            seq=frame.seq,
+            stamp=frame.stamp,
+            pose=pose,
+            covariance=covariance,
+            observed=tuple(lid for lid, _ in plan.observed),
+            added=tuple(
+                self._label_to_id[label]
+                for label, _, _ in plan.new_landmarks
+                if label in self._label_to_id
+            ),
+            marginalised=marginalised,
+            live=len(self._landmarks),
+            timing_ms={
+                "prepare": 1e3 * (t1 - t0),
+                "update": 1e3 * (t2 - t1),
+                "budget": 1e3 * (t3 - t2),
+                "covariance": 1e3 * (t4 - t3),
+                "total": 1e3 * (t4 - t0),
+            },
+        )
+
+    def _plan(self, frame: FrameInput, robot: _Robot | None) -> _Plan:
+        cfg = self.config
+        frame_index = self._frames
+        factors: list[gtsam.NonlinearFactor] = []
+        values = gtsam.Values()
+        if robot is None:
+            slot = len(self._robots)
+            key = pose_key(slot, 0)
+            assert frame.initial_pose is not None  # validated
+            predicted = to_pose2(frame.initial_pose)
+            factors.append(pose_prior_factor(key, frame.initial_pose, cfg))
+            leaving = None
+        else:
+            key = pose_key(robot.slot, robot.next_index)
+            assert frame.odometry is not None  # validated
+            previous = robot.window[-1][0]
+            predicted = self._graph.pose(previous).compose(
+                gtsam.Pose2(frame.odometry.dx, frame.odometry.dy, frame.odometry.dtheta)
+            )
+            factors.append(odometry_factor(previous, key, frame.odometry, cfg))
+            full = cfg.pose_window is not None and len(robot.window) >= cfg.pose_window
+            leaving = robot.window[0] if full else None
+        values.insert(key, predicted)
+
+        observed: list[tuple[int, float]] = []
+        touched: dict[str, CandidateTrack] = {}
+        for obs in frame.observations:
+            sigma = obs.sigma_rad if obs.sigma_rad is not None else cfg.bearing_sigma_rad
+            lid = self._label_to_id.get(obs.label)
+            if lid is not None:
+                factors.append(
+                    bearing_factor(key, landmark_key(lid), obs.bearing_rad, sigma, cfg.huber_k)
+                )
+                observed.append((lid, obs.bearing_rad))
+            elif cfg.allow_new_landmarks:
+                track = self._candidates.get(obs.label) or CandidateTrack(obs.label)
+                ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, sigma)
+                touched[obs.label] = track.with_ray(ray, cfg.max_rays)
+
+        leaving_key = leaving[0] if leaving is not None else None
+        new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]] = []
+        for label, track in list(touched.items()):
+            rays = tuple(
+                r
+                for r in track.rays
+                if r.pose_key == key or (r.pose_key in self._graph and r.pose_key != leaving_key)
+            )
+            touched[label] = CandidateTrack(label, rays, track.last_frame)
+            tri = self._triangulate(rays, key, predicted)
+            if tri is None:
+                continue
+            triangulation, used = tri
+            lid = self._next_landmark_id + len(new_landmarks)
+            lkey = landmark_key(lid)
+            values.insert(lkey, triangulation.point)
+            for r in used:
+                factors.append(
+                    bearing_factor(r.pose_key, lkey, r.bearing_rad, r.sigma_rad, cfg.huber_k)
+                )
+            if cfg.landmark_prior_sigma_m is not None:
+                factors.append(
+                    landmark_prior_factor(lkey, triangulation.point, cfg.landmark_prior_sigma_m)
+                )
+            new_landmarks.append((label, triangulation, used))
+        return _Plan(key, predicted, factors, values, observed, touched, new_landmarks, leaving)
+
+    def _triangulate(
+        self, rays: tuple[Ray, ...], current: int, predicted: gtsam.Pose2
+    ) -> tuple[Triangulation, tuple[Ray, ...]] | None:
+        """Initialise a candidate if its rays pass every sanity check; drop one outlier ray."""
+        cfg = self.config
+        if len(rays) < cfg.min_rays:
+            return None
+        poses = [predicted if r.pose_key == current else self._graph.pose(r.pose_key) for r in rays]
+        origins = np.array([[p.x(), p.y()] for p in poses])
+        directions = np.array(
+            [wrap_angle(p.theta() + r.bearing_rad) for p, r in zip(poses, rays, strict=True)]
+        )
+        sigmas = np.array([r.sigma_rad for r in rays])
+        used = np.ones(len(rays), dtype=bool)
+        for _ in range(2):
+            if used.sum() < cfg.min_rays:
+                return None
+            tri = triangulate(origins[used], directions[used], sigmas[used])
+            if tri is None or tri.parallax_rad < cfg.min_parallax_rad:
+                return None
+            worst = int(np.argmax(np.abs(tri.residuals)))
+            if abs(tri.residuals[worst]) > cfg.max_residual_sigmas:
+                used[np.flatnonzero(used)[worst]] = False
+                continue
+            if not np.all((tri.depths > cfg.min_depth_m) & (tri.depths <= cfg.max_depth_m)):
+                return None
+            if math.sqrt(float(np.linalg.eigvalsh(tri.covariance)[-1])) > cfg.max_position_sigma_m:
+                return None
+            return tri, tuple(r for r, u in zip(rays, used, strict=True) if u)
+        return None
+
+    def _commit(
+        self, frame: FrameInput, robot: _Robot | None, plan: _Plan, leaving_pose: gtsam.Pose2 | None
+    ) -> _Robot:
+        """Apply the plan's bookkeeping after iSAM2 accepted the update."""
+        frame_index = self._frames
+        if robot is None:
+            robot = _Robot(
+                slot=len(self._robots), last_seq=frame.seq, last_stamp=frame.stamp, next_index=0
+            )
+            self._robots[frame.robot] = robot
+        robot.last_seq = frame.seq
+        robot.last_stamp = frame.stamp
+        robot.next_index += 1
+        robot.window.append((plan.key, frame_index))
+        if plan.leaving is not None and leaving_pose is not None:
+            robot.window.popleft()
+            old_frame = plan.leaving[1]
+            self._live_frames.pop(old_frame, None)
+            i = 3 * old_frame
+            self._traj_pose[i : i + 3] = array(
+                "d", (leaving_pose.x(), leaving_pose.y(), leaving_pose.theta())
+            )
+        self._traj_robot.append(robot.slot)
+        self._traj_seq.append(frame.seq)
+        self._traj_stamp.append(frame.stamp)
+        self._traj_pose.extend((plan.predicted.x(), plan.predicted.y(), plan.predicted.theta()))
+        self._live_frames[frame_index] = plan.key
+
+        estimate = self._graph.estimate()
+        here = estimate.atPose2(plan.key)
+        here_xy = np.array([here.x(), here.y()])
+        for lid, _ in plan.observed:
+            self._landmarks[lid].observe(here_xy, frame.stamp)
+        self._candidates.update(plan.candidates)
+        for label, _, rays in plan.new_landmarks:
+            lid = self._next_landmark_id
+            self._next_landmark_id += 1
+            record = LandmarkRecord(lid, label, frame_index, rays[0].stamp, frame.stamp)
+            for r in rays:
+                p = estimate.atPose2(r.pose_key)
+                record.observe(np.array([p.x(), p.y()]), r.stamp)
+            self._landmarks[lid] = record
+            self._label_to_id[label] = lid
+            del self._candidates[label]
+        self._frames += 1
+        if self._frames % _SWEEP_EVERY == 0:
+            horizon = self._frames - self.config.candidate_ttl_frames
+            for label in [lb for lb, c in self._candidates.items() if c.last_frame < horizon]:
+                del self._candidates[label]
+        return robot
+
+    def _enforce_budget(self, frame: FrameInput) -> tuple[int, ...]:
+        """Marginalise the policy's choices until the live count is within the cap."""
+        cap = self.config.landmark_cap
+        if cap is None or len(self._landmarks) <= cap:
+            return ()
+        ids = np.array(sorted(self._landmarks), dtype=np.int64)
+        records = [self._landmarks[int(i)] for i in ids]
+        information = None
+        if self._policy.needs_information:
+            information = information_content(self.landmark_covariances([int(i) for i in ids]))
+        table = LandmarkTable(
+            ids=ids,
+            observed_from=np.array([r.observed_from for r in records]),
+            counts=np.array([r.count for r in records], dtype=np.int64),
+            first_seen=np.array([r.added_frame for r in records], dtype=np.int64),
+            information=information,
+        )
+        chosen: list[Removal] = []
+        # Marginalising a landmark leaves the others' marginals unchanged, so one
+        # covariance computation serves every removal of this frame.
+        while len(table.ids) > cap:
+            removal = self._policy.select(table, rng=self._rng)
+            chosen.append(removal)
+            keep = table.ids != removal.landmark_id
+            table = LandmarkTable(
+                ids=table.ids[keep],
+                observed_from=table.observed_from[keep],
+                counts=table.counts[keep],
+                first_seen=table.first_seen[keep],
+                information=None if table.information is None else table.information[keep],
+            )
+        positions = {r.landmark_id: self.landmark_position(r.landmark_id) for r in chosen}
+        self._graph.update(marginalise=[landmark_key(r.landmark_id) for r in chosen])
+        for removal in chosen:
+            record = self._landmarks.pop(removal.landmark_id)
+            del self._label_to_id[record.label]
+            pos = positions[removal.landmark_id]
+            self.removals.append(
+                RemovalRecord(
+                    frame=self._frames - 1,
+                    stamp=frame.stamp,
+                    landmark_id=record.id,
+                    label=record.label,
+                    position=(float(pos[0]), float(pos[1])),
+                    observed_from=(float(record.observed_from[0]), float(record.observed_from[1])),
+                    count=record.count,
+                    removal=removal,
+                )
+            )
+        return tuple(r.landmark_id for r in chosen)
