@@ -11,14 +11,23 @@ Marginalising a set of variables M (landmarks or old poses):
    same update that removes M's factors. M's variables are then unused and
    iSAM2 drops them itself.
 
-Why not ``ISAM2.marginalizeLeaves``: in the gtsam wheel its "is a leaf" check is
-compiled out (see GTSAM-NOTES.md); a key that is not a leaf of the Bayes tree
-silently deletes other cliques. Its "Asking to remove variables from the
-variable index that are not unused" error comes from the same place: with more
-than one key per call, or a key whose clique still carries a factor on another
-marginalised key, a marginal factor is re-attached to a key that is then asked
-to leave the variable index. The Schur route never touches the Bayes tree's
-structure, so neither failure can occur; tests pin it over many seeds.
+Why not ``ISAM2.marginalizeLeaves``: it edits the Bayes tree in place and
+trusts its caller. Its "not a leaf" check sits under ``#if !defined(NDEBUG)``
+and is absent from the wheel, so a non-leaf key silently takes other cliques
+and their factors with it, or stays in a conditional. With several keys per
+call it also throws "Asking to remove variables from the variable index that
+are not unused", even for true leaves: when one marginalised key heads a clique
+shared with a kept key, the loop that climbs from another marginalised key's
+clique stops there and never eliminates the lower key, whose own factors are
+still indexed when ``removeVariables`` runs (``VariableIndex::
+removeUnusedVariables`` throws; that check is never compiled out).
+
+The Schur route reaches neither failure: it never edits the tree's structure.
+It removes factors and adds a marginal from which M has been eliminated;
+``ISAM2.update`` drops a key only after ``computeUnusedKeys`` found its index
+entry empty, and rebuilds the affected cliques by re-elimination, which needs
+no leaf. ``bench/marginalize_leaves_study.py`` measures both routes (0 failures
+in 747 Schur marginalisations; the leaf route's failures by variant).
 """
 
 from __future__ import annotations

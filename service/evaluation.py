@@ -1,0 +1,242 @@
+"""Planar trajectories, TUM files and the absolute trajectory error (ATE).
+
+Convention: a trajectory is a sequence of planar poses in the map frame:
+stamps in seconds, positions in metres, yaw theta in radians CCW from +x,
+wrapped to (-pi, pi]. In TUM files a planar pose is ``stamp x y 0 0 0 qz qw``
+with the rotation about +z: ``qz = sin(theta/2)``, ``qw = cos(theta/2)``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from graph.angles import wrap_angles
+from graph.types import FrameInput
+
+__all__ = [
+    "Trajectory",
+    "align_se2",
+    "associate",
+    "ate_rmse",
+    "dead_reckoning",
+    "interpolate",
+    "read_tum",
+    "write_tum",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Planar poses at increasing stamps.
+
+    Attributes:
+        stamps: (N,) seconds, non-decreasing.
+        xy: (N, 2) positions in metres.
+        theta: (N,) yaw in radians, wrapped to (-pi, pi].
+    """
+
+    stamps: FloatArray
+    xy: FloatArray
+    theta: FloatArray
+
+    def __post_init__(self) -> None:
+        stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
+        xy = np.asarray(self.xy, dtype=np.float64).reshape(-1, 2)
+        theta = wrap_angles(np.asarray(self.theta, dtype=np.float64).reshape(-1))
+        if not (len(stamps) == len(xy) == len(theta)):
+            raise ValueError(
+                f"stamps {stamps.shape}, xy {xy.shape} and theta {theta.shape} differ in length"
+            )
+        if np.any(np.diff(stamps) < 0):
+            raise ValueError("stamps must be non-decreasing")
+        object.__setattr__(self, "stamps", stamps)
+        object.__setattr__(self, "xy", xy)
+        object.__setattr__(self, "theta", theta)
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    @classmethod
+    def from_poses(cls, stamps: ArrayLike, poses_xytheta: ArrayLike) -> Trajectory:
+        """Build from (N,) stamps and (N, 3) poses ``[x, y, theta]``."""
+        poses = np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)
+        return cls(np.asarray(stamps, dtype=np.float64), poses[:, :2], poses[:, 2])
+
+    def poses(self) -> FloatArray:
+        """(N, 3) ``[x, y, theta]``."""
+        return np.column_stack([self.xy, self.theta])
+
+
+# --------------------------------------------------------------------------- TUM files
+
+
+def write_tum(path: str | os.PathLike[str], traj: Trajectory) -> None:
+    """Write ``stamp x y z qx qy qz qw`` lines (z = qx = qy = 0), all ``%.6f``."""
+    half = 0.5 * traj.theta
+    zeros = np.zeros(len(traj))
+    table = np.column_stack([traj.stamps, traj.xy, zeros, zeros, zeros, np.sin(half), np.cos(half)])
+    np.savetxt(path, table, fmt="%.6f", header="stamp x y z qx qy qz qw", comments="# ")
+
+
+def read_tum(path: str | os.PathLike[str]) -> Trajectory:
+    """Read a TUM trajectory; '#' starts a comment. Yaw is taken from the full quaternion."""
+    table = np.loadtxt(path, comments="#", ndmin=2, dtype=np.float64)
+    if table.size == 0:
+        table = table.reshape(0, 8)
+    if table.shape[1] != 8:
+        raise ValueError(
+            f"{path}: expected 8 columns (stamp x y z qx qy qz qw), got {table.shape[1]}"
+        )
+    qx, qy, qz, qw = table[:, 4], table[:, 5], table[:, 6], table[:, 7]
+    yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return Trajectory(table[:, 0], table[:, 1:3], yaw)
+
+
+# --------------------------------------------------------------------------- interpolation
+
+
+def interpolate(
+    traj: Trajectory, stamps: ArrayLike, *, max_gap_s: float = math.inf
+) -> tuple[NDArray[np.bool_], Trajectory]:
+    """Interpolate a trajectory at query stamps.
+
+    x, y are linear in time; theta is interpolated along the shorter arc between
+    the two bracketing samples (unwrapped, then wrapped). A query is valid when
+    it lies in ``[traj.stamps[0], traj.stamps[-1]]`` and, unless it coincides
+    with a sample, the bracketing samples are at most `max_gap_s` apart.
+
+    Args:
+        traj: the trajectory, at least one pose.
+        stamps: (M,) query stamps in seconds, any order.
+        max_gap_s: the longest sample gap to interpolate across, seconds.
+
+    Returns:
+        (M,) bool mask of valid queries, and the Trajectory at the valid ones
+        (in query order).
+    """
+    q = np.asarray(stamps, dtype=np.float64).reshape(-1)
+    t = traj.stamps
+    if len(t) == 0:
+        return np.zeros(len(q), dtype=bool), Trajectory(np.empty(0), np.empty((0, 2)), np.empty(0))
+    inside = (q >= t[0]) & (q <= t[-1])
+    i0 = np.clip(np.searchsorted(t, q, side="right") - 1, 0, len(t) - 1)
+    i1 = np.minimum(i0 + 1, len(t) - 1)
+    exact = q == t[i0]
+    gap = t[i1] - t[i0]
+    valid = inside & (exact | (gap <= max_gap_s))
+    i0, i1, qv, gap = i0[valid], i1[valid], q[valid], gap[valid]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.where(gap > 0, (qv - t[i0]) / gap, 0.0)
+    xy = traj.xy[i0] + s[:, None] * (traj.xy[i1] - traj.xy[i0])
+    dtheta = wrap_angles(traj.theta[i1] - traj.theta[i0])
+    theta = wrap_angles(traj.theta[i0] + s * dtheta)
+    return valid, Trajectory(qv, xy, theta)
+
+
+# --------------------------------------------------------------------------- ATE
+
+
+def associate(
+    est: Trajectory, gt: Trajectory, *, max_gap_s: float = 1.0
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Pair estimated positions with ground truth interpolated at the estimate's stamps.
+
+    Estimate stamps outside the ground truth's span, or inside a ground-truth
+    gap longer than `max_gap_s`, are dropped.
+
+    Returns:
+        stamps (K,), estimated xy (K, 2), ground-truth xy (K, 2).
+    """
+    valid, gt_at = interpolate(gt, est.stamps, max_gap_s=max_gap_s)
+    return est.stamps[valid], est.xy[valid], gt_at.xy
+
+
+def align_se2(src_xy: ArrayLike, dst_xy: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Least-squares rigid alignment in 2-D without scale (Umeyama / Kabsch).
+
+    Finds the rotation R (2, 2) and translation t (2,) minimising
+    ``sum_i |R @ src_i + t - dst_i|^2``.
+
+    Args:
+        src_xy: (K, 2) points to move, metres.
+        dst_xy: (K, 2) target points, metres.
+    """
+    src = np.asarray(src_xy, dtype=np.float64).reshape(-1, 2)
+    dst = np.asarray(dst_xy, dtype=np.float64).reshape(-1, 2)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    cov = (dst - mu_d).T @ (src - mu_s)  # (2, 2) = sum d_i s_i^T
+    u, _, vt = np.linalg.svd(cov)
+    reflect = np.diag([1.0, 1.0 if np.linalg.det(u @ vt) >= 0.0 else -1.0])
+    rot = u @ reflect @ vt
+    return rot, mu_d - rot @ mu_s
+
+
+def ate_rmse(
+    est: Trajectory, gt: Trajectory, *, align: bool = False, max_gap_s: float = 1.0
+) -> float:
+    """Position RMSE (metres) of an estimate against ground truth.
+
+    Ground truth is interpolated (linear in x, y) at the estimate's stamps; see
+    `associate` for which stamps are kept. With ``align=True`` the estimate is
+    first moved by the least-squares SE(2) alignment onto the ground truth.
+
+    Raises:
+        ValueError: fewer than 2 stamps overlap.
+    """
+    _, est_xy, gt_xy = associate(est, gt, max_gap_s=max_gap_s)
+    if len(est_xy) < 2:
+        raise ValueError(
+            f"only {len(est_xy)} estimate stamps overlap the ground truth; need at least 2"
+        )
+    if align:
+        rot, trans = align_se2(est_xy, gt_xy)
+        est_xy = est_xy @ rot.T + trans
+    return float(np.sqrt(np.mean(np.sum((est_xy - gt_xy) ** 2, axis=1))))
+
+
+# --------------------------------------------------------------------------- dead reckoning
+
+
+def dead_reckoning(frames: Sequence[FrameInput]) -> Trajectory:
+    """Compose one robot's frame odometry from its first frame's initial pose.
+
+    Pose i+1 = pose i (+) (dx, dy, dtheta) of frame i+1, where (dx, dy) is in
+    the robot frame of pose i.
+
+    Args:
+        frames: one robot's frames in order; the first carries `initial_pose`,
+            every later one carries `odometry`.
+
+    Returns:
+        The Trajectory at the frames' stamps, (len(frames),) poses.
+    """
+    if not frames:
+        raise ValueError("no frames")
+    first = frames[0]
+    if first.initial_pose is None:
+        raise ValueError(f"first frame (seq {first.seq}) has no initial_pose")
+    rest = frames[1:]
+    odo = np.zeros((len(rest), 3))
+    for i, f in enumerate(rest):
+        if f.robot != first.robot:
+            raise ValueError(f"frames of two robots: {first.robot!r} and {f.robot!r}")
+        if f.odometry is None:
+            raise ValueError(f"frame seq {f.seq} has no odometry")
+        odo[i] = (f.odometry.dx, f.odometry.dy, f.odometry.dtheta)
+    p0 = first.initial_pose
+    # Unwrapped heading after each frame; heading before frame i+1 is heading[i].
+    heading = p0.theta + np.concatenate([[0.0], np.cumsum(odo[:, 2])])
+    c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
+    step = np.column_stack([c * odo[:, 0] - s * odo[:, 1], s * odo[:, 0] + c * odo[:, 1]])
+    origin = np.array([p0.x, p0.y])
+    xy = np.vstack([origin, origin + np.cumsum(step, axis=0)])
+    stamps = np.array([f.stamp for f in frames], dtype=np.float64)
+    return Trajectory(stamps, xy, heading)

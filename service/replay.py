@@ -1,0 +1,110 @@
+"""Feed frames through one map's estimator in-process and record what it cost.
+
+This is the offline twin of ``POST /v1/maps/{id}/frames``: the same frames,
+the same pipeline, no HTTP.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import resource
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from graph.config import SlamConfig
+from graph.slam import BearingSlam
+from graph.types import FrameInput
+from service.evaluation import Trajectory
+
+log = logging.getLogger(__name__)
+
+_PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def current_rss_mb() -> float:
+    """Resident set size of this process now, MiB (Linux /proc)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return peak_rss_mb()
+    return pages * _PAGE_MB
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@dataclass
+class ReplayResult:
+    """What a replay produced: the map and the per-frame figures."""
+
+    slam: BearingSlam
+    frame_ms: list[float] = field(default_factory=list)
+    """Processing time of each frame in order, milliseconds."""
+    live_landmarks: list[int] = field(default_factory=list)
+    """Live landmark count after each frame."""
+    rss_mb: list[tuple[int, float]] = field(default_factory=list)
+    """(frames processed, current RSS MiB), sampled."""
+
+    def trajectory(self, robot: str) -> Trajectory:
+        """The latest estimate of every frame's pose of one robot."""
+        rows = self.slam.trajectory(robot)[robot]
+        return Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
+
+    def stats(self) -> dict[str, Any]:
+        """The --stats document (JSON-serialisable)."""
+        ms = np.asarray(self.frame_ms)
+        return {
+            "config": _config_dict(self.slam.config),
+            "frames": len(self.frame_ms),
+            "frame_ms": [round(t, 4) for t in self.frame_ms],
+            "live_landmarks": self.live_landmarks,
+            "removals": [r.as_dict() for r in self.slam.removals],
+            "peak_rss_mb": peak_rss_mb(),
+            "rss_mb": self.rss_mb,
+            "median_frame_ms": float(np.median(ms)) if ms.size else None,
+            "p99_frame_ms": float(np.percentile(ms, 99)) if ms.size else None,
+        }
+
+
+def _config_dict(config: SlamConfig) -> dict[str, Any]:
+    return {name: getattr(config, name) for name in config.__slots__}
+
+
+def replay(
+    frames: Iterable[FrameInput],
+    *,
+    config: SlamConfig,
+    seed: int = 0,
+    total: int | None = None,
+    progress: bool | None = None,
+    rss_every: int = 100,
+    with_covariance: bool = False,
+) -> ReplayResult:
+    """Process `frames` in order through a fresh map.
+
+    `progress`: None shows a bar only when stderr is a terminal.
+    """
+    slam = BearingSlam(config, rng=np.random.default_rng(seed))
+    result = ReplayResult(slam)
+    bar = tqdm(
+        frames, total=total, unit="frame", disable=None if progress is None else not progress
+    )
+    for frame in bar:
+        t0 = time.perf_counter()
+        out = slam.process(frame, with_covariance=with_covariance)
+        result.frame_ms.append(1e3 * (time.perf_counter() - t0))
+        result.live_landmarks.append(out.live)
+        if slam.frame_count % rss_every == 0:
+            result.rss_mb.append((slam.frame_count, current_rss_mb()))
+            bar.set_postfix(live=out.live, ms=f"{np.median(result.frame_ms[-rss_every:]):.1f}")
+    log.info("replayed %d frames, %d removals", slam.frame_count, len(slam.removals))
+    return result

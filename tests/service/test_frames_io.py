@@ -1,0 +1,236 @@
+"""The REST frame format: strict parsing, round trips, JSON-lines files."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from graph.errors import InvalidFrame
+from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
+from service.frames_io import (
+    FrameFileError,
+    frame_from_dict,
+    frame_to_dict,
+    read_frames,
+    write_frames,
+)
+
+DESIGN_EXAMPLE: dict[str, Any] = {
+    "robot": "r1",
+    "seq": 17,
+    "stamp": 1248444189.599,
+    "odometry": {"dx": 0.12, "dy": 0.0, "dtheta": 0.01},
+    "initial_pose": {"x": 0.0, "y": 0.0, "theta": 0.0},
+    "observations": [{"bearing": -0.257, "sigma": 0.02, "label": "14"}],
+}
+
+
+def _with(path: str, value: object) -> dict[str, Any]:
+    """DESIGN_EXAMPLE with one field (dotted path, [i] indexes) set; deleted if value is `...`."""
+    d = copy.deepcopy(DESIGN_EXAMPLE)
+    node: Any = d
+    keys: list[str | int] = []
+    for part in path.split("."):
+        if "[" in part:
+            name, idx = part[:-1].split("[")
+            keys += [name, int(idx)]
+        else:
+            keys.append(part)
+    for k in keys[:-1]:
+        node = node[k]
+    if value is ...:
+        del node[keys[-1]]
+    else:
+        node[keys[-1]] = value
+    return d
+
+
+def test_design_example_parses() -> None:
+    frame = frame_from_dict(DESIGN_EXAMPLE)
+    assert frame == FrameInput(
+        robot="r1",
+        seq=17,
+        stamp=1248444189.599,
+        odometry=Odometry(0.12, 0.0, 0.01),
+        initial_pose=Pose2D(0.0, 0.0, 0.0),
+        observations=(BearingObservation(bearing_rad=-0.257, label="14", sigma_rad=0.02),),
+    )
+    assert frame_to_dict(frame) == DESIGN_EXAMPLE
+
+
+def test_optional_fields_absent_or_null() -> None:
+    frame = frame_from_dict({"robot": "a", "seq": 0, "stamp": 3})
+    assert frame == FrameInput(robot="a", seq=0, stamp=3.0)
+    assert isinstance(frame.stamp, float)
+    nulls = {"robot": "a", "seq": 0, "stamp": 3, "odometry": None, "initial_pose": None}
+    assert frame_from_dict({**nulls, "observations": None}) == frame
+    assert frame_to_dict(frame) == {"robot": "a", "seq": 0, "stamp": 3.0, "observations": []}
+
+
+def test_odometry_sigmas_and_observation_sigma_optional() -> None:
+    d = _with("observations", [{"bearing": 0.5, "label": "a"}])
+    d["odometry"] = {"dx": 1, "dy": 2, "dtheta": 3, "sigma_x": 0.1, "sigma_theta": None}
+    frame = frame_from_dict(d)
+    assert frame.odometry == Odometry(1.0, 2.0, 3.0, sigma_x=0.1)
+    assert frame.observations == (BearingObservation(0.5, "a"),)
+    out = frame_to_dict(frame)
+    assert out["odometry"] == {"dx": 1.0, "dy": 2.0, "dtheta": 3.0, "sigma_x": 0.1}
+    assert out["observations"] == [{"bearing": 0.5, "label": "a"}]
+
+
+def test_integer_label_is_stored_as_string() -> None:
+    frame = frame_from_dict(_with("observations[0].label", 14))
+    assert frame.observations[0].label == "14"
+
+
+def test_unknown_keys_ignored_and_descriptor_allowed() -> None:
+    d = _with("extra", {"anything": [1, 2]})
+    d["observations"][0]["descriptor"] = "AAECAw=="
+    d["observations"][0]["patch_id"] = 3
+    d["odometry"]["covariance"] = "ignored"
+    assert frame_from_dict(d) == frame_from_dict(DESIGN_EXAMPLE)
+
+
+def test_nan_and_out_of_range_bearing_are_left_to_the_graph() -> None:
+    frame = frame_from_dict(_with("observations[0].bearing", float("nan")))
+    assert math.isnan(frame.observations[0].bearing_rad)
+    assert frame_from_dict(_with("observations[0].bearing", 7.0)).observations[0].bearing_rad == 7.0
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "detail"),
+    [
+        ("robot", ..., "is required"),
+        ("robot", 3, "must be a string, got number"),
+        ("robot", "", "must not be empty"),
+        ("seq", ..., "is required"),
+        ("seq", 1.0, "must be an integer, got non-integer number"),
+        ("seq", True, "must be an integer, got boolean"),
+        ("seq", "3", "must be an integer, got string"),
+        ("seq", -1, "must be >= 0, got -1"),
+        ("stamp", ..., "is required"),
+        ("stamp", None, "must be a number, got null"),
+        ("stamp", False, "must be a number, got boolean"),
+        ("stamp", "1.5", "must be a number, got string"),
+        ("odometry", [1, 2, 3], "must be an object, got array"),
+        ("odometry.dx", ..., "is required"),
+        ("odometry.dtheta", True, "must be a number, got boolean"),
+        ("odometry.sigma_y", "0.1", "must be a number, got string"),
+        ("initial_pose", 0, "must be an object, got number"),
+        ("initial_pose.theta", ..., "is required"),
+        ("initial_pose.y", [0], "must be a number, got array"),
+        ("observations", {"bearing": 0}, "must be an array, got object"),
+        ("observations[0]", "0.1", "must be an object, got string"),
+        ("observations[0].bearing", ..., "is required"),
+        ("observations[0].bearing", True, "must be a number, got boolean"),
+        ("observations[0].sigma", "x", "must be a number, got string"),
+        ("observations[0].label", ..., "is required"),
+        ("observations[0].label", 1.5, "must be a string or an integer, got number"),
+        ("observations[0].label", True, "must be a string or an integer, got boolean"),
+        ("observations[0].label", "", "must not be empty"),
+        ("observations[0].descriptor", 12, "must be a base64 string, got number"),
+    ],
+)
+def test_invalid_field_is_named(path: str, value: object, detail: str) -> None:
+    with pytest.raises(InvalidFrame) as info:
+        frame_from_dict(_with(path, value))
+    assert info.value.field == path
+    assert info.value.detail == detail
+
+
+def test_error_names_the_right_observation() -> None:
+    d = _with("observations", [{"bearing": 0.1, "label": "a"}] * 2 + [{"bearing": "x", "label": 1}])
+    with pytest.raises(InvalidFrame) as info:
+        frame_from_dict(d)
+    assert info.value.field == "observations[2].bearing"
+
+
+def test_descriptor_only_observation_is_refused_clearly() -> None:
+    d = _with("observations", [{"bearing": 0.1, "descriptor": "AAEC"}])
+    with pytest.raises(InvalidFrame, match="descriptor-only") as info:
+        frame_from_dict(d)
+    assert info.value.field == "observations[0].label"
+
+
+def test_not_an_object() -> None:
+    with pytest.raises(InvalidFrame) as info:
+        frame_from_dict([1, 2])  # type: ignore[arg-type]
+    assert info.value.field == "frame"
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+observations = st.builds(
+    BearingObservation,
+    bearing_rad=finite,
+    label=st.text(min_size=1, max_size=5),
+    sigma_rad=st.none() | finite,
+)
+frames = st.builds(
+    FrameInput,
+    robot=st.text(min_size=1, max_size=5),
+    seq=st.integers(min_value=0, max_value=2**53),
+    stamp=finite,
+    odometry=st.none()
+    | st.builds(
+        Odometry,
+        dx=finite,
+        dy=finite,
+        dtheta=finite,
+        sigma_x=st.none() | finite,
+        sigma_y=st.none() | finite,
+        sigma_theta=st.none() | finite,
+    ),
+    initial_pose=st.none() | st.builds(Pose2D, x=finite, y=finite, theta=finite),
+    observations=st.lists(observations, max_size=4).map(tuple),
+)
+
+
+@given(frames)
+def test_round_trip_through_json(frame: FrameInput) -> None:
+    text = json.dumps(frame_to_dict(frame))
+    assert frame_from_dict(json.loads(text)) == frame
+
+
+def test_file_round_trip(tmp_path: Path) -> None:
+    frames_in = [
+        frame_from_dict(DESIGN_EXAMPLE),
+        FrameInput(robot="r1", seq=18, stamp=1248444189.7, odometry=Odometry(0.1, 0.0, -0.02)),
+    ]
+    for name in ("f.jsonl", "f.jsonl.gz"):
+        path = tmp_path / name
+        assert write_frames(path, frames_in) == 2
+        assert list(read_frames(path)) == frames_in
+    assert len((tmp_path / "f.jsonl").read_text().splitlines()) == 2
+
+
+def test_read_skips_blank_lines_and_names_bad_lines(tmp_path: Path) -> None:
+    good = json.dumps(DESIGN_EXAMPLE)
+    bad = json.dumps(_with("observations[0].bearing", "north"))
+    path = tmp_path / "f.jsonl"
+    path.write_text(f"\n{good}\n   \n{good}\n{bad}\n")
+    reader = read_frames(path)
+    assert next(reader).seq == 17
+    assert next(reader).seq == 17
+    with pytest.raises(FrameFileError) as info:
+        next(reader)
+    assert info.value.line == 5
+    assert info.value.field == "observations[0].bearing"
+    assert "f.jsonl:5: observations[0].bearing" in str(info.value)
+
+    path.write_text(f"{good}\n{{not json\n")
+    with pytest.raises(FrameFileError) as info:
+        list(read_frames(path))
+    assert (info.value.line, info.value.field) == (2, "line")
+
+
+def test_write_refuses_nan(tmp_path: Path) -> None:
+    frame = FrameInput(robot="r1", seq=0, stamp=float("nan"))
+    with pytest.raises(ValueError, match="JSON"):
+        write_frames(tmp_path / "f.jsonl", [frame])
