@@ -20,11 +20,11 @@ class SlamConfig:
     """Default one-sigma bearing noise when an observation gives none."""
     huber_k: float | None = 1.345
     """Huber threshold in sigmas for bearing factors; None = plain Gaussian."""
-    odometry_sigma_floor: tuple[float, float, float] = (0.005, 0.005, math.radians(0.5))
+    odometry_sigma_floor: tuple[float, float, float] = (0.002, 0.002, math.radians(0.2))
     """Odometry sigma (x m, y m, theta rad) of a motionless step."""
-    odometry_sigma_per_metre: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
+    odometry_sigma_per_metre: tuple[float, float, float] = (0.03, 0.03, math.radians(1.0))
     """Odometry sigma growth per metre travelled (x, y, theta)."""
-    odometry_sigma_per_radian: float = 0.05
+    odometry_sigma_per_radian: float = 0.02
     """Heading sigma growth per radian turned."""
     initial_pose_sigma: tuple[float, float, float] = (0.01, 0.01, math.radians(0.5))
     """Sigma of the prior placed from a robot's initial_pose."""

@@ -123,6 +123,7 @@ class IncrementalGraph:
         """Add factors (and new variables' initial values) and marginalise keys, in one step."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
+        fresh = bool(added) or values is not None
         remove: list[int] = []
         if marginalise:
             remove, marginals = self._schur_complement(marginalise)
@@ -133,7 +134,10 @@ class IncrementalGraph:
             result = self._isam.update(new, values or gtsam.Values(), remove)
         except RuntimeError as exc:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
             raise EstimationError(str(exc)) from exc
-        self._estimate = None
+        if fresh:
+            self._estimate = None
+        # else: a pure marginalisation leaves the MAP of the remaining variables where
+        # it was, so the cached estimate stays valid (the removed keys are never read).
         for index in remove:
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]

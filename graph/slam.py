@@ -35,7 +35,7 @@ from graph.factors import (
 from graph.isam import IncrementalGraph
 from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
 from graph.policies import LandmarkTable, Removal, get_policy, information_content
-from graph.triangulation import Triangulation, triangulate
+from graph.triangulation import Triangulation, parallax, triangulate
 from graph.types import FrameInput, Pose2D
 from graph.validation import validate_frame
 
@@ -212,10 +212,10 @@ class BearingSlam:
         )
         t2 = time.perf_counter()
         robot = self._commit(frame, robot, plan, leaving_pose)
+        pose = from_pose2(self._graph.pose(plan.key))
         marginalised = self._enforce_budget(frame)
         t3 = time.perf_counter()
         covariance = self._graph.pose_covariance(plan.key) if with_covariance else None
-        pose = from_pose2(self._graph.pose(plan.key))
         t4 = time.perf_counter()
         return FrameOutcome(
             frame_index=self._frames - 1,
@@ -320,6 +320,8 @@ class BearingSlam:
             [wrap_angle(p.theta() + r.bearing_rad) for p, r in zip(poses, rays, strict=True)]
         )
         sigmas = np.array([r.sigma_rad for r in rays])
+        if parallax(directions) < cfg.min_parallax_rad:
+            return None
         used = np.ones(len(rays), dtype=bool)
         for _ in range(2):
             if used.sum() < cfg.min_rays:

@@ -30,6 +30,14 @@ class Triangulation:
     """Largest angle between two rays' directions, radians in [0, pi]."""
 
 
+def _ill_conditioned(m: NDArray[np.float64], limit: float = 1e10) -> bool:
+    """True when a symmetric (2, 2) matrix's condition number exceeds `limit`."""
+    half_trace = 0.5 * (m[0, 0] + m[1, 1])
+    root = np.hypot(0.5 * (m[0, 0] - m[1, 1]), m[0, 1])
+    smallest = half_trace - root
+    return bool(smallest <= 0 or (half_trace + root) > limit * smallest)
+
+
 def parallax(directions_rad: NDArray[np.float64]) -> float:
     """Largest pairwise angle between ray directions (N,), radians."""
     d = np.asarray(directions_rad, dtype=np.float64)
@@ -55,7 +63,7 @@ def triangulate(
     a = normals / s[:, None]
     b = np.einsum("ij,ij->i", normals, c) / s
     ata = a.T @ a
-    if np.linalg.cond(ata) > 1e10:
+    if _ill_conditioned(ata):
         return None
     p = np.linalg.solve(ata, a.T @ b)
     cov = np.asarray(np.linalg.inv(ata), dtype=np.float64)
@@ -68,7 +76,7 @@ def triangulate(
         res = wrap_angles(predicted - phi) / s
         jac = np.stack([-delta[:, 1], delta[:, 0]], axis=1) / (r2 * s)[:, None]
         jtj = jac.T @ jac
-        if np.linalg.cond(jtj) > 1e10:
+        if _ill_conditioned(jtj):
             return None
         step = np.linalg.solve(jtj, -jac.T @ res)
         p = p + step

@@ -1,0 +1,147 @@
+"""Accuracy on UTIAS MRCLAM dataset 6, bearing-only, robots 1-5.
+
+ATE RMSE (unaligned; every run is anchored at ground truth on its first frame)
+for: (a) dead reckoning, (b) full batch Levenberg-Marquardt with every landmark
+and pose, (c) covslam uncapped (with its default 100-pose window, and with no
+window), (d) covslam with a landmark cap of 8 for each policy.
+
+    python -m bench.mrclam_accuracy [--seeds 3] [--out bench/results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from bench.batch import batch_solve
+from graph.config import SlamConfig
+from graph.policies import POLICY_NAMES
+from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.evaluation import ate_rmse, dead_reckoning
+from service.replay import replay
+
+STOCHASTIC = ("coverage", "random")
+
+
+def run_robot(robot: int, seeds: int, directory: Path) -> dict[str, Any]:
+    frames, gt = mrclam_frames(load_mrclam(directory, robot))
+    name = f"r{robot}"
+    row: dict[str, Any] = {"frames": len(frames)}
+    row["dead_reckoning"] = ate_rmse(dead_reckoning(frames), gt)
+
+    t = time.perf_counter()
+    uncapped = replay(frames, config=SlamConfig(landmark_cap=None), progress=False)
+    row["uncapped_window100"] = ate_rmse(uncapped.trajectory(name), gt)
+    row["uncapped_window100_ms"] = float(np.median(uncapped.frame_ms))
+    full = replay(frames, config=SlamConfig(landmark_cap=None, pose_window=None), progress=False)
+    row["uncapped_nowindow"] = ate_rmse(full.trajectory(name), gt)
+    row["uncapped_nowindow_ms"] = float(np.median(full.frame_ms))
+    row["landmarks_uncapped"] = len(full.slam.landmarks)
+
+    batch = batch_solve(frames, SlamConfig(), online=full.trajectory(name))
+    row["batch_lm"] = ate_rmse(batch.trajectory, gt)
+    row["batch_start"] = batch.start
+
+    for policy in POLICY_NAMES:
+        runs = []
+        removals = []
+        for seed in range(seeds if policy in STOCHASTIC else 1):
+            cfg = SlamConfig(landmark_cap=8, policy=policy)
+            res = replay(frames, config=cfg, seed=seed, progress=False)
+            runs.append(ate_rmse(res.trajectory(name), gt))
+            removals.append(len(res.slam.removals))
+        row[f"cap8_{policy}"] = float(np.median(runs))
+        row[f"cap8_{policy}_runs"] = runs
+        row[f"cap8_{policy}_removals"] = removals
+    row["seconds"] = time.perf_counter() - t
+    return row
+
+
+def summarise(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    keys = ["dead_reckoning", "batch_lm", "uncapped_nowindow", "uncapped_window100"]
+    keys += [f"cap8_{p}" for p in POLICY_NAMES]
+    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
+    baselines = [mean[f"cap8_{p}"] for p in POLICY_NAMES if p != "coverage"]
+    return {
+        "mean_ate_m": mean,
+        "ratio_uncapped_nowindow_to_batch": mean["uncapped_nowindow"] / mean["batch_lm"],
+        "ratio_uncapped_window100_to_batch": mean["uncapped_window100"] / mean["batch_lm"],
+        "ratio_coverage_cap8_to_batch": mean["cap8_coverage"] / mean["batch_lm"],
+        "mean_of_baselines_cap8": float(np.mean(baselines)),
+        "coverage_vs_baseline_mean": mean["cap8_coverage"] / float(np.mean(baselines)),
+        "goal_uncapped_within_1.1x_batch": mean["uncapped_window100"] <= 1.1 * mean["batch_lm"],
+        "goal_coverage_within_1.3x_batch": mean["cap8_coverage"] <= 1.3 * mean["batch_lm"],
+        "goal_coverage_not_worse_than_baselines": mean["cap8_coverage"]
+        <= float(np.mean(baselines)),
+    }
+
+
+def plot(rows: dict[str, dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = ["dead_reckoning", "batch_lm", "uncapped_nowindow", "uncapped_window100"]
+    methods += [f"cap8_{p}" for p in POLICY_NAMES]
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    width = 0.8 / len(rows)
+    for i, (robot, row) in enumerate(rows.items()):
+        ax.bar(np.arange(len(methods)) + i * width, [row[m] for m in methods], width, label=robot)
+    ax.set_xticks(np.arange(len(methods)) + 0.4 - width / 2)
+    ax.set_xticklabels(methods, rotation=30, ha="right")
+    ax.set_ylabel("ATE RMSE [m]")
+    ax.set_yscale("log")
+    ax.set_title("MRCLAM-6 bearing-only: ATE per robot")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seeds", type=int, default=3, help="seeds for coverage and random")
+    parser.add_argument("--robots", default="1,2,3,4,5")
+    parser.add_argument("--data", type=Path, default=default_mrclam_dir())
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = parser.parse_args()
+    if not args.data.is_dir():
+        raise SystemExit(f"MRCLAM data not found at {args.data} (set COVSLAM_DATA)")
+    rows = {}
+    for robot in (int(r) for r in args.robots.split(",")):
+        rows[f"r{robot}"] = run_robot(robot, args.seeds, args.data)
+        r = rows[f"r{robot}"]
+        print(
+            f"r{robot}: DR {r['dead_reckoning']:.3f}  batch {r['batch_lm']:.3f}  "
+            f"uncapped {r['uncapped_nowindow']:.3f} (window100 {r['uncapped_window100']:.3f})  "
+            + "  ".join(f"{p} {r[f'cap8_{p}']:.3f}" for p in POLICY_NAMES),
+            flush=True,
+        )
+    doc = {
+        "rows": rows,
+        "summary": summarise(rows),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "gtsam": gtsam.__version__ if hasattr(gtsam, "__version__") else "?",
+            "numpy": np.__version__,
+            "date": dt.date.today().isoformat(),
+        },
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "mrclam_accuracy.json").write_text(json.dumps(doc, indent=1))
+    plot(rows, args.out / "mrclam_accuracy.png")
+    print(json.dumps(doc["summary"], indent=1))
+
+
+if __name__ == "__main__":
+    main()
