@@ -13,6 +13,7 @@ import math
 import time
 from array import array
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -119,7 +120,17 @@ class _Plan:
 class BearingSlam:
     """A bearing-only map with a landmark budget and a pose window per robot."""
 
-    def __init__(self, config: SlamConfig | None = None, *, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        config: SlamConfig | None = None,
+        *,
+        rng: np.random.Generator,
+        removal_sink: Callable[[RemovalRecord], None] | None = None,
+        removal_memory: int = 1000,
+    ) -> None:
+        """`removal_sink` receives every removal record (e.g. to append it to durable
+        storage); only the last `removal_memory` records stay in `self.removals`, so a
+        lifelong map's memory does not grow with its removal log."""
         self.config = config or SlamConfig()
         self._policy = get_policy(self.config.policy)
         self._rng = rng
@@ -130,7 +141,9 @@ class BearingSlam:
         self._candidates: dict[str, CandidateTrack] = {}
         self._next_landmark_id = 0
         self._frames = 0
-        self.removals: list[RemovalRecord] = []
+        self.removals: deque[RemovalRecord] = deque(maxlen=removal_memory)
+        self.removal_count = 0
+        self._removal_sink = removal_sink
         # Per-frame trajectory: final estimates of marginalised poses, live keys looked up.
         self._traj_robot = array("i")
         self._traj_seq = array("q")
@@ -428,16 +441,18 @@ class BearingSlam:
             record = self._landmarks.pop(removal.landmark_id)
             del self._label_to_id[record.label]
             pos = positions[removal.landmark_id]
-            self.removals.append(
-                RemovalRecord(
-                    frame=self._frames - 1,
-                    stamp=frame.stamp,
-                    landmark_id=record.id,
-                    label=record.label,
-                    position=(float(pos[0]), float(pos[1])),
-                    observed_from=(float(record.observed_from[0]), float(record.observed_from[1])),
-                    count=record.count,
-                    removal=removal,
-                )
+            entry = RemovalRecord(
+                frame=self._frames - 1,
+                stamp=frame.stamp,
+                landmark_id=record.id,
+                label=record.label,
+                position=(float(pos[0]), float(pos[1])),
+                observed_from=(float(record.observed_from[0]), float(record.observed_from[1])),
+                count=record.count,
+                removal=removal,
             )
+            self.removals.append(entry)
+            self.removal_count += 1
+            if self._removal_sink is not None:
+                self._removal_sink(entry)
         return tuple(r.landmark_id for r in chosen)

@@ -6,9 +6,11 @@ the same pipeline, no HTTP.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import resource
+import tempfile
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -19,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from graph.config import SlamConfig
-from graph.slam import BearingSlam
+from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
 from service.evaluation import Trajectory
 
@@ -42,6 +44,28 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+class RemovalLog:
+    """An append-only removal log spooled to disk, so a long replay's memory stays flat."""
+
+    def __init__(self) -> None:
+        self._file = tempfile.TemporaryFile("w+", encoding="utf-8")  # noqa: SIM115
+        self.count = 0
+        self.first_frame: int | None = None
+
+    def append(self, record: RemovalRecord) -> None:
+        self._file.write(json.dumps(record.as_dict()) + "\n")
+        self.count += 1
+        if self.first_frame is None:
+            self.first_frame = record.frame
+
+    def read(self) -> list[dict[str, Any]]:
+        self._file.flush()
+        self._file.seek(0)
+        rows = [json.loads(line) for line in self._file]
+        self._file.seek(0, os.SEEK_END)
+        return rows
+
+
 @dataclass
 class ReplayResult:
     """What a replay produced: the map and the per-frame figures."""
@@ -53,6 +77,8 @@ class ReplayResult:
     """Live landmark count after each frame."""
     rss_mb: list[tuple[int, float]] = field(default_factory=list)
     """(frames processed, current RSS MiB), sampled."""
+    removal_log: RemovalLog = field(default_factory=lambda: RemovalLog())
+    """Every removal, spooled to a temporary file (not kept in memory)."""
 
     def trajectory(self, robot: str) -> Trajectory:
         """The latest estimate of every frame's pose of one robot."""
@@ -67,7 +93,7 @@ class ReplayResult:
             "frames": len(self.frame_ms),
             "frame_ms": [round(t, 4) for t in self.frame_ms],
             "live_landmarks": self.live_landmarks,
-            "removals": [r.as_dict() for r in self.slam.removals],
+            "removals": self.removal_log.read(),
             "peak_rss_mb": peak_rss_mb(),
             "rss_mb": self.rss_mb,
             "median_frame_ms": float(np.median(ms)) if ms.size else None,
@@ -93,8 +119,9 @@ def replay(
 
     `progress`: None shows a bar only when stderr is a terminal.
     """
-    slam = BearingSlam(config, rng=np.random.default_rng(seed))
-    result = ReplayResult(slam)
+    removal_log = RemovalLog()
+    slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removal_log.append)
+    result = ReplayResult(slam, removal_log=removal_log)
     bar = tqdm(
         frames, total=total, unit="frame", disable=None if progress is None else not progress
     )
@@ -106,5 +133,5 @@ def replay(
         if slam.frame_count % rss_every == 0:
             result.rss_mb.append((slam.frame_count, current_rss_mb()))
             bar.set_postfix(live=out.live, ms=f"{np.median(result.frame_ms[-rss_every:]):.1f}")
-    log.info("replayed %d frames, %d removals", slam.frame_count, len(slam.removals))
+    log.info("replayed %d frames, %d removals", slam.frame_count, slam.removal_count)
     return result

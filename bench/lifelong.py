@@ -1,0 +1,681 @@
+"""Lifelong run: do covslam's time per frame and memory stay flat over 20 000 frames?
+
+Run from the repository root::
+
+    python -m bench.lifelong [--frames 20000] [--baseline-frames N]
+                             [--baseline-budget-s 900] [--out bench/results]
+
+One deterministic simulated run (``service.datasets.indoor_sim``: 3x3 rooms, 225
+landmarks, fixed seed) is fed through two estimators, each in its own fresh
+child process (``--worker``, started with ``subprocess``) so that one run's
+memory cannot show up in the other's RSS:
+
+``bounded``
+    ``SlamConfig(landmark_cap=50, policy="coverage", pose_window=100)`` over
+    every frame.
+``baseline``
+    plain uncapped iSAM2, ``SlamConfig(landmark_cap=None, pose_window=None)``,
+    over the same frames until ``--baseline-frames`` frames are done or
+    ``--baseline-budget-s`` seconds of wall time are spent, whichever first.
+
+The child's loop is that of ``service.replay.replay`` (same map seed, no pose
+covariance, ``perf_counter`` around ``BearingSlam.process``, current RSS every
+100 frames) plus the per-stage timings of ``FrameOutcome.timing_ms``, the
+wall-time budget, and a clean stop (reported) if the estimator raises.
+
+Figures, for N frames (N = 20 000 by default): median ms/frame over the early
+window [N/20, N/10) and the late window [0.95 N, N) and their ratio (goal
+<= 1.1); current RSS at frame N/4 against peak RSS at the end (growth goal <=
+5 %); live-landmark statistics; removals; ATE RMSE against ground truth; the
+median ms/frame of every N/20-frame checkpoint window for both runs; and the
+ratio baseline / bounded at the last checkpoint window both reached (goal >= 10
+by the end). If the baseline stops early, the JSON says where
+(``baseline_truncated_at_frame``) and the ratio is the one at the furthest
+window it reached; a power-law fit carried to the late window is given only
+under a key that says it is an extrapolation.
+
+Writes ``<out>/lifelong.json`` and ``<out>/lifelong.png``; prints a summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import importlib.metadata
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.config import SlamConfig
+from graph.slam import BearingSlam
+from service.datasets.indoor_sim import SimRun, make_world, simulate
+from service.evaluation import Trajectory, ate_rmse
+from service.replay import RemovalLog, ReplayResult, current_rss_mb, peak_rss_mb
+
+SEED = 20_240
+"""Seed of the world, the run and both maps' rngs (fixed so every run is the same)."""
+ROOMS = (3, 3)
+LANDMARKS = 225
+ROBOT = "r1"
+RSS_EVERY = 100
+"""Frames between RSS samples (as ``replay``'s default)."""
+SERIES_EVERY = 100
+"""Frames per block of the down-sampled series written to the JSON."""
+ROLLING = 100
+"""Frames of the trailing rolling median in the plot."""
+STAGES = ("prepare", "update", "budget", "covariance")
+RUNS: dict[str, SlamConfig] = {
+    "bounded": SlamConfig(landmark_cap=50, policy="coverage", pose_window=100),
+    "baseline": SlamConfig(landmark_cap=None, pose_window=None),
+}
+TIME_RATIO_GOAL = 1.1
+RSS_GROWTH_GOAL_PCT = 5.0
+BASELINE_SLOWDOWN_GOAL = 10.0
+REPO = Path(__file__).resolve().parent.parent
+
+FloatArray = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- the run
+def make_run(frames: int, seed: int) -> SimRun:
+    """The simulated run: one rng, world first, then the drive."""
+    rng = np.random.default_rng(seed)
+    world = make_world(rooms=ROOMS, landmarks=LANDMARKS, rng=rng)
+    return simulate(world, frames=frames, rng=rng, robot=ROBOT)
+
+
+def run_digest(run: SimRun) -> str:
+    """Short hash of the ground truth, to check both children saw the same frames."""
+    h = hashlib.sha256(np.ascontiguousarray(run.ground_truth.poses()).tobytes())
+    h.update(np.ascontiguousarray(run.landmarks).tobytes())
+    return h.hexdigest()[:16]
+
+
+def windows(n: int) -> dict[str, tuple[int, int]]:
+    """The early and late windows [lo, hi) of an n-frame run."""
+    return {"early": (n // 20, n // 10), "late": (n - n // 20, n)}
+
+
+def checkpoint_step(n: int) -> int:
+    return max(1, n // 20)
+
+
+# --------------------------------------------------------------------------- child
+def run_worker(
+    name: str, frames: int, seed: int, max_frames: int, budget_s: float | None, out: Path
+) -> None:
+    """Process the run through one configuration; write per-frame data to `out` (JSON)."""
+    run = make_run(frames, seed)
+    digest = run_digest(run)
+    todo = run.frames[:max_frames]
+    del run
+    config = RUNS[name]
+    load_start = os.getloadavg()
+    rss_before = current_rss_mb()
+    removal_log = RemovalLog()
+    slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removal_log.append)
+    result = ReplayResult(slam, removal_log=removal_log)
+    stages: dict[str, list[float]] = {k: [] for k in STAGES}
+    step = checkpoint_step(frames)
+    stop = "all requested frames" if max_frames >= frames else "--baseline-frames limit"
+    error = None
+    start = time.perf_counter()
+    for frame in todo:
+        if budget_s is not None and time.perf_counter() - start >= budget_s:
+            stop = f"wall-time budget of {budget_s:g} s"
+            break
+        t0 = time.perf_counter()
+        try:
+            outcome = slam.process(frame, with_covariance=False)
+        except Exception as exc:  # report how far it got, do not lose the run
+            error = f"{type(exc).__name__}: {exc}"
+            stop = "estimator error"
+            break
+        result.frame_ms.append(1e3 * (time.perf_counter() - t0))
+        result.live_landmarks.append(outcome.live)
+        for key in STAGES:
+            stages[key].append(outcome.timing_ms[key])
+        done = slam.frame_count
+        if done % RSS_EVERY == 0:
+            result.rss_mb.append((done, current_rss_mb()))
+        if done % step == 0:
+            print(
+                f"[{name}] frame {done:6d}  median {np.median(result.frame_ms[-step:]):8.2f} ms"
+                f"  live {outcome.live:4d}  rss {current_rss_mb():7.1f} MiB"
+                f"  {time.perf_counter() - start:7.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+    wall_s = time.perf_counter() - start
+    peak = peak_rss_mb()
+    rss_end = current_rss_mb()
+    load_end = os.getloadavg()
+    traj = result.trajectory(ROBOT).poses().tolist() if result.frame_ms else []
+    record = {
+        "name": name,
+        "config": _config_dict(config),
+        "digest": digest,
+        "frames_done": len(result.frame_ms),
+        "stop_reason": stop,
+        "error": error,
+        "wall_s": wall_s,
+        "rss_before_mb": rss_before,
+        "rss_end_mb": rss_end,
+        "peak_rss_mb": peak,
+        "loadavg_start": load_start,
+        "loadavg_end": load_end,
+        "frame_ms": result.frame_ms,
+        "stage_ms": stages,
+        "live_landmarks": result.live_landmarks,
+        "rss_mb": result.rss_mb,
+        "removals": slam.removal_count,
+        "first_removal_frame": result.removal_log.first_frame,
+        "trajectory": traj,
+    }
+    out.write_text(json.dumps(record))
+
+
+def _config_dict(config: SlamConfig) -> dict[str, Any]:
+    return {name: getattr(config, name) for name in config.__slots__}
+
+
+def spawn(
+    name: str, frames: int, seed: int, max_frames: int, budget_s: float | None
+) -> dict[str, Any]:
+    """Run one configuration in a fresh child process and read its JSON back."""
+    with tempfile.TemporaryDirectory(prefix="lifelong-") as tmp:
+        out = Path(tmp) / f"{name}.json"
+        cmd = [
+            sys.executable,
+            "-m",
+            "bench.lifelong",
+            "--worker",
+            name,
+            "--frames",
+            str(frames),
+            "--seed",
+            str(seed),
+            "--worker-max-frames",
+            str(max_frames),
+            "--worker-out",
+            str(out),
+        ]
+        if budget_s is not None:
+            cmd += ["--worker-budget-s", str(budget_s)]
+        print(f"--- {name}: child process {' '.join(cmd[1:5])} ...", flush=True)
+        proc = subprocess.run(cmd, cwd=REPO, check=False)
+        if proc.returncode != 0 or not out.exists():
+            return {"name": name, "crashed": True, "returncode": proc.returncode}
+        record: dict[str, Any] = json.loads(out.read_text())
+        return record
+
+
+# --------------------------------------------------------------------------- figures
+def window_median(ms: Sequence[float], lo: int, hi: int) -> float | None:
+    """Median of frames [lo, hi), or None if the run did not complete the window."""
+    if len(ms) < hi or hi <= lo:
+        return None
+    return float(np.median(ms[lo:hi]))
+
+
+def checkpoints(record: dict[str, Any], n: int) -> list[dict[str, Any]]:
+    """Median ms (total and per stage) of every complete N/20-frame window."""
+    step = checkpoint_step(n)
+    ms = record["frame_ms"]
+    rows = []
+    for end in range(step, len(ms) + 1, step):
+        row: dict[str, Any] = {
+            "frames": [end - step, end],
+            "median_ms": round(float(np.median(ms[end - step : end])), 3),
+            "p90_ms": round(float(np.percentile(ms[end - step : end], 90)), 3),
+        }
+        for key in STAGES:
+            stage = record["stage_ms"][key][end - step : end]
+            row[f"median_{key}_ms"] = round(float(np.median(stage)), 3)
+        row["live_landmarks_at_end"] = record["live_landmarks"][end - 1]
+        rows.append(row)
+    return rows
+
+
+def rss_at(record: dict[str, Any], frame: int) -> tuple[int, float] | None:
+    """The first RSS sample at or after `frame`."""
+    for f, mb in record["rss_mb"]:
+        if f >= frame:
+            return int(f), float(mb)
+    return None
+
+
+def live_stats(live: Sequence[int], cap: int | None, skip: int) -> dict[str, Any]:
+    arr = np.asarray(live[skip:] if len(live) > skip else live)
+    out: dict[str, Any] = {
+        "from_frame": skip if len(live) > skip else 0,
+        "min": int(arr.min()),
+        "max": int(arr.max()),
+        "mean": round(float(arr.mean()), 2),
+        "median": float(np.median(arr)),
+        "final": int(live[-1]),
+    }
+    if cap is not None:
+        out["fraction_of_frames_at_cap"] = round(float(np.mean(arr == cap)), 4)
+        out["ever_above_cap_after_frame"] = bool(np.any(arr > cap))
+    return out
+
+
+def ate(record: dict[str, Any], gt: Trajectory, frames: int | None = None) -> dict[str, Any]:
+    poses = np.asarray(record["trajectory"], dtype=np.float64)
+    if frames is not None:
+        poses = poses[:frames]
+    if len(poses) < 2:
+        return {"frames": len(poses), "ate_rmse_m": None, "ate_rmse_aligned_m": None}
+    est = Trajectory.from_poses(gt.stamps[: len(poses)], poses)
+    return {
+        "frames": len(poses),
+        "ate_rmse_m": round(ate_rmse(est, gt), 4),
+        "ate_rmse_aligned_m": round(ate_rmse(est, gt, align=True), 4),
+    }
+
+
+def series(record: dict[str, Any]) -> dict[str, Any]:
+    """Down-sampled per-frame data: block medians of ms, live count at block ends, RSS."""
+    ms = record["frame_ms"]
+    live = record["live_landmarks"]
+    ends = list(range(SERIES_EVERY, len(ms) + 1, SERIES_EVERY))
+    return {
+        "block_frames": SERIES_EVERY,
+        "frame": ends,
+        "median_ms": [round(float(np.median(ms[e - SERIES_EVERY : e])), 3) for e in ends],
+        "live_landmarks": [live[e - 1] for e in ends],
+        "rss_mb": [[f, round(mb, 2)] for f, mb in record["rss_mb"]],
+    }
+
+
+def run_summary(record: dict[str, Any], n: int, gt: Trajectory) -> dict[str, Any]:
+    """Figures common to both runs."""
+    ms = np.asarray(record["frame_ms"])
+    return {
+        "config": record["config"],
+        "frames_done": record["frames_done"],
+        "stop_reason": record["stop_reason"],
+        "error": record["error"],
+        "wall_s": round(record["wall_s"], 1),
+        "processing_s": round(float(ms.sum()) / 1e3, 1),
+        "median_ms": round(float(np.median(ms)), 3) if ms.size else None,
+        "mean_ms": round(float(ms.mean()), 3) if ms.size else None,
+        "p99_ms": round(float(np.percentile(ms, 99)), 3) if ms.size else None,
+        "max_ms": round(float(ms.max()), 3) if ms.size else None,
+        "rss_before_run_mb": round(record["rss_before_mb"], 1),
+        "rss_end_mb": round(record["rss_end_mb"], 1),
+        "peak_rss_mb": round(record["peak_rss_mb"], 1),
+        "removals": record["removals"],
+        "first_removal_frame": record["first_removal_frame"],
+        "live_landmarks": live_stats(
+            record["live_landmarks"], record["config"]["landmark_cap"], n // 20
+        ),
+        "accuracy": ate(record, gt),
+        "checkpoints": checkpoints(record, n),
+        "loadavg_start": [round(x, 2) for x in record["loadavg_start"]],
+        "loadavg_end": [round(x, 2) for x in record["loadavg_end"]],
+        "series": series(record),
+    }
+
+
+def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
+    ms = record["frame_ms"]
+    win = windows(n)
+    early = window_median(ms, *win["early"])
+    late = window_median(ms, *win["late"])
+    ratio = late / early if early and late is not None else None
+    quarter = rss_at(record, n // 4)
+    peak = record["peak_rss_mb"]
+    growth = 100.0 * (peak - quarter[1]) / quarter[1] if quarter else None
+    growth_current = 100.0 * (record["rss_end_mb"] - quarter[1]) / quarter[1] if quarter else None
+    return {
+        "early_window": list(win["early"]),
+        "late_window": list(win["late"]),
+        "median_ms_early": _r(early),
+        "median_ms_late": _r(late),
+        "time_ratio_late_over_early": _r(ratio, 4),
+        "time_ratio_goal_max": TIME_RATIO_GOAL,
+        "time_ratio_goal_met": None if ratio is None else ratio <= TIME_RATIO_GOAL,
+        "rss_quarter_frame": quarter[0] if quarter else None,
+        "rss_at_quarter_mb": _r(quarter[1] if quarter else None, 2),
+        "peak_rss_end_mb": _r(peak, 2),
+        "rss_growth_pct_peak_end_vs_quarter": _r(growth, 2),
+        "rss_growth_pct_current_end_vs_quarter": _r(growth_current, 2),
+        "rss_growth_goal_max_pct": RSS_GROWTH_GOAL_PCT,
+        "rss_growth_goal_met": None if growth is None else growth <= RSS_GROWTH_GOAL_PCT,
+    }
+
+
+def comparison(
+    bounded: dict[str, Any], baseline: dict[str, Any], n: int, gt: Trajectory
+) -> dict[str, Any]:
+    """Baseline against bounded at the last checkpoint window both completed."""
+    step = checkpoint_step(n)
+    done = min(len(bounded["frame_ms"]), len(baseline["frame_ms"]))
+    last_end = (done // step) * step
+    truncated = len(baseline["frame_ms"]) < n
+    out: dict[str, Any] = {
+        "baseline_frames_done": len(baseline["frame_ms"]),
+        "baseline_reached_end": not truncated,
+        "baseline_truncated_at_frame": len(baseline["frame_ms"]) if truncated else None,
+        "baseline_stop_reason": baseline["stop_reason"],
+        "slowdown_goal_min": BASELINE_SLOWDOWN_GOAL,
+    }
+    if last_end == 0:
+        out["note"] = "the baseline completed no checkpoint window"
+        return out
+    lo = last_end - step
+    b = float(np.median(bounded["frame_ms"][lo:last_end]))
+    p = float(np.median(baseline["frame_ms"][lo:last_end]))
+    out.update(
+        {
+            "last_common_window": [lo, last_end],
+            "bounded_median_ms": _r(b),
+            "baseline_median_ms": _r(p),
+            "slowdown_baseline_over_bounded": _r(p / b, 3),
+            "slowdown_goal_met_at_window": p / b >= BASELINE_SLOWDOWN_GOAL,
+            "slowdown_is_at_end_of_run": not truncated,
+            "accuracy_on_baseline_frames": {
+                "frames": done,
+                "bounded": ate(bounded, gt, done),
+                "baseline": ate(baseline, gt, done),
+            },
+        }
+    )
+    if truncated:
+        out["note"] = (
+            f"baseline stopped at frame {done} ({baseline['stop_reason']}); the slowdown "
+            f"is measured at window [{lo}, {last_end}), not at the end of the run"
+        )
+        out["EXTRAPOLATION_not_measured"] = extrapolate(baseline, n, b_late=bounded)
+    return out
+
+
+def extrapolate(baseline: dict[str, Any], n: int, b_late: dict[str, Any]) -> dict[str, Any] | None:
+    """Power-law fit ms = a * frame^k of the baseline's checkpoint medians, carried to N.
+
+    An extrapolation, labelled as such: iSAM2's cost need not follow a power law.
+    """
+    rows = checkpoints(baseline, n)[1:]  # the first window is start-up
+    if len(rows) < 3:
+        return None
+    mid = np.array([0.5 * (r["frames"][0] + r["frames"][1]) for r in rows])
+    med = np.array([r["median_ms"] for r in rows])
+    k, log_a = np.polyfit(np.log(mid), np.log(med), 1)
+    lo, hi = windows(n)["late"]
+    at = float(np.exp(log_a) * (0.5 * (lo + hi)) ** k)
+    late = window_median(b_late["frame_ms"], lo, hi)
+    return {
+        "label": "EXTRAPOLATED, NOT MEASURED",
+        "method": "least-squares line in log(ms) vs log(frame) over checkpoint medians "
+        f"{rows[0]['frames'][0]}..{rows[-1]['frames'][1]}",
+        "exponent": round(float(k), 3),
+        "baseline_median_ms_at_late_window": round(at, 2),
+        "slowdown_at_late_window": None if not late else round(at / late, 2),
+    }
+
+
+def _r(x: float | None, digits: int = 3) -> float | None:
+    return None if x is None else round(float(x), digits)
+
+
+# --------------------------------------------------------------------------- output
+def machine_info() -> dict[str, Any]:
+    def version(pkg: str) -> str | None:
+        try:
+            return importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            return None
+
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=False
+        ).stdout.strip()
+        dirty = bool(
+            subprocess.run(
+                ["git", "status", "--porcelain", "--untracked-files=no"],
+                cwd=REPO,
+                capture_output=True,
+                text=True,
+                check=False,
+            ).stdout.strip()
+        )
+    except OSError:
+        commit, dirty = "", False
+    return {
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "python": platform.python_version(),
+        "gtsam": version("gtsam"),
+        "numpy": version("numpy"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "git_commit": commit or None,
+        "git_dirty_tracked_files": dirty,
+    }
+
+
+def rolling_median(ms: Sequence[float], window: int) -> tuple[FloatArray, FloatArray]:
+    """(frame index at window end, trailing rolling median)."""
+    arr = np.asarray(ms, dtype=np.float64)
+    if len(arr) < window:
+        return np.arange(1, len(arr) + 1, dtype=np.float64), arr
+    med = np.median(np.lib.stride_tricks.sliding_window_view(arr, window), axis=1)
+    return np.arange(window, len(arr) + 1, dtype=np.float64), med
+
+
+def plot(records: dict[str, dict[str, Any]], n: int, seed: int, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {"bounded": "tab:blue", "baseline": "tab:red"}
+    labels = {
+        "bounded": "covslam bounded (cap 50, coverage, 100-pose window)",
+        "baseline": "plain iSAM2 (no cap, every pose kept)",
+    }
+    fig, axes = plt.subplots(3, 1, figsize=(10, 11), sharex=True)
+    ax_ms, ax_rss, ax_live = axes
+    for name, rec in records.items():
+        if rec.get("crashed") or not rec["frame_ms"]:
+            continue
+        x, med = rolling_median(rec["frame_ms"], ROLLING)
+        ax_ms.plot(x, med, color=colours[name], lw=1, label=labels[name])
+        rss = np.asarray(rec["rss_mb"], dtype=np.float64).reshape(-1, 2)
+        ax_rss.plot(rss[:, 0], rss[:, 1], color=colours[name], lw=1, label=labels[name])
+        live = np.asarray(rec["live_landmarks"])
+        ax_live.plot(np.arange(1, len(live) + 1), live, color=colours[name], lw=1)
+        if len(rec["frame_ms"]) < n:
+            for ax in axes:
+                ax.axvline(len(rec["frame_ms"]), color=colours[name], ls=":", lw=1)
+    for lo, hi in windows(n).values():
+        for ax in axes:
+            ax.axvspan(lo, hi, color="0.85", zorder=0)
+    ax_ms.set_yscale("log")
+    ax_ms.set_ylabel(f"ms / frame (rolling median, {ROLLING} frames)")
+    ax_ms.legend(loc="upper left", fontsize=8)
+    ax_ms.set_title(
+        f"Lifelong run: {n} frames, {ROOMS[0]}x{ROOMS[1]} rooms, {LANDMARKS} landmarks, "
+        f"seed {seed}\n(shaded: early and late windows; dotted: baseline stopped)",
+        fontsize=10,
+    )
+    ax_rss.set_ylabel("process RSS (MiB)")
+    ax_rss.legend(loc="upper left", fontsize=8)
+    ax_live.set_ylabel("live landmarks")
+    ax_live.set_xlabel("frame")
+    ax_live.set_xlim(0, n)
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def print_summary(report: dict[str, Any]) -> None:
+    b = report["bounded"]
+    f = report["bounded_figures"]
+    c = report.get("comparison") or {}
+
+    def fmt(x: Any, unit: str = "") -> str:
+        return "n/a" if x is None else f"{x}{unit}"
+
+    def goal(met: bool | None) -> str:
+        return "" if met is None else ("  [goal met]" if met else "  [GOAL MISSED]")
+
+    print()
+    print(f"seed {report['seed']}  frames {report['frames']}  run digest {report['run_digest']}")
+    print(
+        f"{'bounded':10s} median ms early {f['early_window']}: {fmt(f['median_ms_early'])}"
+        f"   late {f['late_window']}: {fmt(f['median_ms_late'])}"
+        f"   ratio {fmt(f['time_ratio_late_over_early'])} (goal <= {TIME_RATIO_GOAL})"
+        f"{goal(f['time_ratio_goal_met'])}"
+    )
+    print(
+        f"{'':10s} RSS at frame {f['rss_quarter_frame']}: {fmt(f['rss_at_quarter_mb'], ' MiB')}"
+        f"   peak at end: {fmt(f['peak_rss_end_mb'], ' MiB')}"
+        f"   growth {fmt(f['rss_growth_pct_peak_end_vs_quarter'], ' %')}"
+        f" (goal <= {RSS_GROWTH_GOAL_PCT} %){goal(f['rss_growth_goal_met'])}"
+    )
+    live = b["live_landmarks"]
+    print(
+        f"{'':10s} live landmarks (from frame {live['from_frame']}): min {live['min']}"
+        f" median {live['median']} max {live['max']}   removals {b['removals']}"
+        f"   ATE {fmt(b['accuracy']['ate_rmse_m'], ' m')}"
+        f" (aligned {fmt(b['accuracy']['ate_rmse_aligned_m'], ' m')})"
+        f"   wall {b['wall_s']} s"
+    )
+    base = report.get("baseline")
+    print()
+    print(f"{'window':>15s} {'bounded ms':>11s} {'baseline ms':>12s} {'ratio':>7s}")
+    base_rows = {tuple(r["frames"]): r for r in (base or {}).get("checkpoints", [])}
+    for row in b["checkpoints"]:
+        key = tuple(row["frames"])
+        other = base_rows.get(key)
+        base_ms = f"{other['median_ms']:12.2f}" if other else f"{'':12s}"
+        ratio = f"{other['median_ms'] / row['median_ms']:7.1f}" if other else ""
+        print(f"{key[0]:>7d}-{key[1]:<7d} {row['median_ms']:11.2f} {base_ms} {ratio}")
+    if base:
+        print()
+        print(
+            f"baseline: {base['frames_done']} frames in {base['wall_s']} s"
+            f" ({base['stop_reason']}), peak RSS {base['peak_rss_mb']} MiB,"
+            f" ATE {fmt(base['accuracy']['ate_rmse_m'], ' m')}"
+        )
+        if "slowdown_baseline_over_bounded" in c:
+            where = "end of run" if c["slowdown_is_at_end_of_run"] else "NOT the end of run"
+            print(
+                f"slowdown baseline/bounded at window {c['last_common_window']} ({where}):"
+                f" {c['slowdown_baseline_over_bounded']}x (goal >= {BASELINE_SLOWDOWN_GOAL}x)"
+                f"{goal(c['slowdown_goal_met_at_window'])}"
+            )
+        extra = c.get("EXTRAPOLATION_not_measured")
+        if extra:
+            print(
+                f"  EXTRAPOLATED (not measured): ~{extra['baseline_median_ms_at_late_window']}"
+                f" ms at the late window, ~{extra['slowdown_at_late_window']}x"
+            )
+    elif report.get("baseline_error"):
+        print(f"baseline: {report['baseline_error']}")
+
+
+# --------------------------------------------------------------------------- main
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--frames", type=int, default=20_000)
+    parser.add_argument(
+        "--baseline-frames", type=int, default=None, help="frames for the baseline (default all)"
+    )
+    parser.add_argument("--baseline-budget-s", type=float, default=900.0)
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--seed", type=int, default=SEED, help=argparse.SUPPRESS)
+    parser.add_argument("--worker", choices=sorted(RUNS), default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--worker-max-frames", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--worker-budget-s", type=float, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--worker-out", type=Path, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    n = args.frames
+    if n < 20:
+        parser.error("--frames must be at least 20")
+
+    if args.worker is not None:
+        if args.worker_out is None:
+            parser.error("--worker needs --worker-out")
+        max_frames = n if args.worker_max_frames is None else min(n, args.worker_max_frames)
+        run_worker(args.worker, n, args.seed, max_frames, args.worker_budget_s, args.worker_out)
+        return
+
+    started = time.perf_counter()
+    print(f"seed {args.seed}: simulating {n} frames, {ROOMS} rooms, {LANDMARKS} landmarks")
+    run = make_run(n, args.seed)
+    digest = run_digest(run)
+    gt = run.ground_truth
+    del run
+    print(f"run digest {digest}")
+
+    records: dict[str, dict[str, Any]] = {"bounded": spawn("bounded", n, args.seed, n, None)}
+    base_frames = n if args.baseline_frames is None else min(n, args.baseline_frames)
+    if base_frames > 0:
+        records["baseline"] = spawn(
+            "baseline", n, args.seed, base_frames, args.baseline_budget_s or None
+        )
+
+    bounded = records["bounded"]
+    if bounded.get("crashed"):
+        raise SystemExit(f"the bounded run's child process failed: {bounded}")
+    for name, rec in records.items():
+        if not rec.get("crashed") and rec["digest"] != digest:
+            raise SystemExit(f"{name} child simulated a different run ({rec['digest']})")
+
+    report: dict[str, Any] = {
+        "benchmark": "lifelong: time per frame and RSS vs frame count, bounded vs plain iSAM2",
+        "seed": args.seed,
+        "frames": n,
+        "world": {"rooms": list(ROOMS), "landmarks": LANDMARKS, "simulator": "indoor_sim"},
+        "run_digest": digest,
+        "method": {
+            "isolation": "each configuration in its own fresh child process (subprocess)",
+            "timing": "perf_counter around BearingSlam.process(frame, with_covariance=False)",
+            "rss": f"current RSS (/proc/self/statm) every {RSS_EVERY} frames; peak = ru_maxrss",
+            "windows": "early [N/20, N/10), late [0.95N, N), checkpoints every N/20 frames",
+            "baseline_limits": {
+                "baseline_frames": base_frames,
+                "baseline_budget_s": args.baseline_budget_s,
+            },
+        },
+        "machine": machine_info(),
+        "bounded_figures": bounded_figures(bounded, n),
+        "bounded": run_summary(bounded, n, gt),
+    }
+    base = records.get("baseline")
+    if base is not None and base.get("crashed"):
+        report["baseline_error"] = f"child process failed (exit {base['returncode']})"
+        report["comparison"] = {"baseline_truncated_at_frame": 0, "note": "baseline crashed"}
+    elif base is not None:
+        report["baseline"] = run_summary(base, n, gt)
+        report["comparison"] = comparison(bounded, base, n, gt)
+    report["total_wall_s"] = round(time.perf_counter() - started, 1)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    json_path = args.out / "lifelong.json"
+    png_path = args.out / "lifelong.png"
+    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    plot(records, n, args.seed, png_path)
+    print_summary(report)
+    print(f"\nwrote {json_path} and {png_path} in {report['total_wall_s']} s")
+
+
+if __name__ == "__main__":
+    main()
