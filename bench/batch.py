@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from graph.angles import wrap_angle
+from graph.angles import wrap_angles
 from graph.config import SlamConfig
 from graph.factors import (
     bearing_factor,
@@ -67,16 +67,12 @@ def batch_solve(
 ) -> BatchResult:
     """Optimise all frames of one robot at once."""
     dr = dead_reckoning(frames)
-    rays: dict[str, list[tuple[float, float, float, float]]] = {}
+    # Every ray of a label: (frame index, bearing, sigma); origins come from the start.
+    rays: dict[str, list[tuple[int, float, float]]] = {}
     for k, f in enumerate(frames):
         for o in f.observations:
             rays.setdefault(o.label, []).append(
-                (
-                    dr.xy[k, 0],
-                    dr.xy[k, 1],
-                    wrap_angle(dr.theta[k] + o.bearing_rad),
-                    o.sigma_rad or config.bearing_sigma_rad,
-                )
+                (k, o.bearing_rad, o.sigma_rad or config.bearing_sigma_rad)
             )
     starts: dict[str, Trajectory] = {"dead_reckoning": dr}
     if online is not None:
@@ -89,18 +85,15 @@ def batch_solve(
             x, y = start.xy[k]
             values.insert(pose_key(0, k), gtsam.Pose2(float(x), float(y), float(start.theta[k])))
         for label, rr in rays.items():
-            r = np.asarray(rr)
-            if name == "online":
-                # re-triangulate from the online poses
-                idx = [k for k, f in enumerate(frames) for o in f.observations if o.label == label]
-                r = r.copy()
-                r[:, 0:2] = start.xy[idx]
-                r[:, 2] = [
-                    wrap_angle(start.theta[k] + o.bearing_rad)
-                    for k in idx
-                    for o in frames[k].observations
-                    if o.label == label
+            idx = np.array([k for k, _, _ in rr])
+            bearings = np.array([b for _, b, _ in rr])
+            r = np.column_stack(
+                [
+                    start.xy[idx],
+                    wrap_angles(start.theta[idx] + bearings),
+                    [s for _, _, s in rr],
                 ]
+            )
             tri = triangulate(r[:, :2], r[:, 2], r[:, 3]) if len(r) >= 2 else None
             if tri is None:
                 continue
