@@ -47,7 +47,11 @@ def _graph(frames: Sequence[FrameInput], config: SlamConfig, labels: dict[str, i
             graph.add(pose_prior_factor(key, f.initial_pose, config))
         else:
             assert f.odometry is not None
-            graph.add(odometry_factor(pose_key(0, k - 1), key, f.odometry, config))
+            graph.add(
+                odometry_factor(
+                    pose_key(0, k - 1), key, f.odometry, config, f.stamp - frames[k - 1].stamp
+                )
+            )
         for o in f.observations:
             if o.label in labels:
                 sigma = o.sigma_rad or config.bearing_sigma_rad

@@ -26,6 +26,10 @@ class SlamConfig:
     """Odometry sigma growth per metre travelled (x, y, theta)."""
     odometry_sigma_per_radian: float = 0.02
     """Heading sigma growth per radian turned."""
+    odometry_sigma_per_sqrt_second: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Random-walk growth (x m, y m, theta rad per sqrt(s)) with the time between frames:
+    drift that accrues while the robot is on the move or standing (e.g. heading bias of
+    wheel odometry). Added in quadrature to the motion-based sigmas."""
     initial_pose_sigma: tuple[float, float, float] = (0.01, 0.01, math.radians(0.5))
     """Sigma of the prior placed from a robot's initial_pose."""
     landmark_prior_sigma_m: float | None = 5.0
@@ -44,10 +48,19 @@ class SlamConfig:
     """Largest one-sigma position error of a triangulated landmark."""
     candidate_ttl_frames: int = 200
     """A candidate not observed for this many frames (of any robot) expires."""
-    optimizer: str = "dogleg"
+    optimizer: str = "gauss_newton"
     """iSAM2 step: 'dogleg' (Powell) or 'gauss_newton'."""
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
+    relative_marginals: bool = True
+    """Marginals of old poses are kept relative to the next pose (see graph.relative)
+    rather than as linear factors in absolute coordinates."""
+    keyframe_distance_m: float = 0.3
+    """A pose leaving the window stays in the graph as a keyframe when it lies this far
+    from the robot's last keyframe (or turned keyframe_angle_rad from it)."""
+    keyframe_angle_rad: float = math.radians(15.0)
+    max_keyframes: int = 300
+    """Keyframes kept per robot beyond the window (oldest marginalised first); 0 = none."""
     allow_new_landmarks: bool = True
     """False freezes the map (localisation mode): no candidates become landmarks."""
 
@@ -66,5 +79,7 @@ class SlamConfig:
             raise ValueError("need 0 <= min_depth_m < max_depth_m")
         if self.optimizer not in ("dogleg", "gauss_newton"):
             raise ValueError("optimizer must be 'dogleg' or 'gauss_newton'")
+        if self.max_keyframes < 0:
+            raise ValueError("max_keyframes must be >= 0")
         if self.candidate_ttl_frames < 1:
             raise ValueError("candidate_ttl_frames must be >= 1")

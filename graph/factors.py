@@ -41,21 +41,25 @@ def from_pose2(pose: gtsam.Pose2) -> Pose2D:
     return Pose2D(float(pose.x()), float(pose.y()), float(pose.theta()))
 
 
-def odometry_sigmas(odometry: Odometry, config: SlamConfig) -> np.ndarray:
-    """One-sigma noise (x m, y m, theta rad), shape (3,): given, or growing with the motion."""
+def odometry_sigmas(odometry: Odometry, config: SlamConfig, dt_s: float = 0.0) -> np.ndarray:
+    """One-sigma noise (x m, y m, theta rad), shape (3,): given, or growing with the
+    motion and (in quadrature) with the square root of the time `dt_s` it took."""
     dist = math.hypot(odometry.dx, odometry.dy)
     floor = np.asarray(config.odometry_sigma_floor)
     per_m = np.asarray(config.odometry_sigma_per_metre)
     model = floor + per_m * dist
     model[2] += config.odometry_sigma_per_radian * abs(odometry.dtheta)
+    per_sqrt_s = np.asarray(config.odometry_sigma_per_sqrt_second)
+    if dt_s > 0 and per_sqrt_s.any():
+        model = np.sqrt(model**2 + per_sqrt_s**2 * dt_s)
     given = (odometry.sigma_x, odometry.sigma_y, odometry.sigma_theta)
     return np.array([g if g is not None else m for g, m in zip(given, model, strict=True)])
 
 
 def odometry_factor(
-    previous: int, current: int, odometry: Odometry, config: SlamConfig
+    previous: int, current: int, odometry: Odometry, config: SlamConfig, dt_s: float = 0.0
 ) -> gtsam.BetweenFactorPose2:
-    noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(odometry, config))
+    noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(odometry, config, dt_s))
     motion = gtsam.Pose2(odometry.dx, odometry.dy, odometry.dtheta)
     return gtsam.BetweenFactorPose2(previous, current, motion, noise)
 

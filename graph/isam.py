@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from graph.config import SlamConfig
 from graph.errors import EstimationError
 from graph.factors import is_landmark_key
+from graph.relative import choose_reference, relative_marginal
 
 
 def make_isam(config: SlamConfig) -> gtsam.ISAM2:
@@ -60,6 +61,7 @@ class IncrementalGraph:
 
     def __init__(self, config: SlamConfig) -> None:
         self._isam = make_isam(config)
+        self._relative = config.relative_marginals
         self._factors: dict[int, gtsam.NonlinearFactor] = {}
         self._key_factors: dict[int, set[int]] = {}
         self._estimate: gtsam.Values | None = None
@@ -151,7 +153,7 @@ class IncrementalGraph:
 
     def _schur_complement(
         self, keys: Sequence[int]
-    ) -> tuple[list[int], list[gtsam.LinearContainerFactor]]:
+    ) -> tuple[list[int], list[gtsam.NonlinearFactor]]:
         """Factor indices touching `keys`, and the marginal factors that replace them."""
         missing = [k for k in keys if k not in self._key_factors]
         if missing:
@@ -163,10 +165,15 @@ class IncrementalGraph:
             local.add(self._factors[index])
         linear = local.linearize(theta)
         _, remaining = linear.eliminatePartialSequential(gtsam.Ordering(list(keys)))
-        marginals: list[gtsam.LinearContainerFactor] = []
+        marginals: list[gtsam.NonlinearFactor] = []
+        poses_only = not any(is_landmark_key(k) for k in keys)
         for i in range(remaining.size()):
             factor = remaining.at(i)
             if factor is None or len(factor.keys()) == 0:
+                continue
+            reference = choose_reference(list(factor.keys()), keys) if poses_only else None
+            if self._relative and reference is not None:
+                marginals.append(relative_marginal(factor, theta, reference))
                 continue
             point = gtsam.Values()
             for key in factor.keys():

@@ -21,7 +21,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.angles import wrap_angle
+from graph.angles import wrap_angle, wrap_angles
 from graph.config import SlamConfig
 from graph.factors import (
     bearing_factor,
@@ -50,7 +50,9 @@ class _Robot:
     last_stamp: float
     next_index: int
     window: deque[tuple[int, int]] = field(default_factory=deque)
-    """(pose key, frame index) of the robot's poses still in the graph, oldest first."""
+    """(pose key, frame index) of the robot's newest poses, oldest first."""
+    keyframes: deque[tuple[int, int]] = field(default_factory=deque)
+    """(pose key, frame index) of older poses kept in the graph as keyframes."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,7 +116,12 @@ class _Plan:
     observed: list[tuple[int, float]]
     candidates: dict[str, CandidateTrack]
     new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]]
-    leaving: tuple[int, int] | None
+    exiting: tuple[int, int] | None
+    """The (key, frame) leaving the robot's window this frame, if any."""
+    promoted: bool
+    """Whether `exiting` stays in the graph as a keyframe."""
+    leaving: tuple[tuple[int, int], ...]
+    """Poses (key, frame) marginalised this frame: `exiting` or the oldest keyframe."""
 
 
 class BearingSlam:
@@ -150,6 +157,8 @@ class BearingSlam:
         self._traj_stamp = array("d")
         self._traj_pose = array("d")
         self._live_frames: dict[int, int] = {}
+        # Marginalised non-keyframe frames, by the live keyframe their pose is relative to.
+        self._anchored: dict[int, array[int]] = {}
 
     # ---------------------------------------------------------------- queries
     @property
@@ -187,11 +196,19 @@ class BearingSlam:
         keep the last estimate they had.
         """
         poses = np.frombuffer(self._traj_pose, dtype=np.float64).reshape(-1, 3).copy()
-        if self._live_frames:
+        if self._live_frames or self._anchored:
             estimate = self._graph.estimate()
             for frame, key in self._live_frames.items():
                 p = estimate.atPose2(key)
                 poses[frame] = (p.x(), p.y(), p.theta())
+            for key, frames in self._anchored.items():
+                p = estimate.atPose2(key)
+                idx = np.frombuffer(frames, dtype=np.int64)
+                rel = poses[idx]
+                c, s = math.cos(p.theta()), math.sin(p.theta())
+                poses[idx, 0] = p.x() + c * rel[:, 0] - s * rel[:, 1]
+                poses[idx, 1] = p.y() + s * rel[:, 0] + c * rel[:, 1]
+                poses[idx, 2] = wrap_angles(p.theta() + rel[:, 2])
         robots = np.frombuffer(self._traj_robot, dtype=np.int32)
         seq = np.frombuffer(self._traj_seq, dtype=np.int64).astype(np.float64)
         stamp = np.frombuffer(self._traj_stamp, dtype=np.float64)
@@ -215,16 +232,17 @@ class BearingSlam:
         )
         plan = self._plan(frame, robot)
         t1 = time.perf_counter()
-        leaving_pose = None
-        if plan.leaving is not None:
-            leaving_pose = self._graph.pose(plan.leaving[0])
+        # Estimates before the update: what a marginalised pose keeps.
+        before = {k: self._graph.pose(k) for k, _ in plan.leaving}
+        if robot is not None and robot.keyframes:
+            before.setdefault(robot.keyframes[-1][0], self._graph.pose(robot.keyframes[-1][0]))
         self._graph.update(
             plan.factors,
             plan.values,
-            marginalise=(plan.leaving[0],) if plan.leaving is not None else (),
+            marginalise=[k for k, _ in plan.leaving],
         )
         t2 = time.perf_counter()
-        robot = self._commit(frame, robot, plan, leaving_pose)
+        robot = self._commit(frame, robot, plan, before)
         pose = from_pose2(self._graph.pose(plan.key))
         marginalised = self._enforce_budget(frame)
         t3 = time.perf_counter()
@@ -265,7 +283,9 @@ class BearingSlam:
             assert frame.initial_pose is not None  # validated
             predicted = to_pose2(frame.initial_pose)
             factors.append(pose_prior_factor(key, frame.initial_pose, cfg))
-            leaving = None
+            exiting: tuple[int, int] | None = None
+            promoted = False
+            leaving: tuple[tuple[int, int], ...] = ()
         else:
             key = pose_key(robot.slot, robot.next_index)
             assert frame.odometry is not None  # validated
@@ -273,9 +293,12 @@ class BearingSlam:
             predicted = self._graph.pose(previous).compose(
                 gtsam.Pose2(frame.odometry.dx, frame.odometry.dy, frame.odometry.dtheta)
             )
-            factors.append(odometry_factor(previous, key, frame.odometry, cfg))
+            factors.append(
+                odometry_factor(previous, key, frame.odometry, cfg, frame.stamp - robot.last_stamp)
+            )
             full = cfg.pose_window is not None and len(robot.window) >= cfg.pose_window
-            leaving = robot.window[0] if full else None
+            exiting = robot.window[0] if full else None
+            promoted, leaving = self._window_exit(robot, exiting)
         values.insert(key, predicted)
 
         observed: list[tuple[int, float]] = []
@@ -293,13 +316,14 @@ class BearingSlam:
                 ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, sigma)
                 touched[obs.label] = track.with_ray(ray, cfg.max_rays)
 
-        leaving_key = leaving[0] if leaving is not None else None
+        leaving_keys = {k for k, _ in leaving}
         new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]] = []
         for label, track in list(touched.items()):
             rays = tuple(
                 r
                 for r in track.rays
-                if r.pose_key == key or (r.pose_key in self._graph and r.pose_key != leaving_key)
+                if r.pose_key == key
+                or (r.pose_key in self._graph and r.pose_key not in leaving_keys)
             )
             touched[label] = CandidateTrack(label, rays, track.last_frame)
             tri = self._triangulate(rays, key, predicted)
@@ -318,7 +342,37 @@ class BearingSlam:
                     landmark_prior_factor(lkey, triangulation.point, cfg.landmark_prior_sigma_m)
                 )
             new_landmarks.append((label, triangulation, used))
-        return _Plan(key, predicted, factors, values, observed, touched, new_landmarks, leaving)
+        return _Plan(
+            key,
+            predicted,
+            factors,
+            values,
+            observed,
+            touched,
+            new_landmarks,
+            exiting,
+            promoted,
+            leaving,
+        )
+
+    def _window_exit(
+        self, robot: _Robot, exiting: tuple[int, int] | None
+    ) -> tuple[bool, tuple[tuple[int, int], ...]]:
+        """Is the pose leaving the window kept as a keyframe, and which poses go."""
+        cfg = self.config
+        if exiting is None:
+            return False, ()
+        if cfg.max_keyframes == 0:
+            return False, (exiting,)
+        if robot.keyframes:
+            last = self._graph.pose(robot.keyframes[-1][0])
+            step = last.between(self._graph.pose(exiting[0]))
+            far = math.hypot(step.x(), step.y()) >= cfg.keyframe_distance_m
+            if not (far or abs(step.theta()) >= cfg.keyframe_angle_rad):
+                return False, (exiting,)
+        if len(robot.keyframes) >= cfg.max_keyframes:
+            return True, (robot.keyframes[0],)
+        return True, ()
 
     def _triangulate(
         self, rays: tuple[Ray, ...], current: int, predicted: gtsam.Pose2
@@ -354,7 +408,11 @@ class BearingSlam:
         return None
 
     def _commit(
-        self, frame: FrameInput, robot: _Robot | None, plan: _Plan, leaving_pose: gtsam.Pose2 | None
+        self,
+        frame: FrameInput,
+        robot: _Robot | None,
+        plan: _Plan,
+        before: dict[int, gtsam.Pose2],
     ) -> _Robot:
         """Apply the plan's bookkeeping after iSAM2 accepted the update."""
         frame_index = self._frames
@@ -367,14 +425,32 @@ class BearingSlam:
         robot.last_stamp = frame.stamp
         robot.next_index += 1
         robot.window.append((plan.key, frame_index))
-        if plan.leaving is not None and leaving_pose is not None:
+        anchored_exit = False
+        if plan.exiting is not None:
             robot.window.popleft()
-            old_frame = plan.leaving[1]
+            if plan.promoted:
+                robot.keyframes.append(plan.exiting)
+            elif robot.keyframes:
+                # A non-keyframe pose follows its keyframe: it keeps its pose relative
+                # to the robot's last keyframe, which the graph goes on correcting.
+                anchor = robot.keyframes[-1][0]
+                rel = before[anchor].between(before[plan.exiting[0]])
+                self._set_traj_pose(plan.exiting[1], rel)
+                self._anchored.setdefault(anchor, array("q")).append(plan.exiting[1])
+                self._live_frames.pop(plan.exiting[1], None)
+                anchored_exit = True
+        for key, old_frame in plan.leaving:
+            if anchored_exit and plan.exiting is not None and key == plan.exiting[0]:
+                continue
+            if robot.keyframes and robot.keyframes[0][0] == key:
+                robot.keyframes.popleft()
+            pose = before[key]
             self._live_frames.pop(old_frame, None)
-            i = 3 * old_frame
-            self._traj_pose[i : i + 3] = array(
-                "d", (leaving_pose.x(), leaving_pose.y(), leaving_pose.theta())
-            )
+            self._set_traj_pose(old_frame, pose)
+            for f in self._anchored.pop(key, ()):
+                i = 3 * f
+                rel = gtsam.Pose2(*self._traj_pose[i : i + 3])
+                self._set_traj_pose(f, pose.compose(rel))
         self._traj_robot.append(robot.slot)
         self._traj_seq.append(frame.seq)
         self._traj_stamp.append(frame.stamp)
@@ -403,6 +479,10 @@ class BearingSlam:
             for label in [lb for lb, c in self._candidates.items() if c.last_frame < horizon]:
                 del self._candidates[label]
         return robot
+
+    def _set_traj_pose(self, frame: int, pose: gtsam.Pose2) -> None:
+        i = 3 * frame
+        self._traj_pose[i : i + 3] = array("d", (pose.x(), pose.y(), pose.theta()))
 
     def _enforce_budget(self, frame: FrameInput) -> tuple[int, ...]:
         """Marginalise the policy's choices until the live count is within the cap."""

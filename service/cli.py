@@ -14,7 +14,7 @@ import numpy as np
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
 from service.datasets.indoor_sim import make_world, simulate, write_run
-from service.datasets.mrclam import load_mrclam, mrclam_frames
+from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
 from service.frames_io import read_frames
 from service.replay import replay
@@ -93,11 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace) -> SlamConfig:
+    extra = mrclam_noise() if args.source == "mrclam" else {}
     return SlamConfig(
         landmark_cap=args.landmark_cap,
         policy=args.policy,
         pose_window=args.pose_window,
         huber_k=args.huber,
+        **extra,
     )
 
 

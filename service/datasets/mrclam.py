@@ -21,6 +21,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -39,6 +40,7 @@ __all__ = [
     "load_mrclam",
     "measurement_rate_hz",
     "mrclam_frames",
+    "mrclam_noise",
     "relative_motion",
 ]
 
@@ -230,6 +232,18 @@ def _fill_gaps(
         source.append(-1)
         tail += max_gap_s
     return np.asarray(out), np.asarray(source, dtype=np.int64)
+
+
+MRCLAM_HEADING_DRIFT_RAD_PER_SQRT_S = math.radians(2.0)
+"""Heading random walk of MRCLAM's wheel odometry. ../shared/data/README.md
+reports a heading error of about 6-10 degrees RMS per 10 s, which a
+motion-proportional model alone cannot express; 2 deg/sqrt(s) gives 6.3 deg
+per 10 s."""
+
+
+def mrclam_noise() -> dict[str, Any]:
+    """SlamConfig fields for MRCLAM's odometry (time-based heading drift)."""
+    return {"odometry_sigma_per_sqrt_second": (0.0, 0.0, MRCLAM_HEADING_DRIFT_RAD_PER_SQRT_S)}
 
 
 def mrclam_frames(

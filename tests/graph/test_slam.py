@@ -27,7 +27,7 @@ def _run(frames, config: SlamConfig, seed: int = 0) -> BearingSlam:
 def test_bounded_graph_over_many_seeds(seed: int, policy: str) -> None:
     """Cap and window hold after every frame; removed landmarks leave the graph."""
     frames, _, _ = circle_frames(160, seed=seed, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=8, pose_window=15, policy=policy)
+    cfg = SlamConfig(landmark_cap=8, pose_window=15, max_keyframes=5, policy=policy)
     slam = BearingSlam(cfg, rng=np.random.default_rng(seed))
     ever: set[int] = set()
     for f in frames:
@@ -36,7 +36,7 @@ def test_bounded_graph_over_many_seeds(seed: int, policy: str) -> None:
         live = set(slam.landmarks)
         assert not (set(out.added) & ever), "a landmark id was reused"
         ever |= set(out.added)
-        assert slam.graph.num_variables == min(slam.frame_count, 15) + len(live)
+        assert len(live) < slam.graph.num_variables <= 15 + 5 + len(live)
         for lid in out.marginalised:
             assert landmark_key(lid) not in slam.graph
     assert len(slam.removals) > 0
@@ -91,3 +91,38 @@ def test_incremental_equals_batch_on_small_problem() -> None:
     assert max(diffs) < 5e-3
     err = np.hypot(*(traj[:, 2:4] - truth[:, :2]).T)
     assert np.sqrt(np.mean(err**2)) < 0.3
+
+
+def _rmse(traj: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((traj[:, 2:4] - truth[:, :2]) ** 2, axis=1))))
+
+
+def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
+    """Poses leaving a short window either stay as keyframes (at most max_keyframes)
+    or are marginalised and follow their keyframe; the trajectory stays as accurate
+    as keeping every pose."""
+    frames, truth, _ = circle_frames(300, seed=4, n_landmarks=30)
+    cfg = SlamConfig(landmark_cap=None, pose_window=10, max_keyframes=12, keyframe_distance_m=0.4)
+    slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+    pose_counts = []
+    for f in frames:
+        slam.process(f, with_covariance=False)
+        pose_counts.append(slam.graph.num_variables - len(slam.landmarks))
+    assert max(pose_counts) == 10 + 12
+    traj = slam.trajectory()["r1"]
+    assert len(traj) == len(frames)
+    full = _run(frames, SlamConfig(landmark_cap=None, pose_window=None))
+    assert _rmse(traj, truth) < 1.5 * _rmse(full.trajectory()["r1"], truth) + 0.02
+
+
+def test_marginalised_frames_follow_their_keyframe() -> None:
+    """With every keyframe kept, a frame marginalised early still ends where the
+    final estimate puts its keyframe (not where it was when it left the window)."""
+    frames, truth, _ = circle_frames(240, seed=6, n_landmarks=30)
+    cfg = SlamConfig(landmark_cap=None, pose_window=8, max_keyframes=1000, keyframe_distance_m=0.6)
+    slam = _run(frames, cfg)
+    full = _run(frames, SlamConfig(landmark_cap=None, pose_window=None))
+    traj, reference = slam.trajectory()["r1"], full.trajectory()["r1"]
+    gap = np.hypot(*(traj[:, 2:4] - reference[:, 2:4]).T)
+    assert np.median(gap) < 0.05
+    assert _rmse(traj, truth) < 1.5 * _rmse(reference, truth) + 0.02

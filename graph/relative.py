@@ -1,0 +1,207 @@
+"""Marginal factors expressed relative to a reference pose.
+
+Marginalising the oldest pose of a window leaves a dense Gaussian on its
+Markov blanket (the next pose, the landmarks it saw, ...). Wrapped as a
+``LinearContainerFactor`` that Gaussian is linear in *absolute* coordinates:
+its Jacobians are frozen at the linearisation point, so when a later loop
+closure rotates or shifts the map as a whole, the frozen prior pulls the
+landmarks against the poses. Bearing-only maps move a lot after their first
+estimate, and this error compounds window after window.
+
+`relative_marginal` re-expresses the same Gaussian in coordinates that a rigid
+motion of the map leaves unchanged except for the reference pose itself:
+
+    y_R = Log(R0^-1 R)                         the reference pose (absolute)
+    y_P = Log((R0^-1 P0)^-1 (R^-1 P))          other poses, relative to R
+    y_L = R^-1 L - R0^-1 L0                    landmarks, in R's frame
+
+At the linearisation point y = 0 and y ~ T delta (delta: the local coordinates
+of the blanket), so the Gaussian ``|A delta - b|^2`` becomes
+``|A T^-1 y(x) - b|^2``: the same information at the linearisation point, but
+a nonlinear factor that is relinearised like any other (nonlinear factor
+recovery, cf. Mazuran et al., RSS 2014).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.factors import is_landmark_key
+
+FloatArray = NDArray[np.float64]
+_EPS = 1e-6
+
+
+def _skew_jacobian(p: FloatArray) -> FloatArray:
+    """d(R^-1 L)/d(xi_R) for a right perturbation xi = (vx, vy, omega) of R; p = R^-1 L."""
+    return np.array([[-1.0, 0.0, p[1]], [0.0, -1.0, -p[0]]])
+
+
+class _Blanket:
+    """The variables of a relative marginal and the map y(x) to relative coordinates."""
+
+    def __init__(self, reference: int, keys: Sequence[int], theta: gtsam.Values) -> None:
+        self.reference = reference
+        self.poses = [k for k in keys if k != reference and not is_landmark_key(k)]
+        self.landmarks = [k for k in keys if is_landmark_key(k)]
+        self.keys = [reference, *self.poses, *self.landmarks]
+        self.dims = [3] + [3] * len(self.poses) + [2] * len(self.landmarks)
+        self.offsets = np.concatenate([[0], np.cumsum(self.dims)]).astype(int)
+        self.r0 = theta.atPose2(reference)
+        self.q0 = [self.r0.between(theta.atPose2(k)) for k in self.poses]
+        self.l0 = (
+            np.array([self.r0.transformTo(theta.atPoint2(k)) for k in self.landmarks])
+            if self.landmarks
+            else np.zeros((0, 2))
+        )
+
+    def y(self, values: gtsam.Values) -> FloatArray:
+        out = np.empty(self.offsets[-1])
+        r = values.atPose2(self.reference)
+        out[0:3] = gtsam.Pose2.Logmap(self.r0.between(r))
+        for j, k in enumerate(self.poses):
+            o = self.offsets[1 + j]
+            out[o : o + 3] = self._y_pose(r, values.atPose2(k), j)
+        base = self.offsets[1 + len(self.poses)]
+        for i, k in enumerate(self.landmarks):
+            out[base + 2 * i : base + 2 * i + 2] = r.transformTo(values.atPoint2(k)) - self.l0[i]
+        return out
+
+    def _y_pose(self, r: gtsam.Pose2, p: gtsam.Pose2, j: int) -> FloatArray:
+        return np.asarray(gtsam.Pose2.Logmap(self.q0[j].between(r.between(p))))
+
+    def jacobians(self, values: gtsam.Values) -> list[FloatArray]:
+        """dy/d(local coordinates of each key), one (len(y), dim) block per key."""
+        n = int(self.offsets[-1])
+        r = values.atPose2(self.reference)
+        blocks = [np.zeros((n, d)) for d in self.dims]
+        # Reference pose: numerically for the pose rows (small), analytically for landmarks.
+        for c in range(3):
+            step = np.zeros(3)
+            step[c] = _EPS
+            rp, rm = r.retract(step), r.retract(-step)
+            blocks[0][0:3, c] = (
+                gtsam.Pose2.Logmap(self.r0.between(rp)) - gtsam.Pose2.Logmap(self.r0.between(rm))
+            ) / (2 * _EPS)
+            for j, k in enumerate(self.poses):
+                o = self.offsets[1 + j]
+                p = values.atPose2(k)
+                blocks[0][o : o + 3, c] = (self._y_pose(rp, p, j) - self._y_pose(rm, p, j)) / (
+                    2 * _EPS
+                )
+        for j, k in enumerate(self.poses):
+            o = self.offsets[1 + j]
+            p = values.atPose2(k)
+            for c in range(3):
+                step = np.zeros(3)
+                step[c] = _EPS
+                blocks[1 + j][o : o + 3, c] = (
+                    self._y_pose(r, p.retract(step), j) - self._y_pose(r, p.retract(-step), j)
+                ) / (2 * _EPS)
+        rot_t = r.rotation().matrix().T
+        base = self.offsets[1 + len(self.poses)]
+        for i, k in enumerate(self.landmarks):
+            rows = slice(base + 2 * i, base + 2 * i + 2)
+            blocks[0][rows, :] = _skew_jacobian(r.transformTo(values.atPoint2(k)))
+            blocks[1 + len(self.poses) + i][rows, :] = rot_t
+        return blocks
+
+
+def _square_root(factor: gtsam.GaussianFactor) -> tuple[FloatArray, FloatArray]:
+    """[A | b] with [A | b]^T [A | b] = the factor's augmented information.
+
+    By eigen-decomposition rather than Cholesky: a marginal is often rank-deficient
+    (a landmark seen along one ray only), which GaussianFactor.jacobian() refuses
+    with IndeterminantLinearSystem.
+    """
+    info = np.asarray(factor.augmentedInformation(), dtype=np.float64)
+    w, v = np.linalg.eigh(0.5 * (info + info.T))
+    keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+    root = np.sqrt(w[keep])[:, None] * v[:, keep].T
+    return root[:, :-1], root[:, -1]
+
+
+@dataclass(frozen=True)
+class RelativeSpec:
+    """Everything a relative marginal is made of, as plain data (it pickles, unlike
+    the factor's Python callback): the blanket's keys with their values at the
+    linearisation point, and the square-root information in relative coordinates."""
+
+    reference: int
+    keys: tuple[int, ...]
+    at: tuple[tuple[float, ...], ...]
+    """Per key: (x, y, theta) of a pose or (x, y) of a landmark, at linearisation."""
+    m: FloatArray
+    b: FloatArray
+
+    def theta(self) -> gtsam.Values:
+        values = gtsam.Values()
+        for key, v in zip(self.keys, self.at, strict=True):
+            if is_landmark_key(key):
+                values.insert(key, np.asarray(v, dtype=np.float64))
+            else:
+                values.insert(key, gtsam.Pose2(*v))
+        return values
+
+
+class RelativeMarginalFactor(gtsam.CustomFactor):
+    """The nonlinear factor of a `RelativeSpec` (see the module docstring)."""
+
+    def __init__(self, spec: RelativeSpec) -> None:
+        blanket = _Blanket(spec.reference, spec.keys, spec.theta())
+        m, b = spec.m, spec.b
+
+        def error(
+            _factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+        ) -> FloatArray:
+            residual: FloatArray = m @ blanket.y(values) - b
+            if jacobians is not None:
+                for i, block in enumerate(blanket.jacobians(values)):
+                    jacobians[i] = m @ block
+            return residual
+
+        super().__init__(
+            gtsam.noiseModel.Unit.Create(m.shape[0]), gtsam.KeyVector(blanket.keys), error
+        )
+        self.spec = spec
+
+
+def relative_marginal(
+    factor: gtsam.GaussianFactor, theta: gtsam.Values, reference: int
+) -> RelativeMarginalFactor:
+    """The Gaussian `factor` (linearised at `theta`) as a nonlinear factor relative to
+    the pose `reference`, which must be one of its keys."""
+    keys = list(factor.keys())
+    blanket = _Blanket(reference, keys, theta)
+    a, b = _square_root(factor)  # columns in the order of factor.keys()
+    # Reorder A's columns to the blanket's key order.
+    dims = {k: (2 if is_landmark_key(k) else 3) for k in keys}
+    offsets = np.concatenate([[0], np.cumsum([dims[k] for k in keys])]).astype(int)
+    starts = dict(zip(keys, offsets[:-1], strict=True))
+    a = np.hstack([a[:, starts[k] : starts[k] + dims[k]] for k in blanket.keys])
+    t = np.hstack(blanket.jacobians(theta))  # y ~ T delta at theta
+    m = np.asarray(np.linalg.solve(t.T, a.T).T, dtype=np.float64)  # A T^-1
+    at = tuple(
+        tuple(float(c) for c in theta.atPoint2(k))
+        if is_landmark_key(k)
+        else (theta.atPose2(k).x(), theta.atPose2(k).y(), theta.atPose2(k).theta())
+        for k in blanket.keys
+    )
+    spec = RelativeSpec(reference, tuple(blanket.keys), at, m, b)
+    return RelativeMarginalFactor(spec)
+
+
+def choose_reference(keys: Sequence[int], marginalised: Sequence[int]) -> int | None:
+    """The blanket pose to anchor a relative marginal at: the oldest pose of the
+    marginalised pose's own trajectory, else the oldest pose; None if no pose."""
+    poses = sorted(k for k in keys if not is_landmark_key(k))
+    if not poses:
+        return None
+    chains = {gtsam.Symbol(k).index() >> 40 for k in marginalised if not is_landmark_key(k)}
+    same = [k for k in poses if gtsam.Symbol(k).index() >> 40 in chains]
+    return (same or poses)[0]

@@ -1,0 +1,161 @@
+"""Relative marginals: the same Gaussian at the linearisation point, correct
+Jacobians elsewhere, and indifferent to a rigid motion of the whole map."""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import gtsam
+import numpy as np
+import pytest
+
+from graph.config import SlamConfig
+from graph.factors import bearing_factor, landmark_key, odometry_factor, pose_key
+from graph.relative import RelativeMarginalFactor, choose_reference, relative_marginal
+from graph.types import Odometry
+
+KEYS = [pose_key(0, 5), landmark_key(1), pose_key(0, 9), landmark_key(2)]
+
+
+def _theta() -> gtsam.Values:
+    theta = gtsam.Values()
+    theta.insert(KEYS[0], gtsam.Pose2(1.0, 2.0, 0.5))
+    theta.insert(KEYS[1], np.array([3.0, 1.0]))
+    theta.insert(KEYS[2], gtsam.Pose2(-1.0, 0.5, 2.0))
+    theta.insert(KEYS[3], np.array([-2.0, 4.0]))
+    return theta
+
+
+def _random_gaussian(seed: int) -> gtsam.JacobianFactor:
+    rng = np.random.default_rng(seed)
+    rows = 12
+    g = gtsam.GaussianFactorGraph()
+    g.add(
+        gtsam.JacobianFactor(
+            KEYS[0],
+            rng.normal(size=(rows, 3)),
+            KEYS[1],
+            rng.normal(size=(rows, 2)),
+            KEYS[2],
+            rng.normal(size=(rows, 3)),
+            rng.normal(size=rows),
+            gtsam.noiseModel.Unit.Create(rows),
+        )
+    )
+    g.add(
+        gtsam.JacobianFactor(
+            KEYS[3], rng.normal(size=(2, 2)), rng.normal(size=2), gtsam.noiseModel.Unit.Create(2)
+        )
+    )
+    return gtsam.JacobianFactor(g)
+
+
+def _augmented_hessian(factor: gtsam.GaussianFactor, order: list[int]) -> np.ndarray:
+    g = gtsam.GaussianFactorGraph()
+    g.add(factor)
+    return np.asarray(g.augmentedHessian(gtsam.Ordering(order)))
+
+
+def _retract(values: gtsam.Values, key: int, step: np.ndarray) -> None:
+    if len(step) == 3:
+        values.update(key, values.atPose2(key).retract(step))
+    else:
+        values.update(key, values.atPoint2(key) + step)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_same_gaussian_at_the_linearisation_point(seed: int) -> None:
+    gaussian = _random_gaussian(seed)
+    theta = _theta()
+    relative = relative_marginal(gaussian, theta, KEYS[0])
+    order = list(gaussian.keys())
+    expected = _augmented_hessian(gaussian, order)
+    got = _augmented_hessian(relative.linearize(theta), order)
+    np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
+
+
+def test_jacobians_match_finite_differences_away_from_theta() -> None:
+    theta = _theta()
+    relative = relative_marginal(_random_gaussian(7), theta, KEYS[0])
+    at = gtsam.Values(theta)
+    _retract(at, KEYS[2], np.array([0.1, -0.2, 0.3]))
+    _retract(at, KEYS[1], np.array([0.3, 0.1]))
+    _retract(at, KEYS[0], np.array([-0.05, 0.1, -0.2]))
+    linear = relative.linearize(at)
+    a, _ = linear.jacobian()
+    column = 0
+    eps = 1e-6
+    for key in linear.keys():
+        dim = 2 if gtsam.Symbol(key).chr() == ord("l") else 3
+        for c in range(dim):
+            step = np.zeros(dim)
+            step[c] = eps
+            plus, minus = gtsam.Values(at), gtsam.Values(at)
+            _retract(plus, key, step)
+            _retract(minus, key, -step)
+            numeric = (relative.whitenedError(plus) - relative.whitenedError(minus)) / (2 * eps)
+            np.testing.assert_allclose(a[:, column], numeric, atol=1e-6)
+            column += 1
+
+
+def _gauge_free_marginal() -> tuple[gtsam.GaussianFactor, gtsam.Values]:
+    """Odometry x0-x1-x2 and bearings to two landmarks, no prior; x0 eliminated."""
+    cfg = SlamConfig(huber_k=None)
+    x = [pose_key(0, k) for k in range(3)]
+    lm = [landmark_key(0), landmark_key(1)]
+    theta = gtsam.Values()
+    poses = [gtsam.Pose2(0, 0, 0), gtsam.Pose2(1.0, 0.1, 0.2), gtsam.Pose2(2.0, 0.3, 0.3)]
+    points = [np.array([1.5, 2.0]), np.array([2.5, -1.5])]
+    for k, p in zip(x, poses, strict=True):
+        theta.insert(k, p)
+    for k, p in zip(lm, points, strict=True):
+        theta.insert(k, p)
+    graph = gtsam.NonlinearFactorGraph()
+    for a, b in zip(range(2), range(1, 3), strict=True):
+        rel = poses[a].between(poses[b])
+        graph.add(odometry_factor(x[a], x[b], Odometry(rel.x(), rel.y(), rel.theta()), cfg))
+    for k, p in zip(x, poses, strict=True):
+        for key, q in zip(lm, points, strict=True):
+            bearing = p.bearing(q).theta()
+            graph.add(bearing_factor(k, key, bearing + 0.01, math.radians(1.0), None))
+    _, remaining = graph.linearize(theta).eliminatePartialSequential(gtsam.Ordering([x[0]]))
+    return gtsam.JacobianFactor(remaining), theta
+
+
+def test_a_rigid_motion_of_the_map_leaves_a_gauge_free_marginal_unchanged() -> None:
+    factor, theta = _gauge_free_marginal()
+    reference = choose_reference(list(factor.keys()), [pose_key(0, 0)])
+    assert reference == pose_key(0, 1)
+    relative = relative_marginal(factor, theta, reference)
+    linear = gtsam.LinearContainerFactor(factor, _subset(theta, list(factor.keys())))
+    moved = gtsam.Values()
+    g = gtsam.Pose2(3.0, -2.0, 0.8)  # the whole map rotated by 0.8 rad and shifted
+    for key in factor.keys():
+        if gtsam.Symbol(key).chr() == ord("l"):
+            moved.insert(key, g.transformFrom(theta.atPoint2(key)))
+        else:
+            moved.insert(key, g.compose(theta.atPose2(key)))
+    assert relative.error(moved) == pytest.approx(relative.error(theta), rel=1e-6)
+    # The absolute-coordinate linear marginal mistakes the same motion for a change.
+    assert linear.error(moved) > linear.error(theta) + 1.0
+
+
+def _subset(values: gtsam.Values, keys: list[int]) -> gtsam.Values:
+    out = gtsam.Values()
+    for key in keys:
+        if gtsam.Symbol(key).chr() == ord("l"):
+            out.insert(key, values.atPoint2(key))
+        else:
+            out.insert(key, values.atPose2(key))
+    return out
+
+
+def test_the_spec_pickles_and_rebuilds_the_same_factor() -> None:
+    theta = _theta()
+    factor = relative_marginal(_random_gaussian(2), theta, KEYS[2])
+    again = RelativeMarginalFactor(pickle.loads(pickle.dumps(factor.spec)))
+    at = gtsam.Values(theta)
+    _retract(at, KEYS[0], np.array([0.2, -0.1, 0.3]))
+    assert list(again.keys()) == list(factor.keys())
+    assert again.error(at) == pytest.approx(factor.error(at), rel=1e-12)
