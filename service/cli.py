@@ -82,6 +82,17 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--ground-truth", type=Path, help="TUM ground truth: print ATE RMSE")
     _add_map_options(rp)
 
+    sv = sub.add_parser(
+        "serve",
+        help="run the HTTP service (REST API v1) with its embedded SQLite store",
+        description="Settings come from COVSLAM_* environment variables (nested with __); "
+        "options given here override them.",
+    )
+    sv.add_argument("--host", help="bind address (default 127.0.0.1, COVSLAM_HOST)")
+    sv.add_argument("--port", type=int, help="TCP port (default 8000, COVSLAM_PORT)")
+    sv.add_argument("--data-dir", type=Path, help="store directory (default ./covslam-data)")
+    sv.add_argument("--workers", type=int, help="worker processes (default: CPU count)")
+
     sp = sub.add_parser("simulate", help="write a simulated indoor run as a frames file")
     sp.add_argument("frames_out", type=Path, help="frames file to write (JSON lines)")
     sp.add_argument("--ground-truth", type=Path, required=True, help="TUM file to write")
@@ -148,6 +159,37 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from api.app import create_app
+    from service.settings import Settings
+
+    overrides: dict[str, object] = {}
+    if args.host is not None:
+        overrides["host"] = args.host
+    if args.port is not None:
+        overrides["port"] = args.port
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    settings = Settings(**overrides)  # type: ignore[arg-type]
+    if args.workers is not None:
+        settings.workers.count = args.workers
+    logging.getLogger().setLevel(settings.log_level.upper())
+    log.info(
+        "serving on http://%s:%d, store in %s", settings.host, settings.port, settings.data_dir
+    )
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        access_log=False,
+        timeout_graceful_shutdown=5,
+    )
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
@@ -156,6 +198,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command == "replay":
         return _replay(args)
+    if args.command == "serve":
+        return _serve(args)
     return _simulate(args)
 
 

@@ -1,0 +1,488 @@
+"""MapSession: one map's pipeline around `BearingSlam`, with its durable log.
+
+A session lives in the worker process that owns the map. `submit` is the frame
+use case: parse, idempotency check, order check, append to the log (committed),
+process, store the result with its events and removals, snapshot periodically.
+`MapSession.open` rebuilds a map from its database: the latest snapshot, then
+the log's tail replayed through the estimator.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import shutil
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
+from graph.policies import LandmarkTable, coverage_clusters, information_content
+from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
+from graph.snapshot import SnapshotError, capture, last_accepted, latest_pose_keys, restore
+from graph.validation import validate_frame
+from service.coverage import coverage_grid
+from service.errors import ServiceError, invalid_frame, out_of_order
+from service.evaluation import Trajectory, write_tum
+from service.frames_io import frame_from_dict, frame_to_dict
+from service.mapconfig import MapConfig, slam_config, slam_config_dict
+from service.settings import StoreSettings
+from service.store import MapRecord, MapStore, StoredFrame
+
+log = logging.getLogger(__name__)
+
+EXPORT_FORMAT = "covslam.map"
+EXPORT_VERSION = 1
+
+
+def canonical_frame(body: dict[str, Any]) -> tuple[Any, str]:
+    """Parse a frame object; (FrameInput, canonical JSON text used for idempotency)."""
+    try:
+        frame = frame_from_dict(body)
+    except InvalidFrame as exc:
+        raise invalid_frame(exc.field, exc.detail) from exc
+    text = json.dumps(frame_to_dict(frame), sort_keys=True, separators=(",", ":"))
+    return frame, text
+
+
+class _RemovalBuffer:
+    """Collects the removals of one frame (the estimator's removal sink)."""
+
+    def __init__(self) -> None:
+        self.items: list[RemovalRecord] = []
+
+    def __call__(self, record: RemovalRecord) -> None:
+        self.items.append(record)
+
+    def take(self) -> list[RemovalRecord]:
+        items, self.items = self.items, []
+        return items
+
+
+def remove_map_files(path: Path) -> None:
+    """Delete a map's database and its WAL/SHM companions."""
+    for suffix in ("", "-wal", "-shm"):
+        p = Path(str(path) + suffix)
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+
+
+class MapSession:
+    """One map: estimator + store. Not thread-safe; one worker process calls it."""
+
+    def __init__(self, path: Path, settings: StoreSettings) -> None:
+        self.path = path
+        self._settings = settings
+        self.store = MapStore(path, synchronous=settings.synchronous)
+        meta = self.store.get_meta("record")
+        if meta is None:
+            self.store.close()
+            raise ServiceError(
+                500, "corrupt-map", "Map store incomplete", f"{path.name} has no map record"
+            )
+        self.record = MapRecord.from_dict(meta)
+        self._removals = _RemovalBuffer()
+        self._timing: deque[float] = deque(maxlen=1000)
+        self.replay_errors = 0
+        self.slam, self._last_log_id, self._since_snapshot = self._load()
+
+    # ------------------------------------------------------------ lifecycle
+    @classmethod
+    def create(cls, path: Path, record: MapRecord, settings: StoreSettings) -> MapSession:
+        """A new, empty map (an orphaned file of the same id is replaced)."""
+        slam_config(record.config, record.mode)  # refuse a bad config before writing anything
+        remove_map_files(path)
+        store = MapStore(path, synchronous=settings.synchronous)
+        store.set_meta("record", record.as_dict())
+        store.close()
+        return cls(path, settings)
+
+    def close(self) -> None:
+        self.store.close()
+
+    def _fresh(self) -> BearingSlam:
+        config = slam_config(self.record.config, self.record.mode)
+        seed = MapConfig.model_validate(self.record.config).seed
+        return BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=self._removals)
+
+    def _load(self) -> tuple[BearingSlam, int, int]:
+        """Latest snapshot + the log's tail: (estimator, last log id, frames since snapshot)."""
+        t0 = time.perf_counter()
+        snap = self.store.latest_snapshot()
+        slam, upto = self._fresh(), 0
+        if snap is not None:
+            try:
+                slam = restore(snap[1], removal_sink=self._removals)
+                slam.config = slam_config(self.record.config, self.record.mode)
+                upto = snap[0]
+            except SnapshotError:
+                log.exception("map %s: unreadable snapshot, replaying the whole log", self.path)
+                slam, upto = self._fresh(), 0
+        tail = self.store.frames_after(upto)
+        last = upto
+        for stored in tail:
+            self._replay(slam, stored)
+            last = stored.id
+        log.info(
+            "map %s: loaded snapshot up to frame %d + %d log frames in %.0f ms",
+            self.record.id,
+            upto,
+            len(tail),
+            1e3 * (time.perf_counter() - t0),
+        )
+        return slam, last, len(tail)
+
+    def _replay(self, slam: BearingSlam, stored: StoredFrame) -> None:
+        frame = frame_from_dict(json.loads(stored.body))
+        try:
+            outcome = slam.process(frame, with_covariance=stored.result is None)
+        except (InvalidFrame, EstimationError):
+            self.replay_errors += 1
+            self._removals.take()
+            if stored.result is None:  # never acknowledged: drop it
+                log.warning("map %s: dropping unprocessable log frame %d", self.path, stored.id)
+                self.store.delete_frame(stored.id)
+            else:
+                log.exception(
+                    "map %s: acknowledged frame %d failed on replay", self.path, stored.id
+                )
+            return
+        removals = self._removals.take()
+        if stored.result is None:  # appended but not completed before a crash
+            result = self._result_doc(slam, outcome, stored.id, {})
+            self._complete(slam, stored.id, result, outcome, removals)
+
+    def _maybe_snapshot(self) -> None:
+        self._since_snapshot += 1
+        if self._since_snapshot >= self._settings.snapshot_every:
+            self.snapshot()
+
+    def snapshot(self) -> None:
+        self.store.save_snapshot(
+            self._last_log_id, capture(self.slam), keep=self._settings.snapshots_kept
+        )
+        self.store.prune_events(self._settings.events_kept)
+        self._since_snapshot = 0
+
+    def set_mode(self, mode: str) -> None:
+        self.record = MapRecord(
+            self.record.id, self.record.name, mode, self.record.config, self.record.created
+        )
+        self.store.set_meta("record", self.record.as_dict())
+        self.slam.config = slam_config(self.record.config, mode)
+
+    # ------------------------------------------------------------ the frame use case
+    def submit(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Take one frame object; {"result", "replayed", "event_ids", "live", "marginalised"}."""
+        t0 = time.perf_counter()
+        frame, text = canonical_frame(body)
+        stored = self.store.find_frame(frame.robot, frame.seq)
+        if stored is not None:
+            if stored.body == text and stored.result is not None:
+                return {"result": json.loads(stored.result), "replayed": True, "event_ids": []}
+            raise ServiceError(
+                409,
+                "duplicate-seq",
+                "Duplicate frame",
+                f"seq: robot {frame.robot!r} already sent a different frame with seq "
+                f"{frame.seq}; a retry must repeat the frame exactly",
+                field="seq",
+            )
+        last = last_accepted(self.slam).get(frame.robot)
+        try:
+            validate_frame(
+                frame,
+                last_seq=None if last is None else last[0],
+                last_stamp=None if last is None else last[1],
+            )
+        except OutOfOrderFrame as exc:
+            raise out_of_order(exc.field, exc.detail) from exc
+        except InvalidFrame as exc:
+            raise invalid_frame(exc.field, exc.detail) from exc
+        log_id = self.store.append_frame(frame.robot, frame.seq, text)
+        t1 = time.perf_counter()
+        try:
+            outcome = self.slam.process(frame, with_covariance=True)
+        except InvalidFrame as exc:
+            self.store.delete_frame(log_id)
+            self._removals.take()
+            raise invalid_frame(exc.field, exc.detail) from exc
+        except EstimationError as exc:
+            self.store.delete_frame(log_id)
+            self._removals.take()
+            self.slam, self._last_log_id, self._since_snapshot = self._load()
+            raise ServiceError(
+                422,
+                "estimation-failed",
+                "Estimation failed",
+                f"the estimator could not take this frame ({exc}); the map is as before",
+            ) from exc
+        removals = self._removals.take()
+        result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0)})
+        t2 = time.perf_counter()
+        event_ids = self._complete(self.slam, log_id, result, outcome, removals)
+        result["timing_ms"]["store"] = 1e3 * (time.perf_counter() - t2)
+        self._last_log_id = log_id
+        self._timing.append(1e3 * (time.perf_counter() - t0))
+        self._maybe_snapshot()
+        return {
+            "result": result,
+            "replayed": False,
+            "event_ids": event_ids,
+            "live": outcome.live,
+            "marginalised": len(outcome.marginalised),
+        }
+
+    def _result_doc(
+        self, slam: BearingSlam, outcome: FrameOutcome, log_id: int, timing: dict[str, float]
+    ) -> dict[str, Any]:
+        cov = outcome.covariance
+        return {
+            "frame_id": log_id,
+            "robot": outcome.robot,
+            "seq": outcome.seq,
+            "stamp": outcome.stamp,
+            "pose": {"x": outcome.pose.x, "y": outcome.pose.y, "theta": outcome.pose.theta},
+            "covariance": None if cov is None else np.asarray(cov).tolist(),
+            "localisation": {"status": "tracking", "place": None, "confidence": None},
+            "landmarks": {
+                "observed": list(outcome.observed),
+                "added": list(outcome.added),
+                "marginalised": list(outcome.marginalised),
+                "live": outcome.live,
+            },
+            "timing_ms": {**outcome.timing_ms, **timing},
+        }
+
+    def _complete(
+        self,
+        slam: BearingSlam,
+        log_id: int,
+        result: dict[str, Any],
+        outcome: FrameOutcome,
+        removals: list[RemovalRecord],
+    ) -> list[int]:
+        events: list[tuple[str, str]] = [("frame", json.dumps(result))]
+        for lid in outcome.added:
+            if lid in slam.landmarks:
+                x, y = (float(v) for v in slam.landmark_position(lid))
+                doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
+                events.append(("landmark_added", json.dumps({**doc, "frame_id": log_id})))
+        rows = []
+        for r in removals:
+            doc = {**r.as_dict(), "frame_id": log_id}
+            events.append(("landmark_marginalised", json.dumps(doc)))
+            rows.append((r.landmark_id, r.frame, json.dumps(doc)))
+        return self.store.complete_frame(log_id, json.dumps(result), events, rows)
+
+    # ------------------------------------------------------------ queries
+    def summary(self) -> dict[str, Any]:
+        ms = np.asarray(self._timing) if self._timing else None
+        return {
+            **self.record.as_dict(),
+            "estimator": slam_config_dict(self.slam.config),
+            "counts": {
+                "frames": self.slam.frame_count,
+                "robots": len(self.slam.robots),
+                "live_landmarks": len(self.slam.landmarks),
+                "candidates": self.slam.candidate_count,
+                "removals": self.store.removal_count(),
+                "graph_variables": self.slam.graph.num_variables,
+                "graph_factors": self.slam.graph.num_factors,
+                "replay_errors": self.replay_errors,
+            },
+            "robots": self.slam.robots,
+            "timing_ms": None
+            if ms is None
+            else {
+                "frames": len(ms),
+                "mean": float(ms.mean()),
+                "p50": float(np.percentile(ms, 50)),
+                "p99": float(np.percentile(ms, 99)),
+            },
+        }
+
+    def pose(self) -> dict[str, Any]:
+        keys = latest_pose_keys(self.slam)
+        last = last_accepted(self.slam)
+        robots = {}
+        for name, key in keys.items():
+            p = self.slam.graph.pose(key)
+            cov = self.slam.graph.pose_covariance(key)
+            robots[name] = {
+                "seq": last[name][0],
+                "stamp": last[name][1],
+                "pose": {"x": float(p.x()), "y": float(p.y()), "theta": float(p.theta())},
+                "covariance": np.asarray(cov).tolist(),
+                "localisation": {"status": "tracking", "place": None, "confidence": None},
+            }
+        return {"map_id": self.record.id, "robots": robots}
+
+    def trajectory(self, robot: str | None = None) -> dict[str, list[dict[str, float]]]:
+        if robot is not None and robot not in self.slam.robots:
+            raise ServiceError(
+                404,
+                "unknown-robot",
+                "Unknown robot",
+                f"robot: map {self.record.id!r} has no robot {robot!r} "
+                f"(robots: {', '.join(self.slam.robots) or 'none'})",
+                field="robot",
+            )
+        out = {}
+        for name, rows in self.slam.trajectory(robot).items():
+            out[name] = [
+                {"seq": int(r[0]), "stamp": float(r[1]), "x": r[2], "y": r[3], "theta": r[4]}
+                for r in rows.tolist()
+            ]
+        return out
+
+    def _table(self) -> tuple[LandmarkTable, np.ndarray]:
+        ids = sorted(self.slam.landmarks)
+        records = [self.slam.landmarks[i] for i in ids]
+        cov = self.slam.landmark_covariances(ids) if ids else np.zeros((0, 2, 2), dtype=np.float64)
+        info = information_content(cov) if ids else np.zeros(0)
+        table = LandmarkTable(
+            ids=np.asarray(ids, dtype=np.int64),
+            observed_from=np.array([r.observed_from for r in records]).reshape(-1, 2),
+            counts=np.array([r.count for r in records], dtype=np.int64),
+            first_seen=np.array([r.added_frame for r in records], dtype=np.int64),
+            information=info,
+        )
+        return table, cov
+
+    def _clusters(self, table: LandmarkTable) -> tuple[np.ndarray, dict[str, Any] | None]:
+        if len(table) == 0:
+            return np.zeros(0, dtype=np.int64), None
+        seed = MapConfig.model_validate(self.record.config).seed
+        clusters = coverage_clusters(table, rng=np.random.default_rng(seed))
+        doc = {
+            "k": clusters.k,
+            "clusters": [
+                {
+                    "index": c,
+                    "members": [int(i) for i in table.ids[clusters.labels == c]],
+                    "centre": {
+                        "x": float(clusters.centres[c, 0]),
+                        "y": float(clusters.centres[c, 1]),
+                    },
+                    "spread": float(clusters.spreads[c]),
+                }
+                for c in range(clusters.k)
+            ],
+        }
+        return clusters.labels, doc
+
+    def landmarks(self) -> list[dict[str, Any]]:
+        table, cov = self._table()
+        labels, _ = self._clusters(table)
+        assert table.information is not None
+        out = []
+        for row, lid in enumerate(table.ids.tolist()):
+            record = self.slam.landmarks[lid]
+            x, y = (float(v) for v in self.slam.landmark_position(lid))
+            out.append(
+                {
+                    "id": lid,
+                    "label": record.label,
+                    "x": x,
+                    "y": y,
+                    "covariance": cov[row].tolist(),
+                    "information": float(table.information[row]),
+                    "observed_from": {
+                        "x": float(record.observed_from[0]),
+                        "y": float(record.observed_from[1]),
+                        "n": record.count,
+                    },
+                    "cluster": int(labels[row]),
+                    "first_stamp": record.first_stamp,
+                    "last_stamp": record.last_stamp,
+                }
+            )
+        return out
+
+    def coverage(self, *, cell_m: float, radius_m: float, removals: int) -> dict[str, Any]:
+        table, _ = self._table()
+        _, clusters = self._clusters(table)
+        positions = [rows[:, 2:4] for rows in self.slam.trajectory().values()]
+        xy = np.concatenate(positions) if positions else np.zeros((0, 2))
+        assert table.information is not None
+        return {
+            "map_id": self.record.id,
+            "live_landmarks": len(table),
+            "clusters": clusters["clusters"] if clusters else [],
+            "landmarks": [
+                {
+                    "id": int(lid),
+                    "observed_from": {
+                        "x": float(table.observed_from[i, 0]),
+                        "y": float(table.observed_from[i, 1]),
+                        "n": int(table.counts[i]),
+                    },
+                    "information": float(table.information[i]),
+                }
+                for i, lid in enumerate(table.ids)
+            ],
+            "grid": coverage_grid(xy, table.observed_from, cell_m=cell_m, radius_m=radius_m),
+            "removal_count": self.store.removal_count(),
+            "removals": self.store.removals(limit=removals),
+        }
+
+    # ------------------------------------------------------------ export / import
+    def export(self) -> dict[str, Any]:
+        frames = []
+        for stored in self.store.frames_after(0):
+            frames.append(
+                {
+                    "frame": json.loads(stored.body),
+                    "result": None if stored.result is None else json.loads(stored.result),
+                }
+            )
+        return {
+            "format": EXPORT_FORMAT,
+            "version": EXPORT_VERSION,
+            "exported": time.time(),
+            "map": self.record.as_dict(),
+            "estimator": slam_config_dict(self.slam.config),
+            "landmarks": self.landmarks(),
+            "trajectories": self.trajectory(),
+            "removals": self.store.removals(),
+            "frames": frames,
+        }
+
+    def import_frames(self, frames: list[dict[str, Any]]) -> None:
+        """Replay an export's frame log into this (new, empty) map."""
+        for i, item in enumerate(frames):
+            if not isinstance(item, dict) or not isinstance(item.get("frame"), dict):
+                raise ServiceError(
+                    422,
+                    "invalid-import",
+                    "Invalid map document",
+                    f"frames[{i}].frame: must be a frame object",
+                    field=f"frames[{i}].frame",
+                )
+            try:
+                self.submit(item["frame"])
+            except ServiceError as exc:
+                raise ServiceError(
+                    422,
+                    "invalid-import",
+                    "Invalid map document",
+                    f"frames[{i}].frame: {exc.detail}",
+                    field=f"frames[{i}].frame",
+                ) from exc
+        self.snapshot()
+
+
+def tum_text(rows: list[dict[str, float]]) -> str:
+    """TUM lines ``stamp x y 0 0 0 qz qw`` of trajectory rows (as `trajectory` returns)."""
+    stamps = np.array([r["stamp"] for r in rows], dtype=np.float64)
+    poses = np.array([[r["x"], r["y"], r["theta"]] for r in rows], dtype=np.float64)
+    buf = io.StringIO()
+    write_tum(buf, Trajectory.from_poses(stamps, poses.reshape(-1, 3)))  # type: ignore[arg-type]
+    return buf.getvalue()
