@@ -61,6 +61,7 @@ class Metrics:
         self.frames.labels(map_id).inc()
         for stage, ms in reply["result"]["timing_ms"].items():
             self.stage.labels(stage).observe(ms)
+        self.stage.labels("store").observe(reply.get("store_ms", 0.0))
         self.stage.labels("http").observe(http_ms)
         self.live.labels(map_id).set(reply.get("live", 0))
         self.marginalisations.labels(map_id).inc(reply.get("marginalised", 0))

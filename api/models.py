@@ -81,24 +81,24 @@ class MapPublic(BaseModel):
     """A map's summary."""
 
     id: str = Field(description="the map's id, used in every other path")
-    name: str
-    mode: Mode
+    name: str = Field(description="human-readable name")
+    mode: Mode = Field(description="'mapping' or 'localisation' (no new landmarks)")
     config: dict[str, Any] = Field(description="the map config as created (see MapConfig)")
     created: float = Field(description="creation time, seconds since the Unix epoch")
     estimator: dict[str, Any] = Field(
         description="every estimator parameter (SI units: metres, radians)"
     )
-    counts: MapCounts
+    counts: MapCounts = Field(description="sizes of the map and its graph")
     robots: list[str] = Field(description="robot names in the order they joined")
     timing_ms: TimingStats | None = Field(description="worker time per frame; null before any")
     worker: int | None = Field(None, description="index of the worker process owning the map")
 
 
 class MapBrief(BaseModel):
-    id: str
-    name: str
-    mode: Mode
-    config: dict[str, Any]
+    id: str = Field(description="the map's id")
+    name: str = Field(description="human-readable name")
+    mode: Mode = Field(description="'mapping' or 'localisation'")
+    config: dict[str, Any] = Field(description="the map config as created (see MapConfig)")
     created: float = Field(description="seconds since the Unix epoch")
 
 
@@ -150,7 +150,9 @@ class FrameIn(BaseModel):
     initial_pose: PoseXYTheta | None = Field(
         None, description="required on a robot's first frame (until the place localiser lands)"
     )
-    observations: list[ObservationIn] = Field(default_factory=list)
+    observations: list[ObservationIn] = Field(
+        default_factory=list, description="bearings seen in this frame (absent = none)"
+    )
 
 
 class Localisation(BaseModel):
@@ -172,16 +174,16 @@ class FrameResult(BaseModel):
     """What one frame did to the map."""
 
     frame_id: int = Field(description="position of the frame in the map's log (1-based)")
-    robot: str
-    seq: int
+    robot: str = Field(description="robot name, as posted")
+    seq: int = Field(description="seq, as posted")
     stamp: float = Field(description="seconds, as posted")
     pose: PoseXYTheta = Field(description="the robot's estimated pose at this frame")
     covariance: list[list[float]] | None = Field(description=COV3)
-    localisation: Localisation
-    landmarks: LandmarkChanges
+    localisation: Localisation = Field(description="localisation status of the robot")
+    landmarks: LandmarkChanges = Field(description="what the frame did to the landmarks")
     timing_ms: dict[str, float] = Field(
         description="worker time per stage, milliseconds (prepare, update, budget, "
-        "covariance, total; log = append to the durable log; store = storing the result)"
+        "covariance, total; log = parse, checks and the committed append to the durable log)"
     )
 
 
@@ -193,16 +195,16 @@ class RobotPose(BaseModel):
     stamp: float = Field(description="stamp of that frame, seconds")
     pose: PoseXYTheta = Field(description="current estimate of the latest pose")
     covariance: list[list[float]] = Field(description=COV3)
-    localisation: Localisation
+    localisation: Localisation = Field(description="localisation status of the robot")
 
 
 class PoseOut(BaseModel):
-    map_id: str
+    map_id: str = Field(description="the map's id")
     robots: dict[str, RobotPose] = Field(description="latest pose per robot name")
 
 
 class TrajectoryPoint(BaseModel):
-    seq: int
+    seq: int = Field(description="the frame's seq")
     stamp: float = Field(description="seconds")
     x: float = Field(description="metres, map frame")
     y: float = Field(description="metres, map frame")
@@ -210,7 +212,7 @@ class TrajectoryPoint(BaseModel):
 
 
 class TrajectoryOut(BaseModel):
-    map_id: str
+    map_id: str = Field(description="the map's id")
     robots: dict[str, list[TrajectoryPoint]] = Field(
         description="every frame's pose per robot: live poses carry the current estimate, "
         "marginalised poses the last estimate they had"
@@ -230,14 +232,16 @@ class LandmarkOut(BaseModel):
     y: float = Field(description="metres, map frame")
     covariance: list[list[float]] = Field(description="2x2 marginal covariance of (x, y), m²")
     information: float = Field(description="I = 1/var_x + 1/var_y, 1/m²")
-    observed_from: ObservedFrom
+    observed_from: ObservedFrom = Field(
+        description="running mean E(X) of the robot positions it was observed from (metres)"
+    )
     cluster: int = Field(description="coverage cluster index (see /coverage)")
     first_stamp: float = Field(description="stamp of the first observation, seconds")
     last_stamp: float = Field(description="stamp of the latest observation, seconds")
 
 
 class Cluster(BaseModel):
-    index: int
+    index: int = Field(description="cluster index, referenced by LandmarkOut.cluster")
     members: list[int] = Field(description="landmark ids")
     centre: dict[str, float] = Field(
         description="L1 centre of the members' observation positions {x, y}, metres"
@@ -246,15 +250,24 @@ class Cluster(BaseModel):
 
 
 class CoverageLandmark(BaseModel):
-    id: int
-    observed_from: ObservedFrom
+    id: int = Field(description="landmark id")
+    observed_from: ObservedFrom = Field(
+        description="running mean E(X) of the robot positions it was observed from (metres)"
+    )
     information: float = Field(description="I = 1/var_x + 1/var_y, 1/m²")
+
+
+class Hole(BaseModel):
+    ix: int = Field(description="cell column (along x)")
+    iy: int = Field(description="cell row (along y)")
+    x: float = Field(description="cell centre x, metres, map frame")
+    y: float = Field(description="cell centre y, metres, map frame")
 
 
 class CoverageGrid(BaseModel):
     cell_m: float = Field(description="cell side, metres")
     radius_m: float = Field(description="'nearby' radius around a cell centre, metres")
-    origin: dict[str, float] = Field(description="map-frame corner {x, y} of cell (0, 0), m")
+    origin: dict[str, float] = Field(description="map-frame corner {x, y} of cell (0, 0), metres")
     width: int = Field(description="cells along x")
     height: int = Field(description="cells along y")
     counts: list[list[int | None]] = Field(
@@ -262,25 +275,21 @@ class CoverageGrid(BaseModel):
         "within radius_m of the cell centre; null for cells no robot visited"
     )
     explored_cells: int = Field(description="cells some pose lies in")
-    holes: list[dict[str, float]] = Field(
-        description="explored cells with count 0: {ix, iy, x, y} (centre, metres)"
-    )
+    holes: list[Hole] = Field(description="explored cells with count 0")
 
 
 class CoverageOut(BaseModel):
-    map_id: str
-    live_landmarks: int
+    map_id: str = Field(description="the map's id")
+    live_landmarks: int = Field(description="landmarks in the graph")
     clusters: list[Cluster] = Field(
         description="k = ceil(live/4) L1 k-means clusters of the observation positions"
     )
-    landmarks: list[CoverageLandmark]
-    grid: CoverageGrid
+    landmarks: list[CoverageLandmark] = Field(
+        description="each live landmark's E(X) and information content"
+    )
+    grid: CoverageGrid = Field(description="coverage grid over the explored area, with holes")
     removal_count: int = Field(description="landmarks marginalised so far")
     removals: list[dict[str, Any]] = Field(
         description="the latest removals with reasons: frame, stamp, landmark_id, label, "
         "x, y (m), observed_from, policy, reason, details"
     )
-
-
-class ImportReport(MapPublic):
-    pass

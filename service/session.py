@@ -227,7 +227,7 @@ class MapSession:
         result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0)})
         t2 = time.perf_counter()
         event_ids = self._complete(self.slam, log_id, result, outcome, removals)
-        result["timing_ms"]["store"] = 1e3 * (time.perf_counter() - t2)
+        store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
         self._maybe_snapshot()
@@ -237,6 +237,7 @@ class MapSession:
             "event_ids": event_ids,
             "live": outcome.live,
             "marginalised": len(outcome.marginalised),
+            "store_ms": store_ms,
         }
 
     def _result_doc(
