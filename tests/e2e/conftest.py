@@ -47,10 +47,16 @@ class Server:
         with self.log.open("ab") as log:
             self.proc = subprocess.Popen(
                 [
-                    sys.executable, "-m", "service.cli", "serve",
-                    "--port", str(self.port),
-                    "--data-dir", str(self.data_dir),
-                    "--workers", str(self.workers),
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "serve",
+                    "--port",
+                    str(self.port),
+                    "--data-dir",
+                    str(self.data_dir),
+                    "--workers",
+                    str(self.workers),
                 ],
                 cwd=REPO,
                 env=self.env,
