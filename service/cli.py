@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
+from graph.types import FrameInput
 from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
@@ -80,6 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("directory", nargs="?", type=Path, help="with 'mrclam': the dataset folder")
     rp.add_argument("--robot", type=int, default=1, help="with 'mrclam': robot 1-5")
     rp.add_argument("--ground-truth", type=Path, help="TUM ground truth: print ATE RMSE")
+    rp.add_argument(
+        "--url",
+        help="post the frames to a running service (e.g. http://127.0.0.1:8000) instead of "
+        "replaying in-process; retries on 503; then fetches the TUM trajectory",
+    )
+    rp.add_argument("--map-id", help="with --url: post into this existing map")
     _add_map_options(rp)
 
     sv = sub.add_parser(
@@ -124,6 +132,8 @@ def _replay(args: argparse.Namespace) -> int:
         frames = list(read_frames(args.source))
         gt = read_tum(args.ground_truth) if args.ground_truth else None
         robot = frames[0].robot if frames else ""
+    if args.url:
+        return _replay_http(args, frames, gt, robot)
     result = replay(
         frames, config=_config(args), seed=args.seed, total=len(frames), progress=args.progress
     )
@@ -145,6 +155,38 @@ def _replay(args: argparse.Namespace) -> int:
             f", ATE RMSE {stats['ate_rmse_m']:.3f} m "
             f"(dead reckoning {stats['dead_reckoning_ate_rmse_m']:.3f} m)"
         )
+    sys.stdout.write(summary + "\n")
+    return 0
+
+
+def _replay_http(
+    args: argparse.Namespace, frames: list[FrameInput], gt: Trajectory | None, robot: str
+) -> int:
+    from service.http_client import fetch_tum, replay_http
+
+    config = {
+        "landmark_cap": args.landmark_cap,
+        "policy": args.policy,
+        "pose_window": args.pose_window,
+        "noise": {"huber_k": args.huber},
+        "seed": args.seed,
+    }
+    name = Path(str(args.directory or args.source)).name
+    run = replay_http(
+        frames, url=args.url, map_id=args.map_id, name=name, config=config, progress=args.progress
+    )
+    summary = run.summary()
+    if frames:
+        tum = fetch_tum(args.url, run.map_id, robot)
+        if args.trajectory:
+            args.trajectory.write_text(tum)
+        if gt is not None:
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "est.tum"
+                path.write_text(tum)
+                summary += f", ATE RMSE {ate_rmse(read_tum(path), gt):.3f} m"
+    if args.stats:
+        args.stats.write_text(json.dumps({"map_id": run.map_id, "latency_ms": run.latency_ms}))
     sys.stdout.write(summary + "\n")
     return 0
 
