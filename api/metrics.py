@@ -59,7 +59,7 @@ class Metrics:
             self.replayed.labels(map_id).inc()
             return
         self.frames.labels(map_id).inc()
-        for stage, ms in reply["result"]["timing_ms"].items():
+        for stage, ms in reply["timing_ms"].items():
             self.stage.labels(stage).observe(ms)
         self.stage.labels("store").observe(reply.get("store_ms", 0.0))
         self.stage.labels("http").observe(http_ms)

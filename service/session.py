@@ -156,7 +156,7 @@ class MapSession:
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
             result = self._result_doc(slam, outcome, stored.id, {})
-            self._complete(slam, stored.id, result, outcome, removals)
+            self._complete(slam, stored.id, json.dumps(result), outcome, removals)
 
     def _maybe_snapshot(self) -> None:
         self._since_snapshot += 1
@@ -179,13 +179,18 @@ class MapSession:
 
     # ------------------------------------------------------------ the frame use case
     def submit(self, body: dict[str, Any]) -> dict[str, Any]:
-        """Take one frame object; {"result", "replayed", "event_ids", "live", "marginalised"}."""
+        """Take one frame object.
+
+        Returns {"result_json" (the frame result as JSON text, exactly as stored),
+        "replayed" (True for an idempotent retry answered from the log), "timing_ms",
+        "store_ms", "event_ids", "live", "marginalised"}.
+        """
         t0 = time.perf_counter()
         frame, text = canonical_frame(body)
         stored = self.store.find_frame(frame.robot, frame.seq)
         if stored is not None:
             if stored.body == text and stored.result is not None:
-                return {"result": json.loads(stored.result), "replayed": True, "event_ids": []}
+                return {"result_json": stored.result, "replayed": True, "event_ids": []}
             raise ServiceError(
                 409,
                 "duplicate-seq",
@@ -226,13 +231,15 @@ class MapSession:
         removals = self._removals.take()
         result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0)})
         t2 = time.perf_counter()
-        event_ids = self._complete(self.slam, log_id, result, outcome, removals)
+        text = json.dumps(result)
+        event_ids = self._complete(self.slam, log_id, text, outcome, removals)
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
         self._maybe_snapshot()
         return {
-            "result": result,
+            "result_json": text,
+            "timing_ms": result["timing_ms"],
             "replayed": False,
             "event_ids": event_ids,
             "live": outcome.live,
@@ -265,11 +272,11 @@ class MapSession:
         self,
         slam: BearingSlam,
         log_id: int,
-        result: dict[str, Any],
+        result_json: str,
         outcome: FrameOutcome,
         removals: list[RemovalRecord],
     ) -> list[int]:
-        events: list[tuple[str, str]] = [("frame", json.dumps(result))]
+        events: list[tuple[str, str]] = [("frame", result_json)]
         for lid in outcome.added:
             if lid in slam.landmarks:
                 x, y = (float(v) for v in slam.landmark_position(lid))
@@ -280,7 +287,7 @@ class MapSession:
             doc = {**r.as_dict(), "frame_id": log_id}
             events.append(("landmark_marginalised", json.dumps(doc)))
             rows.append((r.landmark_id, r.frame, json.dumps(doc)))
-        return self.store.complete_frame(log_id, json.dumps(result), events, rows)
+        return self.store.complete_frame(log_id, result_json, events, rows)
 
     # ------------------------------------------------------------ queries
     def summary(self) -> dict[str, Any]:

@@ -59,7 +59,7 @@ _BODY = {
     },
 )
 async def post_frame(
-    map_id: MapId, request: Request, response: Response, service: ServiceDep, metrics: MetricsDep
+    map_id: MapId, request: Request, service: ServiceDep, metrics: MetricsDep
 ) -> Any:
     """Submit a frame; the result of processing it.
 
@@ -91,6 +91,6 @@ async def post_frame(
         metrics.rejected.labels(str(exc.status)).inc()
         raise
     metrics.record_frame(map_id, reply, 1e3 * (time.perf_counter() - t0))
-    if reply["replayed"]:
-        response.headers["Idempotent-Replayed"] = "true"
-    return reply["result"]
+    # The worker's JSON text goes out as stored: the same bytes for a retry.
+    headers = {"Idempotent-Replayed": "true"} if reply["replayed"] else None
+    return Response(reply["result_json"], media_type="application/json", headers=headers)

@@ -28,7 +28,7 @@ def _new(path: Path, every: int = 25) -> MapSession:
 def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None:
     path = tmp_path / "m1.sqlite"
     session = _new(path)
-    results = [session.submit(f)["result"] for f in FRAMES[:70]]
+    results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:70]]
     before = session.trajectory()["r1"]
     session.close()
 
@@ -42,7 +42,7 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None
     ]
     assert max(moved) < 5e-3
     replay = reopened.submit(FRAMES[40])
-    assert replay["replayed"] and replay["result"] == results[40]
+    assert replay["replayed"] and json.loads(replay["result_json"]) == results[40]
     assert not reopened.submit(FRAMES[70])["replayed"]
 
 
