@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from typing import Any
 
@@ -41,39 +40,6 @@ def problem(
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
-class BadRequest(Exception):
-    """A request body that is not acceptable JSON (400)."""
-
-    def __init__(self, detail: str) -> None:
-        super().__init__(detail)
-        self.detail = detail
-
-
-def _reject_constant(name: str) -> float:
-    raise BadRequest(f"body: {name} is not a number JSON allows; numbers must be finite")
-
-
-def _finite_float(text: str) -> float:
-    value = float(text)
-    if value in (float("inf"), float("-inf")):
-        raise BadRequest(f"body: {text} overflows to infinity; numbers must be finite")
-    return value
-
-
-def parse_json(raw: bytes) -> Any:
-    """Strict JSON: malformed text, NaN, Infinity and overflowing numbers are a 400."""
-    if not raw.strip():
-        raise BadRequest("body: empty; expected a JSON object")
-    try:
-        return json.loads(raw, parse_constant=_reject_constant, parse_float=_finite_float)
-    except json.JSONDecodeError as exc:
-        raise BadRequest(
-            f"body: malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}"
-        ) from exc
-    except UnicodeDecodeError as exc:
-        raise BadRequest(f"body: not UTF-8 text ({exc.reason})") from exc
-
-
 def _loc(loc: tuple[Any, ...]) -> str:
     parts = [p for p in loc if p not in ("body", "query", "path", "header")]
     out = ""
@@ -100,12 +66,6 @@ def install(app: FastAPI) -> None:
             exc.detail,
             instance=request.url.path,
             headers={"Retry-After": str(exc.retry_after_s)},
-        )
-
-    @app.exception_handler(BadRequest)
-    async def _bad(request: Request, exc: BadRequest) -> JSONResponse:
-        return problem(
-            400, "malformed-body", "Malformed body", exc.detail, instance=request.url.path
         )
 
     @app.exception_handler(RequestValidationError)

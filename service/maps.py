@@ -16,7 +16,6 @@ from typing import Any
 from service.errors import ServiceError, unknown_map
 from service.mapconfig import MapConfig, Mode, slam_config
 from service.pool import WorkerPool
-from service.session import EXPORT_FORMAT, EXPORT_VERSION
 from service.settings import Settings
 from service.store import Catalog, MapRecord, map_db_path
 
@@ -47,17 +46,13 @@ class MapService:
         self._records: dict[str, MapRecord] = {r.id: r for r in self._catalog.all()}
         self.pool = WorkerPool(settings, on_restart=on_worker_restart)
         self.notifier = Notifier()
-        self._watch: asyncio.Task[None] | None = None
         self.started = False
 
     async def start(self) -> None:
         await self.pool.start(self._records)
-        self._watch = asyncio.get_running_loop().create_task(self.pool.watch())
         self.started = True
 
     async def stop(self) -> None:
-        if self._watch is not None:
-            self._watch.cancel()
         await self.pool.stop()
         self._catalog.close()
 
@@ -138,49 +133,27 @@ class MapService:
         return map_db_path(self.settings.data_dir, map_id)
 
     # ------------------------------------------------------------ export / import
-    async def export(self, map_id: str) -> dict[str, Any]:
+    async def export(self, map_id: str) -> bytes:
+        """The map's export document as JSON bytes (serialised in the worker)."""
         self.record(map_id)
         timeout = max(self.settings.workers.request_timeout_s, 600.0)
-        doc: dict[str, Any] = await self.pool.call(map_id, "export", timeout_s=timeout)
-        return doc
+        text: bytes = await self.pool.call(map_id, "export", timeout_s=timeout)
+        return text
 
-    async def import_map(self, doc: dict[str, Any]) -> dict[str, Any]:
-        """A new map from an export document (its frame log is replayed)."""
-        if doc.get("format") != EXPORT_FORMAT:
-            raise _bad_import("format", f"must be {EXPORT_FORMAT!r}, got {doc.get('format')!r}")
-        if doc.get("version") != EXPORT_VERSION:
-            raise _bad_import(
-                "version", f"version {doc.get('version')!r} unsupported (this is {EXPORT_VERSION})"
-            )
-        meta = doc.get("map")
-        if not isinstance(meta, dict):
-            raise _bad_import("map", "must be an object with name, mode and config")
-        name, mode = meta.get("name"), meta.get("mode")
-        if not isinstance(name, str) or not name:
-            raise _bad_import("map.name", "must be a non-empty string")
-        if mode not in ("mapping", "localisation"):
-            raise _bad_import("map.mode", f"must be 'mapping' or 'localisation', got {mode!r}")
-        try:
-            config = MapConfig.model_validate(meta.get("config"))
-        except ValueError as exc:
-            raise _bad_import("map.config", str(exc)) from exc
-        frames = doc.get("frames")
-        if not isinstance(frames, list):
-            raise _bad_import("frames", "must be an array of {frame, result}")
-        # Replay in mapping mode (the log was built that way), then set the stored mode.
-        record = self._new_record(name, config, "mapping")
+    async def import_map(self, body: bytes) -> dict[str, Any]:
+        """A new map from an export document (bytes; parsed, checked and replayed by the
+        worker that will own the new map, so a large document never blocks the API)."""
+        map_id = self._new_id()
+        payload = {
+            "id": map_id,
+            "created": time.time(),
+            "body": body,
+            "default_cap": self.settings.default_landmark_cap,
+        }
         timeout = max(self.settings.workers.request_timeout_s, 600.0)
-        payload = {"record": record.as_dict(), "frames": frames}
-        await self.pool.call(record.id, "import", payload, timeout_s=timeout)
+        reply = await self.pool.call(map_id, "import", payload, timeout_s=timeout)
+        record = MapRecord.from_dict(reply["record"])
         self._catalog.add(record)
         self._records[record.id] = record
         self.pool.track(record.id)
-        if mode != "mapping":
-            await self.set_mode(record.id, mode)
-        return await self.summary(record.id)
-
-
-def _bad_import(field: str, detail: str) -> ServiceError:
-    return ServiceError(
-        422, "invalid-import", "Invalid map document", f"{field}: {detail}", field=field
-    )
+        return {**reply["summary"], "worker": self.pool.worker_of(record.id)}

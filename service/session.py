@@ -29,7 +29,8 @@ from service.coverage import coverage_grid
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.evaluation import Trajectory, write_tum
 from service.frames_io import frame_from_dict, frame_to_dict
-from service.mapconfig import MapConfig, slam_config, slam_config_dict
+from service.jsonio import loads_object
+from service.mapconfig import MapConfig, Mode, slam_config, slam_config_dict
 from service.settings import StoreSettings
 from service.store import MapRecord, MapStore, StoredFrame
 
@@ -485,6 +486,39 @@ class MapSession:
                     field=f"frames[{i}].frame",
                 ) from exc
         self.snapshot()
+
+
+def _bad_import(field: str, detail: str) -> ServiceError:
+    return ServiceError(
+        422, "invalid-import", "Invalid map document", f"{field}: {detail}", field=field
+    )
+
+
+def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any]]:
+    """Check an export document: (name, mode, config, frames); ServiceError 400/422."""
+    doc = loads_object(raw, "a covslam.map document")
+    if doc.get("format") != EXPORT_FORMAT:
+        raise _bad_import("format", f"must be {EXPORT_FORMAT!r}, got {doc.get('format')!r}")
+    if doc.get("version") != EXPORT_VERSION:
+        raise _bad_import(
+            "version", f"version {doc.get('version')!r} unsupported (this is {EXPORT_VERSION})"
+        )
+    meta = doc.get("map")
+    if not isinstance(meta, dict):
+        raise _bad_import("map", "must be an object with name, mode and config")
+    name, mode = meta.get("name"), meta.get("mode")
+    if not isinstance(name, str) or not name:
+        raise _bad_import("map.name", "must be a non-empty string")
+    if mode not in ("mapping", "localisation"):
+        raise _bad_import("map.mode", f"must be 'mapping' or 'localisation', got {mode!r}")
+    try:
+        config = MapConfig.model_validate(meta.get("config"))
+    except ValueError as exc:
+        raise _bad_import("map.config", str(exc)) from exc
+    frames = doc.get("frames")
+    if not isinstance(frames, list):
+        raise _bad_import("frames", "must be an array of {frame, result}")
+    return name, mode, config, frames
 
 
 def tum_text(rows: list[dict[str, float]]) -> str:

@@ -1,22 +1,28 @@
 """What runs inside a worker process: the maps it owns and one call per request.
 
-The API process sends ``call(op, map_id, payload)`` through a
-``ProcessPoolExecutor`` of one process; calls are taken strictly in order, so a
-map's frames are applied in the order they arrived. A map is opened on first use
+`serve` is the process's main loop: it reads ``(request id, op, map_id,
+payload)`` messages from its connection to the API process (see service.pool)
+and answers each in turn, strictly in order, so a map's frames are applied in
+the order they arrived. A map is opened on first use
 (latest snapshot + log tail) and kept open. Every answer is a plain dict:
 ``{"ok": True, "value": ...}`` or ``{"ok": False, "error": ServiceError.as_dict()}``.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import pickle
+import signal
 from collections.abc import Callable
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
 from service.errors import ServiceError, unknown_map
-from service.session import MapSession, remove_map_files
+from service.mapconfig import slam_config
+from service.session import MapSession, parse_export, remove_map_files
 from service.settings import Settings
 from service.store import MapRecord, map_db_path
 
@@ -29,6 +35,7 @@ _sessions: dict[str, MapSession] = {}
 def init_worker(settings: dict[str, Any], index: int) -> None:
     """Process initialiser: settings from the parent, logging."""
     global _settings
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C stops the API, which stops us
     _settings = Settings.model_validate(settings)
     logging.basicConfig(
         level=_settings.log_level.upper(),
@@ -81,13 +88,29 @@ def _delete(map_id: str, payload: dict[str, Any]) -> None:
 
 
 def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
-    _create(map_id, payload)
+    """A new map from an export document's bytes: parse, check, replay its frame log
+    (in mapping mode, as it was built), then set the document's mode."""
+    name, mode, config, frames = parse_export(payload["body"])
+    config = config.with_default_cap(payload["default_cap"])
     try:
-        _sessions[map_id].import_frames(payload["frames"])
+        slam_config(config.model_dump(mode="json"), mode)
+    except ValueError as exc:
+        raise ServiceError(422, "invalid-import", "Invalid map document", f"map.config: {exc}")
+    record = MapRecord(map_id, name, "mapping", config.model_dump(mode="json"), payload["created"])
+    _create(map_id, {"record": record.as_dict()})
+    try:
+        session = _sessions[map_id]
+        session.import_frames(frames)
+        if mode != "mapping":
+            session.set_mode(mode)
     except BaseException:
         _delete(map_id, {})
         raise
-    return _sessions[map_id].summary()
+    return {"record": session.record.as_dict(), "summary": session.summary()}
+
+
+def _export(map_id: str, payload: dict[str, Any]) -> bytes:
+    return json.dumps(_session(map_id).export(), separators=(",", ":")).encode()
 
 
 def _set_mode(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
@@ -109,8 +132,24 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "trajectory": lambda m, p: _session(m).trajectory(p.get("robot")),
     "landmarks": lambda m, p: _session(m).landmarks(),
     "coverage": lambda m, p: _session(m).coverage(**p),
-    "export": lambda m, p: _session(m).export(),
+    "export": _export,
 }
+
+
+def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
+    """Main loop of a worker process; returns when the API process goes away."""
+    init_worker(settings, index)
+    while True:
+        try:
+            message = conn.recv_bytes()
+        except (EOFError, OSError):
+            return
+        request_id, op, map_id, payload = pickle.loads(message)
+        reply = call(op, map_id, payload)
+        try:
+            conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
+        except (BrokenPipeError, OSError):
+            return
 
 
 def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:

@@ -8,9 +8,10 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 
 from api.deps import MapId, MetricsDep, ServiceDep
-from api.errors import BadRequest, parse_json, problem
+from api.errors import problem
 from api.models import FrameResult, Problem
 from service.errors import ServiceError
+from service.jsonio import loads_object
 
 router = APIRouter(prefix="/v1/maps/{map_id}/frames", tags=["frames"])
 
@@ -80,13 +81,8 @@ async def post_frame(
             instance=request.url.path,
         )
     try:
-        body = parse_json(await request.body())
-        if not isinstance(body, dict):
-            raise BadRequest("body: must be a JSON object (a frame)")
+        body = loads_object(await request.body(), "a frame")
         reply = await service.submit(map_id, body)
-    except BadRequest:
-        metrics.rejected.labels("400").inc()
-        raise
     except ServiceError as exc:
         metrics.rejected.labels(str(exc.status)).inc()
         raise

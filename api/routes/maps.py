@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 from fastapi import APIRouter, Request, Response, status
 
 from api.deps import MapId, ServiceDep
-from api.errors import BadRequest, parse_json
 from api.models import MapBrief, MapCreate, MapPatch, MapPublic, Problem
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
@@ -54,10 +52,8 @@ async def list_maps(service: ServiceDep) -> list[dict[str, Any]]:
 )
 async def import_map(request: Request, service: ServiceDep, response: Response) -> dict[str, Any]:
     """Restore an exported map as a new map (new id)."""
-    doc = await asyncio.to_thread(parse_json, await request.body())
-    if not isinstance(doc, dict):
-        raise BadRequest("body: must be a JSON object (a covslam.map document)")
-    summary = await service.import_map(doc)
+    # The worker parses and checks the document: a large body never holds the API's GIL.
+    summary = await service.import_map(await request.body())
     response.headers["Location"] = f"/v1/maps/{summary['id']}"
     return summary
 
@@ -86,9 +82,9 @@ async def export_map(map_id: MapId, service: ServiceDep) -> Response:
     """The whole map as one versioned JSON document (format covslam.map, version 1):
     map record and config, estimator parameters, landmarks with covariances and
     observation statistics, trajectories, removal log, and the frame log with results."""
-    doc = await service.export(map_id)
-    from fastapi.responses import JSONResponse
-
-    return JSONResponse(
-        doc, headers={"Content-Disposition": f'attachment; filename="covslam-map-{map_id}.json"'}
+    text = await service.export(map_id)  # JSON bytes, serialised by the worker
+    return Response(
+        text,
+        media_type="application/json",
+        headers={"Content-Disposition": f'attachment; filename="covslam-map-{map_id}.json"'},
     )
