@@ -95,7 +95,8 @@ def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     try:
         slam_config(config.model_dump(mode="json"), mode)
     except ValueError as exc:
-        raise ServiceError(422, "invalid-import", "Invalid map document", f"map.config: {exc}")
+        detail = f"map.config: {exc}"
+        raise ServiceError(422, "invalid-import", "Invalid map document", detail) from exc
     record = MapRecord(map_id, name, "mapping", config.model_dump(mode="json"), payload["created"])
     _create(map_id, {"record": record.as_dict()})
     try:
