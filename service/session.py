@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 
 EXPORT_FORMAT = "covslam.map"
 EXPORT_VERSION = 1
+MAX_REPLAY_ATTEMPTS = 2
+"""Reloads that may retry an unfinished log frame before it is dropped as a poison pill."""
 
 
 def canonical_frame(body: dict[str, Any]) -> tuple[Any, str]:
@@ -140,6 +142,24 @@ class MapSession:
         return slam, last, len(tail)
 
     def _replay(self, slam: BearingSlam, stored: StoredFrame) -> None:
+        if stored.result is None:
+            # Logged but never finished: the process died while handling it. If that
+            # happened on every reload as well, the frame itself kills the worker
+            # (a poison pill): drop it instead of crashing forever.
+            if stored.attempts >= MAX_REPLAY_ATTEMPTS:
+                log.error(
+                    "map %s: dropping log frame %d (robot %s seq %d): the worker died "
+                    "%d times processing it",
+                    self.record.id,
+                    stored.id,
+                    stored.robot,
+                    stored.seq,
+                    stored.attempts + 1,
+                )
+                self.replay_errors += 1
+                self.store.delete_frame(stored.id)
+                return
+            self.store.count_attempt(stored.id)
         frame = frame_from_dict(json.loads(stored.body))
         try:
             outcome = slam.process(frame, with_covariance=stored.result is None)

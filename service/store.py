@@ -44,6 +44,7 @@ CREATE TABLE IF NOT EXISTS frames (
     seq INTEGER NOT NULL,
     body TEXT NOT NULL,
     result TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0,
     received REAL NOT NULL,
     UNIQUE (robot, seq)
 );
@@ -167,6 +168,7 @@ class StoredFrame:
     seq: int
     body: str
     result: str | None
+    attempts: int = 0
 
 
 class MapStore:
@@ -194,7 +196,7 @@ class MapStore:
     # the frame log
     def find_frame(self, robot: str, seq: int) -> StoredFrame | None:
         row = self._conn.execute(
-            "SELECT id, robot, seq, body, result FROM frames WHERE robot = ? AND seq = ?",
+            "SELECT id, robot, seq, body, result, attempts FROM frames WHERE robot = ? AND seq = ?",
             (robot, seq),
         ).fetchone()
         return None if row is None else StoredFrame(*row)
@@ -208,6 +210,13 @@ class MapStore:
             )
         assert cur.lastrowid is not None
         return cur.lastrowid
+
+    def count_attempt(self, frame_id: int) -> None:
+        """Note (durably) that an unfinished frame is about to be processed again."""
+        with transaction(self._conn):
+            self._conn.execute(
+                "UPDATE frames SET attempts = attempts + 1 WHERE id = ?", (frame_id,)
+            )
 
     def delete_frame(self, frame_id: int) -> None:
         with transaction(self._conn):
@@ -248,7 +257,7 @@ class MapStore:
 
     def frames_after(self, frame_id: int) -> list[StoredFrame]:
         rows = self._conn.execute(
-            "SELECT id, robot, seq, body, result FROM frames WHERE id > ? ORDER BY id",
+            "SELECT id, robot, seq, body, result, attempts FROM frames WHERE id > ? ORDER BY id",
             (frame_id,),
         ).fetchall()
         return [StoredFrame(*r) for r in rows]

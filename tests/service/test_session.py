@@ -77,3 +77,21 @@ def test_duplicates_and_order(tmp_path: Path) -> None:
         session.submit({**FRAMES[5], "observations": [{"bearing": 9.0, "label": "1"}]})
     assert bad.value.status == 422 and bad.value.extra["field"] == "observations[0].bearing"
     assert session.slam.frame_count == 5 and session.store.frame_count() == 5
+
+
+def test_a_frame_that_keeps_killing_the_worker_is_dropped(tmp_path: Path) -> None:
+    path = tmp_path / "m1.sqlite"
+    session = _new(path)
+    for f in FRAMES[:5]:
+        session.submit(f)
+    _, text = canonical_frame(FRAMES[5])
+    log_id = session.store.append_frame("r1", FRAMES[5]["seq"], text)
+    for _ in range(2):  # two reloads died while processing it
+        session.store.count_attempt(log_id)
+    session.close()
+
+    reopened = MapSession(path, StoreSettings())
+    assert reopened.slam.frame_count == 5
+    assert reopened.store.find_frame("r1", FRAMES[5]["seq"]) is None
+    assert reopened.replay_errors == 1
+    assert not reopened.submit(FRAMES[5])["replayed"]  # the robot can send it again
