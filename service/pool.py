@@ -64,6 +64,8 @@ class _Slot:
     inbox: bytearray = field(default_factory=bytearray)
     outbox: bytearray = field(default_factory=bytearray)
     alive: bool = True
+    up: bool = False
+    """The worker answered its first ping (its imports are done)."""
 
 
 class WorkerPool:
@@ -81,6 +83,7 @@ class WorkerPool:
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
         self.restarts = 0
+        self._stopping = False
 
     # ------------------------------------------------------------ lifecycle
     async def start(self, maps: Iterable[str]) -> None:
@@ -103,7 +106,7 @@ class WorkerPool:
         )
         process.start()
         child.close()
-        slot = _Slot(index, process, parent, generation=generation)
+        slot = _Slot(index, process, parent, generation=generation, pid=process.pid)
         os.set_blocking(parent.fileno(), False)
         self._loop.add_reader(parent.fileno(), self._on_readable, slot)
         return slot
@@ -114,8 +117,8 @@ class WorkerPool:
 
         async def load() -> None:
             try:
-                reply = await self._request(slot, "ping", "", {})
-                slot.pid = reply["value"]["pid"]
+                await self._request(slot, "ping", "", {})
+                slot.up = True
                 opens = [self._request(slot, "open", m, {}) for m in mine]
                 for map_id, coro in zip(mine, opens, strict=True):
                     try:
@@ -134,6 +137,7 @@ class WorkerPool:
         task.add_done_callback(self._tasks.discard)
 
     async def stop(self) -> None:
+        self._stopping = True
         for task in self._tasks:
             task.cancel()
         for slot in self._slots:
@@ -155,13 +159,14 @@ class WorkerPool:
 
     @property
     def ready(self) -> bool:
-        return bool(self._slots) and all(s.loading == 0 and s.alive for s in self._slots)
+        return bool(self._slots) and all(s.up and s.loading == 0 and s.alive for s in self._slots)
 
     def status(self) -> list[dict[str, Any]]:
         return [
             {
                 "index": s.index,
                 "pid": s.pid,
+                "up": s.up,
                 "generation": s.generation,
                 "loading": s.loading,
                 "maps": sorted(m for m in self._maps if self.worker_of(m) == s.index),
@@ -235,6 +240,8 @@ class WorkerPool:
             if not future.done():
                 future.set_exception(_WorkerDied())
         slot.pending.clear()
+        if self._stopping:
+            return
         slot.process.join(timeout=0.1)
         self.restarts += 1
         log.warning(
