@@ -91,7 +91,7 @@ class MapService:
         self._catalog.add(record)
         self._records[record.id] = record
         self.pool.track(record.id)
-        return dict(summary)
+        return {**summary, "worker": self.pool.worker_of(record.id)}
 
     async def summary(self, map_id: str) -> dict[str, Any]:
         self.record(map_id)
@@ -113,7 +113,7 @@ class MapService:
         self._records[map_id] = MapRecord(
             record.id, record.name, mode, record.config, record.created
         )
-        return dict(summary)
+        return {**summary, "worker": self.pool.worker_of(map_id)}
 
     # ------------------------------------------------------------ frames and queries
     async def submit(self, map_id: str, frame: dict[str, Any]) -> dict[str, Any]:

@@ -46,6 +46,13 @@ class WorkerSettings(BaseModel):
         60.0, gt=0, description="longest wait for a worker's answer before a 503"
     )
     retry_after_s: int = Field(1, ge=1, description="Retry-After seconds sent with a 503")
+    nice: int = Field(
+        5,
+        ge=0,
+        le=19,
+        description="niceness added to worker processes, so the API process (probes, "
+        "routing) wins the CPU when workers compute",
+    )
 
 
 class ApiSettings(BaseModel):

@@ -37,6 +37,8 @@ def init_worker(settings: dict[str, Any], index: int) -> None:
     global _settings
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C stops the API, which stops us
     _settings = Settings.model_validate(settings)
+    if _settings.workers.nice:
+        os.nice(_settings.workers.nice)
     logging.basicConfig(
         level=_settings.log_level.upper(),
         format=f"%(asctime)s %(levelname)s worker{index} %(name)s: %(message)s",
