@@ -179,7 +179,7 @@ def _http(
                 t.join()
             wall = time.perf_counter() - t0
         finally:
-            os.killpg(proc.pid, signal.SIGTERM)
+            proc.send_signal(signal.SIGTERM)  # uvicorn shuts down, closing its workers
             proc.wait(timeout=30)
     flat = [x for m in many for x in m]
     return {

@@ -35,7 +35,10 @@ _sessions: dict[str, MapSession] = {}
 def init_worker(settings: dict[str, Any], index: int) -> None:
     """Process initialiser: settings from the parent, logging."""
     global _settings
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C stops the API, which stops us
+    # Ctrl+C or a SIGTERM to the whole process group stops the API process, whose
+    # shutdown closes our connection: we end on that end-of-file, after the current call.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _settings = Settings.model_validate(settings)
     if _settings.workers.nice:
         os.nice(_settings.workers.nice)

@@ -91,7 +91,7 @@ class Server:
     def stop(self) -> None:
         if self.proc is None or self.proc.poll() is not None:
             return
-        os.killpg(self.proc.pid, signal.SIGTERM)
+        self.proc.send_signal(signal.SIGTERM)  # uvicorn shuts down, closing its workers
         try:
             self.proc.wait(timeout=15)
         except subprocess.TimeoutExpired:
