@@ -93,6 +93,8 @@ class MapSession:
         self._removals = _RemovalBuffer()
         self._timing: deque[float] = deque(maxlen=1000)
         self.replay_errors = 0
+        self.loaded_from_snapshot = 0
+        """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
         self.slam, self._last_log_id, self._since_snapshot = self._load()
 
     # ------------------------------------------------------------ lifecycle
@@ -128,6 +130,7 @@ class MapSession:
                 log.exception("map %s: unreadable snapshot, replaying the whole log", self.path)
                 slam, upto = self._fresh(), 0
         tail = self.store.frames_after(upto)
+        self.loaded_from_snapshot = upto
         last = upto
         for stored in tail:
             self._replay(slam, stored)

@@ -33,7 +33,8 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None
     session.close()
 
     reopened = MapSession(path, StoreSettings(snapshot_every=25))
-    assert reopened.store.latest_snapshot() is not None  # 70 frames: snapshots at 25 and 50
+    # 70 frames, a snapshot every 25: the reload restored frame 50's and replayed 20
+    assert reopened.loaded_from_snapshot == 50
     assert reopened.slam.frame_count == 70
     after = reopened.trajectory()["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
