@@ -1,4 +1,8 @@
-"""Dependencies of the routers (built in the app's lifespan, stored on app.state)."""
+"""Dependencies of the routers (built in the app's lifespan, stored on app.state).
+
+They are `async def` on purpose: FastAPI runs plain `def` dependencies in a thread pool,
+which would add two thread hand-offs to every request.
+"""
 
 from __future__ import annotations
 
@@ -10,12 +14,12 @@ from api.metrics import Metrics
 from service.maps import MapService
 
 
-def get_service(request: Request) -> MapService:
+async def get_service(request: Request) -> MapService:
     service: MapService = request.app.state.service
     return service
 
 
-def get_metrics(request: Request) -> Metrics:
+async def get_metrics(request: Request) -> Metrics:
     metrics: Metrics = request.app.state.metrics
     return metrics
 

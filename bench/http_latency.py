@@ -50,7 +50,7 @@ from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_fram
 from service.frames_io import frame_to_dict
 from service.mapconfig import slam_config
 from service.session import MapSession
-from service.settings import StoreSettings
+from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord
 
 REPO = Path(__file__).resolve().parents[1]
@@ -133,11 +133,16 @@ def _post_frames(port: int, map_id: str, frames: list[dict[str, Any]], out: list
             raise RuntimeError(f"frame {f['seq']}: {status} {body[:300]!r}")
 
 
-def _serve(data_dir: Path, sync: str) -> tuple[subprocess.Popen[bytes], int]:
+def _serve(data_dir: Path, sync: str, nice: int) -> tuple[subprocess.Popen[bytes], int]:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])
-    env = {**os.environ, "COVSLAM_STORE__SYNCHRONOUS": sync, "COVSLAM_LOG_LEVEL": "warning"}
+    env = {
+        **os.environ,
+        "COVSLAM_STORE__SYNCHRONOUS": sync,
+        "COVSLAM_WORKERS__NICE": str(nice),
+        "COVSLAM_LOG_LEVEL": "warning",
+    }
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--port", str(port),
          "--data-dir", str(data_dir), "--workers", "2"],
@@ -154,10 +159,10 @@ def _serve(data_dir: Path, sync: str) -> tuple[subprocess.Popen[bytes], int]:
 
 
 def _http(
-    frames: list[dict[str, Any]], config: dict[str, Any], maps: int, sync: str
+    frames: list[dict[str, Any]], config: dict[str, Any], maps: int, sync: str, nice: int
 ) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
-        proc, port = _serve(Path(tmp) / "data", sync)
+        proc, port = _serve(Path(tmp) / "data", sync, nice)
         try:
             conn = _Conn(port)
             ids = []
@@ -199,15 +204,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--maps", type=int, default=4)
     parser.add_argument("--synchronous", choices=("NORMAL", "FULL"), default="NORMAL")
+    parser.add_argument(
+        "--worker-nice",
+        type=int,
+        default=WorkerSettings().nice,
+        help="niceness of the worker processes (service default %(default)s); on a machine "
+        "shared with other CPU-heavy work a niced worker loses time to it",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     args = parser.parse_args(argv)
 
+    load_start = os.getloadavg()
     frames, config = _frames(args.source, args.frames)
     dicts = [frame_to_dict(f) for f in frames]
-    print(f"{len(frames)} {args.source} frames, config {config}, sqlite {args.synchronous}")
+    print(
+        f"{len(frames)} {args.source} frames, config {config}, sqlite {args.synchronous}, "
+        f"worker nice {args.worker_nice}, load average {os.getloadavg()[0]:.1f}"
+    )
     inproc = _in_process(frames, config)
     session = _session(dicts, config, args.synchronous)
-    http = _http(dicts, config, args.maps, args.synchronous)
+    http = _http(dicts, config, args.maps, args.synchronous, args.worker_nice)
     result = {
         "source": args.source,
         "frames": len(frames),
@@ -215,7 +231,9 @@ def main(argv: list[str] | None = None) -> int:
         "config": config,
         "sqlite_synchronous": args.synchronous,
         "workers": 2,
+        "worker_nice": args.worker_nice,
         "cpus": os.cpu_count(),
+        "load_average_at_start": load_start,
         "load_average_at_end": os.getloadavg(),
         "in_process": _stats(inproc),
         "session": _stats(session),
@@ -236,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "http_latency" if args.source == "mrclam" else "http_latency_sim"
+    if args.worker_nice != WorkerSettings().nice:
+        stem += f"_nice{args.worker_nice}"
     (args.out / f"{stem}.json").write_text(json.dumps(result, indent=2))
     for key in ("in_process", "session", "http_1_map", f"http_{args.maps}_maps"):
         s = result[key]
