@@ -9,7 +9,6 @@ the log's tail replayed through the estimator.
 
 from __future__ import annotations
 
-import io
 import json
 import logging
 import shutil
@@ -21,23 +20,19 @@ from typing import Any
 import numpy as np
 
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
-from graph.policies import LandmarkTable, coverage_clusters, information_content
 from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
-from graph.snapshot import SnapshotError, capture, last_accepted, latest_pose_keys, restore
+from graph.snapshot import SnapshotError, capture, last_accepted, restore
 from graph.validation import validate_frame
-from service.coverage import coverage_grid
 from service.errors import ServiceError, invalid_frame, out_of_order
-from service.evaluation import Trajectory, write_tum
+from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.frames_io import frame_from_dict, frame_to_dict
-from service.jsonio import loads_object
-from service.mapconfig import MapConfig, Mode, slam_config, slam_config_dict
+from service.mapconfig import MapConfig, slam_config, slam_config_dict
 from service.settings import StoreSettings
 from service.store import MapRecord, MapStore, StoredFrame
+from service.views import coverage_doc, landmarks_doc, pose_doc, trajectory_doc
 
 log = logging.getLogger(__name__)
 
-EXPORT_FORMAT = "covslam.map"
-EXPORT_VERSION = 1
 MAX_REPLAY_ATTEMPTS = 2
 """Reloads that may retry an unfinished log frame before it is dropped as a poison pill."""
 
@@ -340,130 +335,28 @@ class MapSession:
             },
         }
 
+    def _seed(self) -> int:
+        return MapConfig.model_validate(self.record.config).seed
+
     def pose(self) -> dict[str, Any]:
-        keys = latest_pose_keys(self.slam)
-        last = last_accepted(self.slam)
-        robots = {}
-        for name, key in keys.items():
-            p = self.slam.graph.pose(key)
-            cov = self.slam.graph.pose_covariance(key)
-            robots[name] = {
-                "seq": last[name][0],
-                "stamp": last[name][1],
-                "pose": {"x": float(p.x()), "y": float(p.y()), "theta": float(p.theta())},
-                "covariance": np.asarray(cov).tolist(),
-                "localisation": {"status": "tracking", "place": None, "confidence": None},
-            }
-        return {"map_id": self.record.id, "robots": robots}
+        return pose_doc(self.slam, self.record.id)
 
     def trajectory(self, robot: str | None = None) -> dict[str, list[dict[str, float]]]:
-        if robot is not None and robot not in self.slam.robots:
-            raise ServiceError(
-                404,
-                "unknown-robot",
-                "Unknown robot",
-                f"robot: map {self.record.id!r} has no robot {robot!r} "
-                f"(robots: {', '.join(self.slam.robots) or 'none'})",
-                field="robot",
-            )
-        out = {}
-        for name, rows in self.slam.trajectory(robot).items():
-            out[name] = [
-                {"seq": int(r[0]), "stamp": float(r[1]), "x": r[2], "y": r[3], "theta": r[4]}
-                for r in rows.tolist()
-            ]
-        return out
-
-    def _table(self) -> tuple[LandmarkTable, np.ndarray]:
-        ids = sorted(self.slam.landmarks)
-        records = [self.slam.landmarks[i] for i in ids]
-        cov = self.slam.landmark_covariances(ids) if ids else np.zeros((0, 2, 2), dtype=np.float64)
-        info = information_content(cov) if ids else np.zeros(0)
-        table = LandmarkTable(
-            ids=np.asarray(ids, dtype=np.int64),
-            observed_from=np.array([r.observed_from for r in records]).reshape(-1, 2),
-            counts=np.array([r.count for r in records], dtype=np.int64),
-            first_seen=np.array([r.added_frame for r in records], dtype=np.int64),
-            information=info,
-        )
-        return table, cov
-
-    def _clusters(self, table: LandmarkTable) -> tuple[np.ndarray, dict[str, Any] | None]:
-        if len(table) == 0:
-            return np.zeros(0, dtype=np.int64), None
-        seed = MapConfig.model_validate(self.record.config).seed
-        clusters = coverage_clusters(table, rng=np.random.default_rng(seed))
-        doc = {
-            "k": clusters.k,
-            "clusters": [
-                {
-                    "index": c,
-                    "members": [int(i) for i in table.ids[clusters.labels == c]],
-                    "centre": {
-                        "x": float(clusters.centres[c, 0]),
-                        "y": float(clusters.centres[c, 1]),
-                    },
-                    "spread": float(clusters.spreads[c]),
-                }
-                for c in range(clusters.k)
-            ],
-        }
-        return clusters.labels, doc
+        return trajectory_doc(self.slam, self.record.id, robot)
 
     def landmarks(self) -> list[dict[str, Any]]:
-        table, cov = self._table()
-        labels, _ = self._clusters(table)
-        assert table.information is not None
-        out = []
-        for row, lid in enumerate(table.ids.tolist()):
-            record = self.slam.landmarks[lid]
-            x, y = (float(v) for v in self.slam.landmark_position(lid))
-            out.append(
-                {
-                    "id": lid,
-                    "label": record.label,
-                    "x": x,
-                    "y": y,
-                    "covariance": cov[row].tolist(),
-                    "information": float(table.information[row]),
-                    "observed_from": {
-                        "x": float(record.observed_from[0]),
-                        "y": float(record.observed_from[1]),
-                        "n": record.count,
-                    },
-                    "cluster": int(labels[row]),
-                    "first_stamp": record.first_stamp,
-                    "last_stamp": record.last_stamp,
-                }
-            )
-        return out
+        return landmarks_doc(self.slam, self._seed())
 
     def coverage(self, *, cell_m: float, radius_m: float, removals: int) -> dict[str, Any]:
-        table, _ = self._table()
-        _, clusters = self._clusters(table)
-        positions = [rows[:, 2:4] for rows in self.slam.trajectory().values()]
-        xy = np.concatenate(positions) if positions else np.zeros((0, 2))
-        assert table.information is not None
-        return {
-            "map_id": self.record.id,
-            "live_landmarks": len(table),
-            "clusters": clusters["clusters"] if clusters else [],
-            "landmarks": [
-                {
-                    "id": int(lid),
-                    "observed_from": {
-                        "x": float(table.observed_from[i, 0]),
-                        "y": float(table.observed_from[i, 1]),
-                        "n": int(table.counts[i]),
-                    },
-                    "information": float(table.information[i]),
-                }
-                for i, lid in enumerate(table.ids)
-            ],
-            "grid": coverage_grid(xy, table.observed_from, cell_m=cell_m, radius_m=radius_m),
-            "removal_count": self.store.removal_count(),
-            "removals": self.store.removals(limit=removals),
-        }
+        return coverage_doc(
+            self.slam,
+            self.store,
+            self.record.id,
+            self._seed(),
+            cell_m=cell_m,
+            radius_m=radius_m,
+            removals=removals,
+        )
 
     # ------------------------------------------------------------ export / import
     def export(self) -> dict[str, Any]:
@@ -509,45 +402,3 @@ class MapSession:
                     field=f"frames[{i}].frame",
                 ) from exc
         self.snapshot()
-
-
-def _bad_import(field: str, detail: str) -> ServiceError:
-    return ServiceError(
-        422, "invalid-import", "Invalid map document", f"{field}: {detail}", field=field
-    )
-
-
-def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any]]:
-    """Check an export document: (name, mode, config, frames); ServiceError 400/422."""
-    doc = loads_object(raw, "a covslam.map document")
-    if doc.get("format") != EXPORT_FORMAT:
-        raise _bad_import("format", f"must be {EXPORT_FORMAT!r}, got {doc.get('format')!r}")
-    if doc.get("version") != EXPORT_VERSION:
-        raise _bad_import(
-            "version", f"version {doc.get('version')!r} unsupported (this is {EXPORT_VERSION})"
-        )
-    meta = doc.get("map")
-    if not isinstance(meta, dict):
-        raise _bad_import("map", "must be an object with name, mode and config")
-    name, mode = meta.get("name"), meta.get("mode")
-    if not isinstance(name, str) or not name:
-        raise _bad_import("map.name", "must be a non-empty string")
-    if mode not in ("mapping", "localisation"):
-        raise _bad_import("map.mode", f"must be 'mapping' or 'localisation', got {mode!r}")
-    try:
-        config = MapConfig.model_validate(meta.get("config"))
-    except ValueError as exc:
-        raise _bad_import("map.config", str(exc)) from exc
-    frames = doc.get("frames")
-    if not isinstance(frames, list):
-        raise _bad_import("frames", "must be an array of {frame, result}")
-    return name, mode, config, frames
-
-
-def tum_text(rows: list[dict[str, float]]) -> str:
-    """TUM lines ``stamp x y 0 0 0 qz qw`` of trajectory rows (as `trajectory` returns)."""
-    stamps = np.array([r["stamp"] for r in rows], dtype=np.float64)
-    poses = np.array([[r["x"], r["y"], r["theta"]] for r in rows], dtype=np.float64)
-    buf = io.StringIO()
-    write_tum(buf, Trajectory.from_poses(stamps, poses.reshape(-1, 3)))  # type: ignore[arg-type]
-    return buf.getvalue()

@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from service.errors import ServiceError, unknown_map
+from service.exchange import parse_export
 from service.mapconfig import slam_config
-from service.session import MapSession, parse_export, remove_map_files
+from service.session import MapSession, remove_map_files
 from service.settings import Settings
 from service.store import MapRecord, map_db_path
 

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query, Response
 from api.deps import MapId, ServiceDep
 from api.models import CoverageOut, LandmarkOut, PoseOut, Problem, TrajectoryOut
 from service.errors import ServiceError
-from service.session import tum_text
+from service.views import tum_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"])
 
