@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
@@ -65,3 +66,9 @@ class Metrics:
         self.stage.labels("http").observe(http_ms)
         self.live.labels(map_id).set(reply.get("live", 0))
         self.marginalisations.labels(map_id).inc(reply.get("marginalised", 0))
+
+    def forget(self, map_id: str) -> None:
+        """Drop a deleted map's series."""
+        for metric in (self.frames, self.replayed, self.live, self.marginalisations):
+            with contextlib.suppress(KeyError):  # no series yet for this map
+                metric.remove(map_id)

@@ -6,7 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, Request, Response, status
 
-from api.deps import MapId, ServiceDep
+from api.deps import MapId, MetricsDep, ServiceDep
 from api.models import MapBrief, MapCreate, MapPatch, MapPublic, Problem
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
@@ -71,9 +71,10 @@ async def patch_map(map_id: MapId, body: MapPatch, service: ServiceDep) -> dict[
 
 
 @router.delete("/{map_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_ERRORS)
-async def delete_map(map_id: MapId, service: ServiceDep) -> Response:
+async def delete_map(map_id: MapId, service: ServiceDep, metrics: MetricsDep) -> Response:
     """Delete a map and its store."""
     await service.delete(map_id)
+    metrics.forget(map_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
