@@ -17,7 +17,9 @@ Measured, per frame:
                    durable log (two SQLite commits) and events;
 ``http_1_map``     a ``covslam serve`` (2 workers) on loopback, one client posting the
                    frames one after the other over a keep-alive connection (http.client),
-                   round trip as the client sees it;
+                   round trip as the client sees it. The three are interleaved frame by
+                   frame (each frame through all three, then the next), so they share
+                   whatever load the machine carries;
 ``http_N_maps``    N clients at once, each posting the same frames into its own map;
                    per-frame round trips and the aggregate frames/s.
 
@@ -78,35 +80,37 @@ def _stats(ms: list[float]) -> dict[str, float]:
     }
 
 
-def _in_process(frames: list[FrameInput], config: dict[str, Any]) -> list[float]:
+def _interleaved(
+    frames: list[FrameInput],
+    dicts: list[dict[str, Any]],
+    config: dict[str, Any],
+    sync: Literal["NORMAL", "FULL"],
+    post: Any,
+) -> tuple[list[float], list[float], list[float]]:
+    """Each frame in turn through BearingSlam, MapSession and HTTP (`post`), so that the
+    three see the same machine load (the 2 cores are shared with other work)."""
     from graph.slam import BearingSlam
 
     slam = BearingSlam(slam_config(config, "mapping"), rng=np.random.default_rng(0))
-    out = []
-    for f in frames:
-        t0 = time.perf_counter()
-        slam.process(f, with_covariance=True)
-        out.append(1e3 * (time.perf_counter() - t0))
-    return out
-
-
-def _session(
-    frames: list[dict[str, Any]], config: dict[str, Any], sync: Literal["NORMAL", "FULL"]
-) -> list[float]:
+    inproc, session_ms, http_ms = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         record = MapRecord("bench", "bench", "mapping", config, time.time())
         session = MapSession.create(
-            Path(tmp) / "bench.sqlite",
-            record,
-            StoreSettings(synchronous=sync),
+            Path(tmp) / "bench.sqlite", record, StoreSettings(synchronous=sync)
         )
-        out = []
-        for f in frames:
+        for f, d in zip(frames, dicts, strict=True):
             t0 = time.perf_counter()
-            session.submit(f)
-            out.append(1e3 * (time.perf_counter() - t0))
+            slam.process(f, with_covariance=True)
+            t1 = time.perf_counter()
+            session.submit(d)
+            t2 = time.perf_counter()
+            post(d)
+            t3 = time.perf_counter()
+            inproc.append(1e3 * (t1 - t0))
+            session_ms.append(1e3 * (t2 - t1))
+            http_ms.append(1e3 * (t3 - t2))
         session.close()
-    return out
+    return inproc, session_ms, http_ms
 
 
 class _Conn:
@@ -159,7 +163,12 @@ def _serve(data_dir: Path, sync: str, nice: int) -> tuple[subprocess.Popen[bytes
 
 
 def _http(
-    frames: list[dict[str, Any]], config: dict[str, Any], maps: int, sync: str, nice: int
+    frames: list[FrameInput],
+    dicts: list[dict[str, Any]],
+    config: dict[str, Any],
+    maps: int,
+    sync: Literal["NORMAL", "FULL"],
+    nice: int,
 ) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         proc, port = _serve(Path(tmp) / "data", sync, nice)
@@ -170,11 +179,16 @@ def _http(
                 status, body = conn.request("POST", "/v1/maps", {"name": f"b{i}", "config": config})
                 assert status == 201, body
                 ids.append(json.loads(body)["id"])
-            one: list[float] = []
-            _post_frames(port, ids[0], frames, one)
+
+            def post(frame: dict[str, Any]) -> None:
+                status, body = conn.request("POST", f"/v1/maps/{ids[0]}/frames", frame)
+                if status != 200:
+                    raise RuntimeError(f"frame {frame['seq']}: {status} {body[:300]!r}")
+
+            inproc, session, one = _interleaved(frames, dicts, config, sync, post)
             many: list[list[float]] = [[] for _ in range(maps)]
             threads = [
-                threading.Thread(target=_post_frames, args=(port, m, frames, out))
+                threading.Thread(target=_post_frames, args=(port, m, dicts, out))
                 for m, out in zip(ids[1:], many, strict=True)
             ]
             t0 = time.perf_counter()
@@ -188,6 +202,8 @@ def _http(
             proc.wait(timeout=30)
     flat = [x for m in many for x in m]
     return {
+        "in_process": inproc,
+        "session": session,
         "one": one,
         "many": flat,
         "many_frames_per_s": len(flat) / wall,
@@ -221,9 +237,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{len(frames)} {args.source} frames, config {config}, sqlite {args.synchronous}, "
         f"worker nice {args.worker_nice}, load average {os.getloadavg()[0]:.1f}"
     )
-    inproc = _in_process(frames, config)
-    session = _session(dicts, config, args.synchronous)
-    http = _http(dicts, config, args.maps, args.synchronous, args.worker_nice)
+    http = _http(frames, dicts, config, args.maps, args.synchronous, args.worker_nice)
+    inproc, session = http["in_process"], http["session"]
     result = {
         "source": args.source,
         "frames": len(frames),
