@@ -218,6 +218,21 @@ def test_image_frames_and_places_answer_501_but_are_documented(
     assert {"application/json", "multipart/form-data"} <= set(frames_body)
     assert "/v1/maps/{map_id}/places" in schema["paths"]
     assert client.get("/docs").status_code == 200
+    refs = set()
+
+    def walk(node: object) -> None:
+        if isinstance(node, dict):
+            refs.update(v for k, v in node.items() if k == "$ref")
+            for v in node.values():
+                walk(v)
+        elif isinstance(node, list):
+            for v in node:
+                walk(v)
+
+    walk(schema)
+    names = set(schema["components"]["schemas"])
+    assert "#/components/schemas/FrameIn" in refs
+    assert {r.rsplit("/", 1)[-1] for r in refs} <= names, "every $ref resolves"
 
 
 def test_openapi_fields_carry_units_and_conventions(client: httpx.Client) -> None:
