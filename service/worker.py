@@ -157,6 +157,19 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
             conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
         except (BrokenPipeError, OSError):
             return
+        _idle_work(conn)
+
+
+def _idle_work(conn: Connection) -> None:
+    """Snapshots that are due, one map at a time, while no request is waiting."""
+    for session in list(_sessions.values()):
+        if conn.poll(0):
+            return
+        if session.snapshot_due:
+            try:
+                session.snapshot()
+            except Exception:
+                log.exception("snapshot of map %s failed", session.record.id)
 
 
 def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:

@@ -28,7 +28,11 @@ def _new(path: Path, every: int = 25) -> MapSession:
 def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None:
     path = tmp_path / "m1.sqlite"
     session = _new(path)
-    results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:70]]
+    results = []
+    for f in FRAMES[:70]:
+        results.append(json.loads(session.submit(f)["result_json"]))
+        if session.snapshot_due:  # what the worker does between requests
+            session.snapshot()
     before = session.trajectory()["r1"]
     session.close()
 
@@ -96,3 +100,14 @@ def test_a_frame_that_keeps_killing_the_worker_is_dropped(tmp_path: Path) -> Non
     assert reopened.store.find_frame("r1", FRAMES[5]["seq"]) is None
     assert reopened.replay_errors == 1
     assert not reopened.submit(FRAMES[5])["replayed"]  # the robot can send it again
+
+
+def test_a_never_idle_map_is_snapshotted_when_overdue(tmp_path: Path) -> None:
+    path = tmp_path / "m1.sqlite"
+    session = _new(path, every=10)
+    for f in FRAMES[:55]:  # no idle time between requests: no idle snapshot
+        session.submit(f)
+    session.close()
+    reopened = MapSession(path, StoreSettings(snapshot_every=10))
+    assert reopened.loaded_from_snapshot == 50  # forced at 5 x snapshot_every
+    assert reopened.slam.frame_count == 55
