@@ -30,6 +30,22 @@ from graph.slam import BearingSlam, RemovalRecord
 
 SNAPSHOT_VERSION = 1
 
+SLAM_ATTRIBUTES = frozenset(
+    {
+        # captured
+        "config", "_rng", "_graph", "_robots", "_landmarks", "_label_to_id", "_candidates",
+        "_next_landmark_id", "_frames", "removals", "removal_count", "_traj_robot",
+        "_traj_seq", "_traj_stamp", "_traj_pose", "_live_frames",
+        # derived or given again on restore
+        "_policy", "_removal_sink",
+    }
+)  # fmt: skip
+"""Every attribute of a BearingSlam that `capture`/`restore` account for. A test checks
+this against a live instance, so a new attribute cannot be silently left out."""
+GRAPH_ATTRIBUTES = frozenset({"_isam", "_factors", "_key_factors", "_estimate"})
+"""Every attribute of an IncrementalGraph; iSAM2 and the index are rebuilt, the
+estimate cache is dropped."""
+
 
 class SnapshotError(ValueError):
     """A snapshot could not be read (wrong version or corrupt)."""

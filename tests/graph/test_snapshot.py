@@ -7,7 +7,14 @@ import pytest
 
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
-from graph.snapshot import SnapshotError, capture, latest_pose_keys, restore
+from graph.snapshot import (
+    GRAPH_ATTRIBUTES,
+    SLAM_ATTRIBUTES,
+    SnapshotError,
+    capture,
+    latest_pose_keys,
+    restore,
+)
 from tests.graph._world import circle_frames
 
 
@@ -58,3 +65,10 @@ def test_restore_of_an_empty_map_gives_an_empty_map() -> None:
 def test_corrupt_snapshot_is_refused() -> None:
     with pytest.raises(SnapshotError):
         restore(b"not a snapshot")
+
+
+def test_snapshot_accounts_for_every_attribute_of_the_estimator() -> None:
+    """If BearingSlam or IncrementalGraph gains state, the snapshot must learn about it."""
+    slam = BearingSlam(SlamConfig(), rng=np.random.default_rng(0))
+    assert set(vars(slam)) == SLAM_ATTRIBUTES
+    assert set(vars(slam.graph)) == GRAPH_ATTRIBUTES
