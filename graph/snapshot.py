@@ -17,8 +17,6 @@ from outside (imports replay frames instead).
 from __future__ import annotations
 
 import pickle
-from array import array
-from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -30,29 +28,25 @@ from graph.slam import BearingSlam, RemovalRecord
 
 SNAPSHOT_VERSION = 1
 
-SLAM_ATTRIBUTES = frozenset(
-    {
-        # captured
-        "config", "_rng", "_graph", "_robots", "_landmarks", "_label_to_id", "_candidates",
-        "_next_landmark_id", "_frames", "removals", "removal_count", "_traj_robot",
-        "_traj_seq", "_traj_stamp", "_traj_pose", "_live_frames",
-        # derived or given again on restore
-        "_policy", "_removal_sink",
-    }
-)  # fmt: skip
-"""Every attribute of a BearingSlam that `capture`/`restore` account for. A test checks
-this against a live instance, so a new attribute cannot be silently left out."""
-GRAPH_ATTRIBUTES = frozenset({"_isam", "_factors", "_key_factors", "_estimate"})
-"""Every attribute of an IncrementalGraph; iSAM2 and the index are rebuilt, the
-estimate cache is dropped."""
+_SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng"})
+"""BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is
+derived from the config, the removal sink is given again, the rng keeps its state."""
+_GRAPH_SPECIAL = frozenset({"_isam", "_factors", "_key_factors", "_estimate"})
+"""IncrementalGraph attributes rebuilt by re-adding the factors (the estimate cache is
+dropped)."""
 
 
 class SnapshotError(ValueError):
-    """A snapshot could not be read (wrong version or corrupt)."""
+    """A snapshot could not be taken or read (unpicklable state, wrong version, corrupt)."""
 
 
 def capture(slam: BearingSlam) -> bytes:
-    """The estimator's whole state as bytes (see the module docstring)."""
+    """The estimator's whole state as bytes (see the module docstring).
+
+    Every attribute of the estimator and of its graph that is not rebuilt on restore
+    is pickled as it is (plain Python and numpy bookkeeping), so state added to
+    `BearingSlam` later is carried without changes here.
+    """
     inner = slam.graph
     factors = gtsam.NonlinearFactorGraph()
     for index in sorted(inner._factors):
@@ -60,26 +54,16 @@ def capture(slam: BearingSlam) -> bytes:
     linpoint = inner.linearization_point() if inner.num_factors else gtsam.Values()
     state: dict[str, Any] = {
         "version": SNAPSHOT_VERSION,
-        "config": slam.config,
         "rng": slam._rng.bit_generator.state,
         "factors": factors.serialize(),
         "linpoint": linpoint.serialize(),
-        "robots": slam._robots,
-        "landmarks": slam._landmarks,
-        "label_to_id": slam._label_to_id,
-        "candidates": slam._candidates,
-        "next_landmark_id": slam._next_landmark_id,
-        "frames": slam._frames,
-        "removals": list(slam.removals),
-        "removal_memory": slam.removals.maxlen,
-        "removal_count": slam.removal_count,
-        "traj_robot": slam._traj_robot.tobytes(),
-        "traj_seq": slam._traj_seq.tobytes(),
-        "traj_stamp": slam._traj_stamp.tobytes(),
-        "traj_pose": slam._traj_pose.tobytes(),
-        "live_frames": slam._live_frames,
+        "slam": {k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
+        "graph": {k: v for k, v in vars(inner).items() if k not in _GRAPH_SPECIAL},
     }
-    return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+    try:
+        return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+    except (TypeError, pickle.PicklingError) as exc:
+        raise SnapshotError(f"estimator state does not pickle: {exc}") from exc
 
 
 def restore(
@@ -91,14 +75,16 @@ def restore(
     except Exception as exc:  # pickle raises many types on corrupt input
         raise SnapshotError(f"corrupt snapshot: {exc}") from exc
     if not isinstance(state, dict) or state.get("version") != SNAPSHOT_VERSION:
-        raise SnapshotError(f"unsupported snapshot version {state.get('version')!r}")
+        version = state.get("version") if isinstance(state, dict) else None
+        raise SnapshotError(f"unsupported snapshot version {version!r}")
+    plain: dict[str, Any] = state["slam"]
     rng = np.random.default_rng()
     rng.bit_generator.state = state["rng"]
     slam = BearingSlam(
-        state["config"],
+        plain["config"],
         rng=rng,
         removal_sink=removal_sink,
-        removal_memory=state["removal_memory"],
+        removal_memory=plain["removals"].maxlen,
     )
     factors = gtsam.NonlinearFactorGraph()
     factors.deserialize(state["factors"])
@@ -106,19 +92,10 @@ def restore(
         linpoint = gtsam.Values()
         linpoint.deserialize(state["linpoint"])
         slam.graph.update([factors.at(i) for i in range(factors.size())], linpoint)
-    slam._robots = state["robots"]
-    slam._landmarks = state["landmarks"]
-    slam._label_to_id = state["label_to_id"]
-    slam._candidates = state["candidates"]
-    slam._next_landmark_id = state["next_landmark_id"]
-    slam._frames = state["frames"]
-    slam.removals = deque(state["removals"], maxlen=state["removal_memory"])
-    slam.removal_count = state["removal_count"]
-    slam._traj_robot = array("i", state["traj_robot"])
-    slam._traj_seq = array("q", state["traj_seq"])
-    slam._traj_stamp = array("d", state["traj_stamp"])
-    slam._traj_pose = array("d", state["traj_pose"])
-    slam._live_frames = state["live_frames"]
+    for name, value in state["graph"].items():
+        setattr(slam.graph, name, value)
+    for name, value in plain.items():
+        setattr(slam, name, value)
     return slam
 
 
