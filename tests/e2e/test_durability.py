@@ -13,6 +13,9 @@ import httpx
 import numpy as np
 import pytest
 
+from service.session import MapSession
+from service.settings import StoreSettings
+from service.store import Catalog, MapRecord, map_db_path
 from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(260, seed=7))
@@ -161,3 +164,38 @@ def test_worker_crash_answers_503_with_retry_after_then_recovers(busy_server: Se
         assert status["worker_restarts"] >= 1
         assert "covslam_worker_restarts_total" in c.get("/metrics").text
         print(f"worker crash: ready and answering again {recovery_s:.2f} s after the 503")
+
+
+def test_readyz_is_503_until_the_maps_are_loaded(tmp_path: Path) -> None:
+    """A store whose map has a long log and no snapshot: the service answers /healthz at
+    once, /readyz 503 while the worker replays the log, then 200 with the map intact."""
+    data = tmp_path / "data"
+    record = MapRecord("longlog", "long log", "mapping", {"landmark_cap": 8}, time.time())
+    session = MapSession.create(
+        map_db_path(data, record.id), record, StoreSettings(snapshot_every=100_000)
+    )
+    for f in FRAMES[:150]:
+        session.submit(f)
+    session.close()
+    Catalog(data, synchronous="NORMAL").add(record)
+
+    server = Server(data, env={"COVSLAM_STORE__SNAPSHOT_EVERY": "100000"})
+    server.start(wait_ready=False)
+    statuses = []
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                assert httpx.get(server.url + "/healthz", timeout=5).status_code == 200
+                statuses.append(httpx.get(server.url + "/readyz", timeout=5).status_code)
+            except httpx.TransportError:
+                time.sleep(0.05)
+                continue
+            if statuses[-1] == 200:
+                break
+            time.sleep(0.02)
+        assert statuses and statuses[0] == 503 and statuses[-1] == 200, statuses
+        with httpx.Client(base_url=server.url, timeout=30) as c:
+            assert c.get("/v1/maps/longlog").json()["counts"]["frames"] == 150
+    finally:
+        server.stop()
