@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
+from graph.types import FrameInput
 from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
@@ -80,7 +82,24 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("directory", nargs="?", type=Path, help="with 'mrclam': the dataset folder")
     rp.add_argument("--robot", type=int, default=1, help="with 'mrclam': robot 1-5")
     rp.add_argument("--ground-truth", type=Path, help="TUM ground truth: print ATE RMSE")
+    rp.add_argument(
+        "--url",
+        help="post the frames to a running service (e.g. http://127.0.0.1:8000) instead of "
+        "replaying in-process; retries on 503; then fetches the TUM trajectory",
+    )
+    rp.add_argument("--map-id", help="with --url: post into this existing map")
     _add_map_options(rp)
+
+    sv = sub.add_parser(
+        "serve",
+        help="run the HTTP service (REST API v1) with its embedded SQLite store",
+        description="Settings come from COVSLAM_* environment variables (nested with __); "
+        "options given here override them.",
+    )
+    sv.add_argument("--host", help="bind address (default 127.0.0.1, COVSLAM_HOST)")
+    sv.add_argument("--port", type=int, help="TCP port (default 8000, COVSLAM_PORT)")
+    sv.add_argument("--data-dir", type=Path, help="store directory (default ./covslam-data)")
+    sv.add_argument("--workers", type=int, help="worker processes (default: CPU count)")
 
     sp = sub.add_parser("simulate", help="write a simulated indoor run as a frames file")
     sp.add_argument("frames_out", type=Path, help="frames file to write (JSON lines)")
@@ -115,6 +134,8 @@ def _replay(args: argparse.Namespace) -> int:
         frames = list(read_frames(args.source))
         gt = read_tum(args.ground_truth) if args.ground_truth else None
         robot = frames[0].robot if frames else ""
+    if args.url:
+        return _replay_http(args, frames, gt, robot)
     result = replay(
         frames, config=_config(args), seed=args.seed, total=len(frames), progress=args.progress
     )
@@ -140,6 +161,38 @@ def _replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay_http(
+    args: argparse.Namespace, frames: list[FrameInput], gt: Trajectory | None, robot: str
+) -> int:
+    from service.http_client import fetch_tum, replay_http
+
+    config = {
+        "landmark_cap": args.landmark_cap,
+        "policy": args.policy,
+        "pose_window": args.pose_window,
+        "noise": {"huber_k": args.huber},
+        "seed": args.seed,
+    }
+    name = Path(str(args.directory or args.source)).name
+    run = replay_http(
+        frames, url=args.url, map_id=args.map_id, name=name, config=config, progress=args.progress
+    )
+    summary = run.summary()
+    if frames:
+        tum = fetch_tum(args.url, run.map_id, robot)
+        if args.trajectory:
+            args.trajectory.write_text(tum)
+        if gt is not None:
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "est.tum"
+                path.write_text(tum)
+                summary += f", ATE RMSE {ate_rmse(read_tum(path), gt):.3f} m"
+    if args.stats:
+        args.stats.write_text(json.dumps({"map_id": run.map_id, "latency_ms": run.latency_ms}))
+    sys.stdout.write(summary + "\n")
+    return 0
+
+
 def _simulate(args: argparse.Namespace) -> int:
     rows, cols = (int(v) for v in args.rooms.lower().split("x"))
     rng = np.random.default_rng(args.seed)
@@ -147,6 +200,37 @@ def _simulate(args: argparse.Namespace) -> int:
     run = simulate(world, frames=args.frames, rng=rng)
     write_run(run, args.frames_out, args.ground_truth)
     sys.stdout.write(f"wrote {len(run.frames)} frames to {args.frames_out}\n")
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from api.app import create_app
+    from service.settings import Settings
+
+    overrides: dict[str, object] = {}
+    if args.host is not None:
+        overrides["host"] = args.host
+    if args.port is not None:
+        overrides["port"] = args.port
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    settings = Settings(**overrides)  # type: ignore[arg-type]
+    if args.workers is not None:
+        settings.workers.count = args.workers
+    logging.getLogger().setLevel(settings.log_level.upper())
+    log.info(
+        "serving on http://%s:%d, store in %s", settings.host, settings.port, settings.data_dir
+    )
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        access_log=False,
+        timeout_graceful_shutdown=5,
+    )
     return 0
 
 
@@ -158,6 +242,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command == "replay":
         return _replay(args)
+    if args.command == "serve":
+        return _serve(args)
     return _simulate(args)
 
 

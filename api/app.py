@@ -1,0 +1,76 @@
+"""The FastAPI application: REST API v1 of covslam.
+
+`create_app(settings)` builds the app; the map service (catalogue + worker pool)
+is started in the lifespan, never at import.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+
+from api import errors
+from api.metrics import Metrics
+from api.models import FrameIn
+from api.routes import events, frames, maps, places, queries, system
+from service.maps import MapService
+from service.settings import Settings, get_settings
+
+DESCRIPTION = """Bearing-only SLAM as a web service.
+
+Conventions: SI units (metres, radians, seconds). Map frame: x, y, yaw theta
+counter-clockwise from +x (REP-103). A bearing is measured in the robot frame,
+counter-clockwise from the robot's forward axis (+x), wrapped to (-pi, pi].
+Odometry is the motion since the robot's previous frame, in the previous robot frame.
+Errors are RFC 9457 problem+json.
+"""
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or get_settings()
+    metrics = Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        service = MapService(settings, on_worker_restart=lambda _: metrics.restarts.inc())
+        app.state.service = service
+        await service.start()
+        try:
+            yield
+        finally:
+            await service.stop()
+
+    app = FastAPI(
+        title="covslam",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.metrics = metrics
+    app.state.settings = settings
+    errors.install(app)
+    app.add_middleware(
+        errors.BodyLimit,
+        max_bytes=settings.api.max_body_bytes,
+        max_import_bytes=settings.api.max_import_bytes,
+    )
+    for module in (maps, frames, queries, events, places, system):
+        app.include_router(module.router)
+
+    default_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = default_openapi()
+            frame = FrameIn.model_json_schema(ref_template="#/components/schemas/{model}")
+            components = schema.setdefault("components", {}).setdefault("schemas", {})
+            components.update(frame.pop("$defs", {}))
+            components["FrameIn"] = frame
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    return app

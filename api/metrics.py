@@ -1,0 +1,74 @@
+"""Prometheus metrics of the API process (one registry per app)."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Any
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+_BUCKETS_MS = (0.5, 1, 2, 3, 5, 7.5, 10, 15, 25, 50, 100, 250, 500, 1000, 2500, 10000)
+
+
+class Metrics:
+    """Frames, per-stage latency, live landmarks, marginalisations, worker restarts."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.frames = Counter(
+            "covslam_frames",
+            "Frames processed (retries answered from the log excluded)",
+            ["map"],
+            registry=self.registry,
+        )
+        self.replayed = Counter(
+            "covslam_frames_replayed",
+            "Idempotent retries answered from the log",
+            ["map"],
+            registry=self.registry,
+        )
+        self.stage = Histogram(
+            "covslam_frame_stage_milliseconds",
+            "Time per frame and stage, milliseconds (worker stages; 'http' = whole request)",
+            ["stage"],
+            buckets=_BUCKETS_MS,
+            registry=self.registry,
+        )
+        self.live = Gauge(
+            "covslam_live_landmarks", "Live landmarks per map", ["map"], registry=self.registry
+        )
+        self.marginalisations = Counter(
+            "covslam_marginalisations",
+            "Landmarks marginalised by the budget",
+            ["map"],
+            registry=self.registry,
+        )
+        self.restarts = Counter(
+            "covslam_worker_restarts",
+            "Worker processes restarted after a crash",
+            registry=self.registry,
+        )
+        self.rejected = Counter(
+            "covslam_frames_rejected",
+            "Frames refused with a 4xx/5xx",
+            ["status"],
+            registry=self.registry,
+        )
+
+    def record_frame(self, map_id: str, reply: dict[str, Any], http_ms: float) -> None:
+        if reply.get("replayed"):
+            self.replayed.labels(map_id).inc()
+            return
+        self.frames.labels(map_id).inc()
+        for stage, ms in reply["timing_ms"].items():
+            self.stage.labels(stage).observe(ms)
+        self.stage.labels("store").observe(reply.get("store_ms", 0.0))
+        self.stage.labels("http").observe(http_ms)
+        self.live.labels(map_id).set(reply.get("live", 0))
+        self.marginalisations.labels(map_id).inc(reply.get("marginalised", 0))
+
+    def forget(self, map_id: str) -> None:
+        """Drop a deleted map's series."""
+        for metric in (self.frames, self.replayed, self.live, self.marginalisations):
+            with contextlib.suppress(KeyError):  # no series yet for this map
+                metric.remove(map_id)

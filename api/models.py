@@ -1,0 +1,295 @@
+"""Request and response models of REST API v1, with units and conventions per field.
+
+Conventions (DESIGN.md): SI units (metres, radians, seconds); map frame x, y, yaw
+theta counter-clockwise from +x (REP-103); a bearing is measured in the robot
+frame, counter-clockwise from the robot's forward axis (+x), wrapped to (-pi, pi].
+Covariances are row-major nested lists.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.mapconfig import MapConfig, Mode
+
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+COV3 = (
+    "3x3 covariance of (x [m], y [m], theta [rad]) of the pose, x/y in the map frame, "
+    "row-major, units m², m·rad, rad²"
+)
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (media type application/problem+json)."""
+
+    type: str = Field(
+        description="URI naming the problem type, e.g. urn:covslam:problem:out-of-order"
+    )
+    title: str = Field(description="short fixed summary of the problem type")
+    status: int = Field(description="HTTP status code")
+    detail: str = Field(description="what exactly was wrong: the field (dotted path) and why")
+    instance: str | None = Field(None, description="the request path")
+    field: str | None = Field(None, description="dotted path of the offending field, if one")
+
+
+# --------------------------------------------------------------------------- maps
+
+
+class MapCreate(BaseModel):
+    """A new map."""
+
+    model_config = _STRICT
+
+    name: str = Field(min_length=1, max_length=200, description="human-readable name")
+    config: MapConfig = Field(default_factory=MapConfig, description="how the map estimates")
+    mode: Mode = Field(
+        "mapping",
+        description="'mapping' adds landmarks; 'localisation' freezes the map (no new landmarks)",
+    )
+
+
+class MapPatch(BaseModel):
+    """Change a map's mode."""
+
+    model_config = _STRICT
+
+    mode: Mode = Field(description="'mapping' or 'localisation' (no new landmarks)")
+
+
+class MapCounts(BaseModel):
+    frames: int = Field(description="frames in the map")
+    robots: int = Field(description="robots that posted frames")
+    live_landmarks: int = Field(description="landmarks currently in the graph")
+    candidates: int = Field(description="observed labels not yet triangulated")
+    removals: int = Field(description="landmarks marginalised by the budget so far")
+    graph_variables: int = Field(description="variables in the factor graph")
+    graph_factors: int = Field(description="factors in the factor graph")
+    replay_errors: int = Field(description="log frames that failed when the map was reloaded")
+
+
+class TimingStats(BaseModel):
+    frames: int = Field(description="frames the figures cover (the last <= 1000 since load)")
+    mean: float = Field(description="mean time per frame in the worker, milliseconds")
+    p50: float = Field(description="median time per frame in the worker, milliseconds")
+    p99: float = Field(description="99th percentile time per frame in the worker, milliseconds")
+
+
+class MapPublic(BaseModel):
+    """A map's summary."""
+
+    id: str = Field(description="the map's id, used in every other path")
+    name: str = Field(description="human-readable name")
+    mode: Mode = Field(description="'mapping' or 'localisation' (no new landmarks)")
+    config: dict[str, Any] = Field(description="the map config as created (see MapConfig)")
+    created: float = Field(description="creation time, seconds since the Unix epoch")
+    estimator: dict[str, Any] = Field(
+        description="every estimator parameter (SI units: metres, radians)"
+    )
+    counts: MapCounts = Field(description="sizes of the map and its graph")
+    robots: list[str] = Field(description="robot names in the order they joined")
+    timing_ms: TimingStats | None = Field(description="worker time per frame; null before any")
+    worker: int | None = Field(None, description="index of the worker process owning the map")
+
+
+class MapBrief(BaseModel):
+    id: str = Field(description="the map's id")
+    name: str = Field(description="human-readable name")
+    mode: Mode = Field(description="'mapping' or 'localisation'")
+    config: dict[str, Any] = Field(description="the map config as created (see MapConfig)")
+    created: float = Field(description="seconds since the Unix epoch")
+
+
+# --------------------------------------------------------------------------- frames
+
+
+class OdometryIn(BaseModel):
+    """Motion since the robot's previous frame, expressed in the previous robot frame."""
+
+    dx: float = Field(description="forward motion, metres")
+    dy: float = Field(description="leftward motion, metres")
+    dtheta: float = Field(description="heading change, radians, counter-clockwise, in [-pi, pi]")
+    sigma_x: float | None = Field(None, description="one-sigma noise of dx, metres")
+    sigma_y: float | None = Field(None, description="one-sigma noise of dy, metres")
+    sigma_theta: float | None = Field(None, description="one-sigma noise of dtheta, radians")
+
+
+class PoseXYTheta(BaseModel):
+    """A pose in the map frame."""
+
+    x: float = Field(description="metres, map frame")
+    y: float = Field(description="metres, map frame")
+    theta: float = Field(
+        description="yaw, radians, counter-clockwise from the map's +x axis, in (-pi, pi]"
+    )
+
+
+class ObservationIn(BaseModel):
+    bearing: float = Field(
+        description="radians in the robot frame, counter-clockwise from the robot's forward "
+        "axis (+x), in (-pi, pi]"
+    )
+    sigma: float | None = Field(None, description="one-sigma bearing noise, radians")
+    label: str | int = Field(description="known data association (e.g. a fiducial id)")
+    descriptor: str | None = Field(
+        None, description="base64 appearance descriptor (not used yet: label is required)"
+    )
+
+
+class FrameIn(BaseModel):
+    """One frame of one robot (JSON form). NaN and infinities are refused."""
+
+    robot: str = Field(description="robot name; one pose chain per robot")
+    seq: int = Field(ge=0, description="per-robot sequence number, strictly increasing")
+    stamp: float = Field(description="seconds (any epoch), non-decreasing per robot")
+    odometry: OdometryIn | None = Field(
+        None, description="required on every frame after the robot's first"
+    )
+    initial_pose: PoseXYTheta | None = Field(
+        None, description="required on a robot's first frame (until the place localiser lands)"
+    )
+    observations: list[ObservationIn] = Field(
+        default_factory=list, description="bearings seen in this frame (absent = none)"
+    )
+
+
+class Localisation(BaseModel):
+    status: Literal["initialising", "tracking", "lost", "relocalised"] = Field(
+        description="localisation status (always 'tracking' until the place localiser lands)"
+    )
+    place: int | None = Field(None, description="id of the current place, if any")
+    confidence: float | None = Field(None, description="confidence in [0, 1], if known")
+
+
+class LandmarkChanges(BaseModel):
+    observed: list[int] = Field(description="ids of live landmarks observed in this frame")
+    added: list[int] = Field(description="ids of landmarks this frame initialised")
+    marginalised: list[int] = Field(description="ids the landmark budget removed after it")
+    live: int = Field(description="live landmarks after the frame")
+
+
+class FrameResult(BaseModel):
+    """What one frame did to the map."""
+
+    frame_id: int = Field(description="position of the frame in the map's log (1-based)")
+    robot: str = Field(description="robot name, as posted")
+    seq: int = Field(description="seq, as posted")
+    stamp: float = Field(description="seconds, as posted")
+    pose: PoseXYTheta = Field(description="the robot's estimated pose at this frame")
+    covariance: list[list[float]] | None = Field(description=COV3)
+    localisation: Localisation = Field(description="localisation status of the robot")
+    landmarks: LandmarkChanges = Field(description="what the frame did to the landmarks")
+    timing_ms: dict[str, float] = Field(
+        description="worker time per stage, milliseconds (prepare, update, budget, "
+        "covariance, total; log = parse, checks and the committed append to the durable log)"
+    )
+
+
+# --------------------------------------------------------------------------- queries
+
+
+class RobotPose(BaseModel):
+    seq: int = Field(description="seq of the robot's latest frame")
+    stamp: float = Field(description="stamp of that frame, seconds")
+    pose: PoseXYTheta = Field(description="current estimate of the latest pose")
+    covariance: list[list[float]] = Field(description=COV3)
+    localisation: Localisation = Field(description="localisation status of the robot")
+
+
+class PoseOut(BaseModel):
+    map_id: str = Field(description="the map's id")
+    robots: dict[str, RobotPose] = Field(description="latest pose per robot name")
+
+
+class TrajectoryPoint(BaseModel):
+    seq: int = Field(description="the frame's seq")
+    stamp: float = Field(description="seconds")
+    x: float = Field(description="metres, map frame")
+    y: float = Field(description="metres, map frame")
+    theta: float = Field(description="yaw, radians, counter-clockwise from +x")
+
+
+class TrajectoryOut(BaseModel):
+    map_id: str = Field(description="the map's id")
+    robots: dict[str, list[TrajectoryPoint]] = Field(
+        description="every frame's pose per robot: live poses carry the current estimate, "
+        "marginalised poses the last estimate they had"
+    )
+
+
+class ObservedFrom(BaseModel):
+    x: float = Field(description="mean robot x the landmark was observed from, metres (E(X))")
+    y: float = Field(description="mean robot y the landmark was observed from, metres (E(X))")
+    n: int = Field(description="number of observations in the mean")
+
+
+class LandmarkOut(BaseModel):
+    id: int = Field(description="stable landmark id, never reused")
+    label: str = Field(description="the observations' label")
+    x: float = Field(description="metres, map frame")
+    y: float = Field(description="metres, map frame")
+    covariance: list[list[float]] = Field(description="2x2 marginal covariance of (x, y), m²")
+    information: float = Field(description="I = 1/var_x + 1/var_y, 1/m²")
+    observed_from: ObservedFrom = Field(
+        description="running mean E(X) of the robot positions it was observed from (metres)"
+    )
+    cluster: int = Field(description="coverage cluster index (see /coverage)")
+    first_stamp: float = Field(description="stamp of the first observation, seconds")
+    last_stamp: float = Field(description="stamp of the latest observation, seconds")
+
+
+class Cluster(BaseModel):
+    index: int = Field(description="cluster index, referenced by LandmarkOut.cluster")
+    members: list[int] = Field(description="landmark ids")
+    centre: dict[str, float] = Field(
+        description="L1 centre of the members' observation positions {x, y}, metres"
+    )
+    spread: float = Field(description="D = max(I) - min(I) over the members, 1/m²")
+
+
+class CoverageLandmark(BaseModel):
+    id: int = Field(description="landmark id")
+    observed_from: ObservedFrom = Field(
+        description="running mean E(X) of the robot positions it was observed from (metres)"
+    )
+    information: float = Field(description="I = 1/var_x + 1/var_y, 1/m²")
+
+
+class Hole(BaseModel):
+    ix: int = Field(description="cell column (along x)")
+    iy: int = Field(description="cell row (along y)")
+    x: float = Field(description="cell centre x, metres, map frame")
+    y: float = Field(description="cell centre y, metres, map frame")
+
+
+class CoverageGrid(BaseModel):
+    cell_m: float = Field(description="cell side, metres")
+    radius_m: float = Field(description="'nearby' radius around a cell centre, metres")
+    origin: dict[str, float] = Field(description="map-frame corner {x, y} of cell (0, 0), metres")
+    width: int = Field(description="cells along x")
+    height: int = Field(description="cells along y")
+    counts: list[list[int | None]] = Field(
+        description="counts[iy][ix]: live landmarks whose mean observation position lies "
+        "within radius_m of the cell centre; null for cells no robot visited"
+    )
+    explored_cells: int = Field(description="cells some pose lies in")
+    holes: list[Hole] = Field(description="explored cells with count 0")
+
+
+class CoverageOut(BaseModel):
+    map_id: str = Field(description="the map's id")
+    live_landmarks: int = Field(description="landmarks in the graph")
+    clusters: list[Cluster] = Field(
+        description="k = ceil(live/4) L1 k-means clusters of the observation positions"
+    )
+    landmarks: list[CoverageLandmark] = Field(
+        description="each live landmark's E(X) and information content"
+    )
+    grid: CoverageGrid = Field(description="coverage grid over the explored area, with holes")
+    removal_count: int = Field(description="landmarks marginalised so far")
+    removals: list[dict[str, Any]] = Field(
+        description="the latest removals with reasons: frame, stamp, landmark_id, label, "
+        "x, y (m), observed_from, policy, reason, details"
+    )

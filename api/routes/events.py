@@ -1,0 +1,83 @@
+"""Server-sent events of a map: frame results and map changes, resumable by id."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.responses import StreamingResponse
+
+from api.deps import MapId, ServiceDep
+from api.models import Problem
+from service.maps import MapService
+from service.store import latest_event_id, read_events
+
+router = APIRouter(prefix="/v1/maps/{map_id}/events", tags=["events"])
+
+KEEPALIVE_S = 15.0
+
+
+async def _stream(
+    service: MapService, map_id: str, after: int, request: Request
+) -> AsyncIterator[bytes]:
+    path = service.events_path(map_id)
+    yield b": covslam events\n\n"
+    while True:
+        wake = service.notifier.handle(map_id)
+        rows = await asyncio.to_thread(read_events, path, after)
+        for event_id, kind, data in rows:
+            after = event_id
+            yield f"id: {event_id}\nevent: {kind}\ndata: {data}\n\n".encode()
+        if rows:
+            continue
+        if await request.is_disconnected() or map_id not in {r.id for r in service.list()}:
+            return
+        try:
+            await asyncio.wait_for(wake.wait(), KEEPALIVE_S)
+        except TimeoutError:
+            yield b": keepalive\n\n"
+
+
+@router.get(
+    "",
+    responses={
+        200: {
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+            "description": "events `frame` (a frame result), `landmark_added` {id, label, x, y "
+            "[m], frame_id}, `landmark_marginalised` (a removal record with reason); each has "
+            "an `id` for Last-Event-ID",
+        },
+        404: {"model": Problem},
+    },
+)
+async def stream_events(
+    map_id: MapId,
+    request: Request,
+    service: ServiceDep,
+    last_event_id: Annotated[
+        str | None, Header(description="resume after this event id (set by EventSource)")
+    ] = None,
+    since: Annotated[
+        int | None,
+        Query(
+            ge=0,
+            description="start after this event id (0 = every stored event); "
+            "default: only new events",
+        ),
+    ] = None,
+) -> StreamingResponse:
+    """Live stream (SSE) of frame results and map changes."""
+    path = service.events_path(map_id)
+    if last_event_id is not None and last_event_id.strip().isdigit():
+        after = int(last_event_id)
+    elif since is not None:
+        after = since
+    else:
+        after = await asyncio.to_thread(latest_event_id, path)
+    return StreamingResponse(
+        _stream(service, map_id, after, request),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )

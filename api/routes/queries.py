@@ -1,0 +1,88 @@
+"""Read the map: latest poses, trajectories (JSON or TUM), landmarks, coverage."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query, Response
+
+from api.deps import MapId, ServiceDep
+from api.models import CoverageOut, LandmarkOut, PoseOut, Problem, TrajectoryOut
+from service.errors import ServiceError
+from service.views import tum_text
+
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"])
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    404: {"model": Problem, "description": "unknown map or robot"},
+    503: {"model": Problem, "description": "the map's worker is restarting; see Retry-After"},
+}
+
+
+@router.get("/pose", response_model=PoseOut, responses=_ERRORS)
+async def get_pose(map_id: MapId, service: ServiceDep) -> Any:
+    """Latest pose of each robot with its 3x3 covariance and localisation status."""
+    return await service.query(map_id, "pose")
+
+
+@router.get(
+    "/trajectory",
+    response_model=TrajectoryOut,
+    responses={
+        **_ERRORS,
+        200: {
+            "content": {"text/plain": {"schema": {"type": "string"}}},
+            "description": "JSON, or with format=tum one robot's TUM text: "
+            "`stamp x y z qx qy qz qw` per line (z = qx = qy = 0, qz = sin(theta/2), "
+            "qw = cos(theta/2); seconds, metres) as evo reads it",
+        },
+    },
+)
+async def get_trajectory(
+    map_id: MapId,
+    service: ServiceDep,
+    robot: Annotated[str | None, Query(description="one robot only (required for tum)")] = None,
+    format: Annotated[Literal["json", "tum"], Query(description="json or tum")] = "json",
+) -> Any:
+    """Every frame's pose per robot `[{seq, stamp, x, y, theta}]`."""
+    if format == "tum" and robot is None:
+        raise ServiceError(
+            422,
+            "invalid-request",
+            "Invalid request",
+            "robot: format=tum needs one robot (?robot=NAME)",
+            field="robot",
+        )
+    rows = await service.query(map_id, "trajectory", robot=robot)
+    if format == "tum":
+        assert robot is not None
+        return Response(tum_text(rows[robot]), media_type="text/plain; charset=utf-8")
+    return {"map_id": map_id, "robots": rows}
+
+
+@router.get("/landmarks", response_model=list[LandmarkOut], responses=_ERRORS)
+async def get_landmarks(map_id: MapId, service: ServiceDep) -> Any:
+    """Live landmarks with marginal covariance, information content, mean observation
+    position E(X) and coverage cluster."""
+    return await service.query(map_id, "landmarks")
+
+
+@router.get("/coverage", response_model=CoverageOut, responses=_ERRORS)
+async def get_coverage(
+    map_id: MapId,
+    service: ServiceDep,
+    cell_m: Annotated[float, Query(gt=0.05, le=100, description="grid cell side, metres")] = 1.0,
+    radius_m: Annotated[
+        float | None, Query(gt=0, le=1000, description="'nearby' radius, metres (2 cells)")
+    ] = None,
+    removals: Annotated[int, Query(ge=0, le=100_000, description="latest removals listed")] = 200,
+) -> Any:
+    """Coverage clusters with spreads D, each landmark's E(X) and information, the
+    coverage grid with its holes, and the removal log with reasons."""
+    return await service.query(
+        map_id,
+        "coverage",
+        cell_m=cell_m,
+        radius_m=radius_m if radius_m is not None else 2.0 * cell_m,
+        removals=removals,
+    )

@@ -1,0 +1,111 @@
+"""Snapshot and restore of a `BearingSlam`: everything but iSAM2 itself, as bytes.
+
+iSAM2 does not serialise (GTSAM-NOTES, "Threads and persistence"), but its
+factors and linearisation point do. A snapshot stores the current factors as one
+``NonlinearFactorGraph`` (``.serialize()``; a ``LinearContainerFactor`` keeps its
+own linearisation point), the linearisation point as ``Values``, and the
+bookkeeping of `BearingSlam` (robots and their pose windows, landmark records,
+candidate tracks, trajectory arrays, removal log tail, the policy's rng state).
+`restore` builds a fresh iSAM2 from the factors at the stored linearisation
+point in one update, so the estimate after a restore equals the one before up to
+iSAM2's relinearisation state (one full step from the same linearisation point).
+
+The blob is a pickle: it is meant for the service's own store, never for data
+from outside (imports replay frames instead).
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Callable
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from graph.factors import pose_key
+from graph.slam import BearingSlam, RemovalRecord
+
+SNAPSHOT_VERSION = 1
+
+_SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng"})
+"""BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is
+derived from the config, the removal sink is given again, the rng keeps its state."""
+_GRAPH_SPECIAL = frozenset({"_isam", "_factors", "_key_factors", "_estimate"})
+"""IncrementalGraph attributes rebuilt by re-adding the factors (the estimate cache is
+dropped)."""
+
+
+class SnapshotError(ValueError):
+    """A snapshot could not be taken or read (unpicklable state, wrong version, corrupt)."""
+
+
+def capture(slam: BearingSlam) -> bytes:
+    """The estimator's whole state as bytes (see the module docstring).
+
+    Every attribute of the estimator and of its graph that is not rebuilt on restore
+    is pickled as it is (plain Python and numpy bookkeeping), so state added to
+    `BearingSlam` later is carried without changes here.
+    """
+    inner = slam.graph
+    factors = gtsam.NonlinearFactorGraph()
+    for index in sorted(inner._factors):
+        factors.add(inner._factors[index])
+    linpoint = inner.linearization_point() if inner.num_factors else gtsam.Values()
+    state: dict[str, Any] = {
+        "version": SNAPSHOT_VERSION,
+        "rng": slam._rng.bit_generator.state,
+        "factors": factors.serialize(),
+        "linpoint": linpoint.serialize(),
+        "slam": {k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
+        "graph": {k: v for k, v in vars(inner).items() if k not in _GRAPH_SPECIAL},
+    }
+    try:
+        return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+    except (TypeError, pickle.PicklingError) as exc:
+        raise SnapshotError(f"estimator state does not pickle: {exc}") from exc
+
+
+def restore(
+    blob: bytes, *, removal_sink: Callable[[RemovalRecord], None] | None = None
+) -> BearingSlam:
+    """A working `BearingSlam` from `capture`'s bytes; iSAM2 is rebuilt from the factors."""
+    try:
+        state = pickle.loads(blob)
+    except Exception as exc:  # pickle raises many types on corrupt input
+        raise SnapshotError(f"corrupt snapshot: {exc}") from exc
+    if not isinstance(state, dict) or state.get("version") != SNAPSHOT_VERSION:
+        version = state.get("version") if isinstance(state, dict) else None
+        raise SnapshotError(f"unsupported snapshot version {version!r}")
+    plain: dict[str, Any] = state["slam"]
+    rng = np.random.default_rng()
+    rng.bit_generator.state = state["rng"]
+    slam = BearingSlam(
+        plain["config"],
+        rng=rng,
+        removal_sink=removal_sink,
+        removal_memory=plain["removals"].maxlen,
+    )
+    factors = gtsam.NonlinearFactorGraph()
+    factors.deserialize(state["factors"])
+    if factors.size():
+        linpoint = gtsam.Values()
+        linpoint.deserialize(state["linpoint"])
+        slam.graph.update([factors.at(i) for i in range(factors.size())], linpoint)
+    for name, value in state["graph"].items():
+        setattr(slam.graph, name, value)
+    for name, value in plain.items():
+        setattr(slam, name, value)
+    return slam
+
+
+def latest_pose_keys(slam: BearingSlam) -> dict[str, int]:
+    """The graph key of each robot's newest pose (always still in the graph)."""
+    return {
+        name: pose_key(robot.slot, robot.next_index - 1) for name, robot in slam._robots.items()
+    }
+
+
+def last_accepted(slam: BearingSlam) -> dict[str, tuple[int, float]]:
+    """Each robot's last accepted (seq, stamp)."""
+    return {name: (r.last_seq, r.last_stamp) for name, r in slam._robots.items()}

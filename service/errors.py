@@ -1,0 +1,62 @@
+"""Errors of the service layer, each with the HTTP status and problem type it maps to.
+
+They cross the process boundary as plain dicts (`as_dict` / `from_dict`), so a
+worker's refusal reaches the API process intact.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class ServiceError(Exception):
+    """A request the service refuses; rendered as RFC 9457 problem+json by the API.
+
+    `slug` names the problem type, `title` is its short fixed summary, `detail`
+    says precisely what was wrong (which field, what value), `extra` holds
+    additional members (e.g. ``field``).
+    """
+
+    def __init__(self, status: int, slug: str, title: str, detail: str, **extra: Any) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.slug = slug
+        self.title = title
+        self.detail = detail
+        self.extra = extra
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "status": self.status,
+            "slug": self.slug,
+            "title": self.title,
+            "detail": self.detail,
+            "extra": self.extra,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ServiceError:
+        return cls(d["status"], d["slug"], d["title"], d["detail"], **d.get("extra", {}))
+
+
+def unknown_map(map_id: str) -> ServiceError:
+    return ServiceError(404, "unknown-map", "Unknown map", f"no map with id {map_id!r}")
+
+
+def invalid_frame(field: str, detail: str) -> ServiceError:
+    return ServiceError(422, "invalid-frame", "Invalid frame", f"{field}: {detail}", field=field)
+
+
+def out_of_order(field: str, detail: str) -> ServiceError:
+    return ServiceError(
+        409, "out-of-order", "Frame out of order", f"{field}: {detail}", field=field
+    )
+
+
+class WorkerUnavailable(Exception):
+    """The map's worker crashed or did not answer in time: retry later (503)."""
+
+    def __init__(self, detail: str, *, retry_after_s: int) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        self.retry_after_s = retry_after_s

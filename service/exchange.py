@@ -1,0 +1,52 @@
+"""The map document of export and import (format ``covslam.map``, version 1).
+
+Export: the map record and config, the estimator's parameters, landmarks with
+covariances and observation statistics, trajectories, the removal log and the
+frame log with each frame's result. Import replays the frame log into a new map
+(frames are validated like any posted frame; nothing in the document is trusted
+as estimator state).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from service.errors import ServiceError
+from service.jsonio import loads_object
+from service.mapconfig import MapConfig, Mode
+
+EXPORT_FORMAT = "covslam.map"
+EXPORT_VERSION = 1
+
+
+def _bad_import(field: str, detail: str) -> ServiceError:
+    return ServiceError(
+        422, "invalid-import", "Invalid map document", f"{field}: {detail}", field=field
+    )
+
+
+def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any]]:
+    """Check an export document: (name, mode, config, frames); ServiceError 400/422."""
+    doc = loads_object(raw, "a covslam.map document")
+    if doc.get("format") != EXPORT_FORMAT:
+        raise _bad_import("format", f"must be {EXPORT_FORMAT!r}, got {doc.get('format')!r}")
+    if doc.get("version") != EXPORT_VERSION:
+        raise _bad_import(
+            "version", f"version {doc.get('version')!r} unsupported (this is {EXPORT_VERSION})"
+        )
+    meta = doc.get("map")
+    if not isinstance(meta, dict):
+        raise _bad_import("map", "must be an object with name, mode and config")
+    name, mode = meta.get("name"), meta.get("mode")
+    if not isinstance(name, str) or not name:
+        raise _bad_import("map.name", "must be a non-empty string")
+    if mode not in ("mapping", "localisation"):
+        raise _bad_import("map.mode", f"must be 'mapping' or 'localisation', got {mode!r}")
+    try:
+        config = MapConfig.model_validate(meta.get("config"))
+    except ValueError as exc:
+        raise _bad_import("map.config", str(exc)) from exc
+    frames = doc.get("frames")
+    if not isinstance(frames, list):
+        raise _bad_import("frames", "must be an array of {frame, result}")
+    return name, mode, config, frames

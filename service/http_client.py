@@ -1,0 +1,122 @@
+"""A real client of the REST API: post a frame sequence to a running service.
+
+Retries on 503 (honouring Retry-After) and on connection errors, so a replay
+survives a worker restart or a service restart: `(robot, seq)` makes every retry
+safe. Used by ``covslam replay ... --url URL``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpx
+import numpy as np
+from tqdm import tqdm
+
+from graph.types import FrameInput
+from service.frames_io import frame_to_dict
+
+log = logging.getLogger(__name__)
+
+
+class ReplayHTTPError(RuntimeError):
+    """The service refused a frame (4xx) or stayed unavailable past the retries."""
+
+
+@dataclass
+class HttpReplay:
+    """What a replay over HTTP produced."""
+
+    map_id: str
+    results: list[dict[str, Any]] = field(default_factory=list)
+    latency_ms: list[float] = field(default_factory=list)
+    """Client-side round trip of each frame, milliseconds."""
+    retries: int = 0
+
+    def summary(self) -> str:
+        ms = np.asarray(self.latency_ms)
+        if ms.size == 0:
+            return f"map {self.map_id}: no frames"
+        return (
+            f"map {self.map_id}: {len(ms)} frames over HTTP, latency p50 "
+            f"{np.percentile(ms, 50):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms, "
+            f"{self.retries} retries"
+        )
+
+
+def _request(
+    client: httpx.Client, method: str, path: str, *, attempts: int, **kwargs: Any
+) -> tuple[httpx.Response, int]:
+    """One request with retries on 503 and transport errors; (response, retries used)."""
+    for attempt in range(attempts):
+        try:
+            response = client.request(method, path, **kwargs)
+        except httpx.TransportError as exc:
+            if attempt == attempts - 1:
+                raise ReplayHTTPError(f"{method} {path}: {exc}") from exc
+            time.sleep(min(0.2 * 2**attempt, 5.0))
+            continue
+        if response.status_code != 503:
+            return response, attempt
+        time.sleep(float(response.headers.get("retry-after", "1")))
+    raise ReplayHTTPError(f"{method} {path}: still 503 after {attempts} attempts")
+
+
+def replay_http(
+    frames: Sequence[FrameInput],
+    *,
+    url: str,
+    map_id: str | None = None,
+    name: str = "replay",
+    config: dict[str, Any] | None = None,
+    progress: bool | None = None,
+    attempts: int = 30,
+    timeout_s: float = 60.0,
+) -> HttpReplay:
+    """Post `frames` in order to `url` (into `map_id`, or a new map with `config`)."""
+    with httpx.Client(base_url=url.rstrip("/"), timeout=timeout_s) as client:
+        if map_id is None:
+            body = {"name": name, "config": config or {}}
+            r, _ = _request(client, "POST", "/v1/maps", json=body, attempts=attempts)
+            if r.status_code != 201:
+                raise ReplayHTTPError(f"creating the map: {r.status_code} {r.text}")
+            map_id = str(r.json()["id"])
+        out = HttpReplay(map_id)
+        bar = tqdm(frames, unit="frame", disable=None if progress is None else not progress)
+        for frame in bar:
+            t0 = time.perf_counter()
+            r, retries = _request(
+                client,
+                "POST",
+                f"/v1/maps/{map_id}/frames",
+                json=frame_to_dict(frame),
+                attempts=attempts,
+            )
+            out.latency_ms.append(1e3 * (time.perf_counter() - t0))
+            out.retries += retries
+            if r.status_code != 200:
+                raise ReplayHTTPError(
+                    f"frame robot={frame.robot} seq={frame.seq}: {r.status_code} {r.text}"
+                )
+            out.results.append(r.json())
+        log.info(out.summary())
+        return out
+
+
+def fetch_tum(url: str, map_id: str, robot: str, *, attempts: int = 30) -> str:
+    """One robot's trajectory as TUM text."""
+    with httpx.Client(base_url=url.rstrip("/"), timeout=60) as client:
+        r, _ = _request(
+            client,
+            "GET",
+            f"/v1/maps/{map_id}/trajectory",
+            params={"robot": robot, "format": "tum"},
+            attempts=attempts,
+        )
+        if r.status_code != 200:
+            raise ReplayHTTPError(f"trajectory: {r.status_code} {r.text}")
+        return r.text

@@ -1,0 +1,102 @@
+"""Service configuration: pydantic-settings, ``COVSLAM_*`` variables, nested with ``__``.
+
+Examples: ``COVSLAM_PORT=9000``, ``COVSLAM_DATA_DIR=/var/lib/covslam``,
+``COVSLAM_STORE__SYNCHRONOUS=FULL``, ``COVSLAM_WORKERS__COUNT=4``.
+Nothing is read at import time: call `get_settings()` (cached; tests clear it).
+"""
+
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class StoreSettings(BaseModel):
+    """The embedded SQLite store."""
+
+    synchronous: Literal["NORMAL", "FULL"] = Field(
+        "NORMAL",
+        description="SQLite synchronous mode in WAL: NORMAL survives a killed process, "
+        "FULL also a power loss (one fsync per commit, ~4 ms on these disks)",
+    )
+    snapshot_every: int = Field(
+        200, ge=1, description="frames between two snapshots of a map's estimator state"
+    )
+    snapshots_kept: int = Field(2, ge=1, description="snapshots kept per map (older deleted)")
+    events_kept: int = Field(
+        20_000, ge=100, description="most recent events kept per map for SSE catch-up"
+    )
+
+
+class WorkerSettings(BaseModel):
+    """The pool of worker processes that own the maps."""
+
+    count: int = Field(
+        default_factory=lambda: max(1, os.cpu_count() or 1),
+        ge=1,
+        le=64,
+        description="worker processes; each map is pinned to one (default: CPU count)",
+    )
+    request_timeout_s: float = Field(
+        60.0, gt=0, description="longest wait for a worker's answer before a 503"
+    )
+    retry_after_s: int = Field(1, ge=1, description="Retry-After seconds sent with a 503")
+    nice: int = Field(
+        5,
+        ge=0,
+        le=19,
+        description="niceness added to worker processes, so the API process (probes, "
+        "routing) wins the CPU when workers compute",
+    )
+
+
+class ApiSettings(BaseModel):
+    """Limits of the HTTP front."""
+
+    max_body_bytes: int = Field(
+        1 << 20, ge=1024, description="largest request body except imports, bytes (413 above)"
+    )
+    max_import_bytes: int = Field(
+        256 << 20, ge=1024, description="largest body of POST /v1/maps/import, bytes"
+    )
+
+
+class Settings(BaseSettings):
+    """Everything `covslam serve` can be told."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="COVSLAM_", env_nested_delimiter="__", extra="ignore"
+    )
+
+    host: str = Field("127.0.0.1", description="address uvicorn binds")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0 = any free port)")
+    data_dir: Path = Field(
+        Path("./covslam-data"), description="directory of the SQLite store (created if missing)"
+    )
+    default_landmark_cap: int | None = Field(
+        50, description="landmark cap of a new map whose config gives none; null = uncapped"
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        "info", description="log level of the service and uvicorn"
+    )
+    store: StoreSettings = Field(default_factory=StoreSettings)
+    workers: WorkerSettings = Field(default_factory=WorkerSettings)
+    api: ApiSettings = Field(default_factory=ApiSettings)
+
+    @field_validator("default_landmark_cap")
+    @classmethod
+    def _cap_positive(cls, value: int | None) -> int | None:
+        if value is not None and value < 1:
+            raise ValueError("default_landmark_cap must be >= 1 or null")
+        return value
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process's settings, read from the environment once (tests: cache_clear())."""
+    return Settings()

@@ -1,0 +1,330 @@
+"""The embedded SQLite store: a catalogue of maps, and one database file per map.
+
+Layout under the data directory::
+
+    catalog.sqlite          maps(id, name, mode, config, created)
+    maps/<id>.sqlite        frames (the durable log), snapshots, removals, events, meta
+
+Every database runs in WAL mode; ``synchronous`` is NORMAL (survives a killed
+process: a commit is in the OS before it returns) or FULL (also survives power
+loss, one fsync per commit). The catalogue is written by the API process, a map's
+file only by the worker process that owns the map; anyone may read.
+
+The frame log: a frame is appended (and committed) before it is processed; its
+result, its events and the removals it caused are written together in one
+transaction afterwards. ``UNIQUE(robot, seq)`` backs idempotent retries.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+_CATALOG_SCHEMA = """
+CREATE TABLE IF NOT EXISTS maps (
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL,
+    mode TEXT NOT NULL,
+    config TEXT NOT NULL,
+    created REAL NOT NULL
+);
+"""
+
+_MAP_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS frames (
+    id INTEGER PRIMARY KEY,
+    robot TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    body TEXT NOT NULL,
+    result TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    received REAL NOT NULL,
+    UNIQUE (robot, seq)
+);
+CREATE TABLE IF NOT EXISTS snapshots (
+    id INTEGER PRIMARY KEY,
+    upto INTEGER NOT NULL,
+    created REAL NOT NULL,
+    state BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS removals (
+    landmark_id INTEGER PRIMARY KEY,
+    frame INTEGER NOT NULL,
+    record TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    kind TEXT NOT NULL,
+    data TEXT NOT NULL,
+    created REAL NOT NULL
+);
+"""
+
+
+def connect(path: Path, *, synchronous: str, readonly: bool = False) -> sqlite3.Connection:
+    """A connection in WAL mode with the given synchronous level (autocommit mode)."""
+    if readonly:
+        conn = sqlite3.connect(
+            f"file:{path}?mode=ro", uri=True, isolation_level=None, check_same_thread=False
+        )
+    else:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute(f"PRAGMA synchronous={'FULL' if synchronous == 'FULL' else 'NORMAL'}")
+    conn.execute("PRAGMA busy_timeout=10000")
+    return conn
+
+
+@contextmanager
+def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """BEGIN IMMEDIATE ... COMMIT, rolled back on any exception."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield conn
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+def map_db_path(data_dir: Path, map_id: str) -> Path:
+    return data_dir / "maps" / f"{map_id}.sqlite"
+
+
+# --------------------------------------------------------------------------- catalogue
+
+
+@dataclass(frozen=True, slots=True)
+class MapRecord:
+    """A map as the catalogue knows it. `config` is the API's map config (JSON object)."""
+
+    id: str
+    name: str
+    mode: str
+    config: dict[str, Any]
+    created: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "mode": self.mode,
+            "config": self.config,
+            "created": self.created,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> MapRecord:
+        return cls(d["id"], d["name"], d["mode"], dict(d["config"]), float(d["created"]))
+
+
+class Catalog:
+    """The list of maps (API process)."""
+
+    def __init__(self, data_dir: Path, *, synchronous: str) -> None:
+        self._conn = connect(data_dir / "catalog.sqlite", synchronous=synchronous)
+        self._conn.executescript(_CATALOG_SCHEMA)
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def add(self, record: MapRecord) -> None:
+        with transaction(self._conn):
+            self._conn.execute(
+                "INSERT INTO maps (id, name, mode, config, created) VALUES (?, ?, ?, ?, ?)",
+                (record.id, record.name, record.mode, json.dumps(record.config), record.created),
+            )
+
+    def remove(self, map_id: str) -> None:
+        with transaction(self._conn):
+            self._conn.execute("DELETE FROM maps WHERE id = ?", (map_id,))
+
+    def set_mode(self, map_id: str, mode: str) -> None:
+        with transaction(self._conn):
+            self._conn.execute("UPDATE maps SET mode = ? WHERE id = ?", (mode, map_id))
+
+    def all(self) -> list[MapRecord]:
+        rows = self._conn.execute(
+            "SELECT id, name, mode, config, created FROM maps ORDER BY created, id"
+        ).fetchall()
+        return [MapRecord(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
+
+
+# --------------------------------------------------------------------------- one map
+
+
+@dataclass(frozen=True, slots=True)
+class StoredFrame:
+    id: int
+    robot: str
+    seq: int
+    body: str
+    result: str | None
+    attempts: int = 0
+
+
+class MapStore:
+    """One map's database (owned by its worker process)."""
+
+    def __init__(self, path: Path, *, synchronous: str) -> None:
+        self.path = path
+        self._conn = connect(path, synchronous=synchronous)
+        self._conn.executescript(_MAP_SCHEMA)
+
+    def close(self) -> None:
+        self._conn.close()
+
+    # meta
+    def get_meta(self, key: str) -> Any | None:
+        row = self._conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else json.loads(row[0])
+
+    def set_meta(self, key: str, value: Any) -> None:
+        with transaction(self._conn):
+            self._conn.execute(
+                "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, json.dumps(value))
+            )
+
+    # the frame log
+    def find_frame(self, robot: str, seq: int) -> StoredFrame | None:
+        row = self._conn.execute(
+            "SELECT id, robot, seq, body, result, attempts FROM frames WHERE robot = ? AND seq = ?",
+            (robot, seq),
+        ).fetchone()
+        return None if row is None else StoredFrame(*row)
+
+    def append_frame(self, robot: str, seq: int, body: str) -> int:
+        """Append an accepted frame to the log and commit; its log id."""
+        with transaction(self._conn):
+            cur = self._conn.execute(
+                "INSERT INTO frames (robot, seq, body, received) VALUES (?, ?, ?, ?)",
+                (robot, seq, body, time.time()),
+            )
+        assert cur.lastrowid is not None
+        return cur.lastrowid
+
+    def count_attempt(self, frame_id: int) -> None:
+        """Note (durably) that an unfinished frame is about to be processed again."""
+        with transaction(self._conn):
+            self._conn.execute(
+                "UPDATE frames SET attempts = attempts + 1 WHERE id = ?", (frame_id,)
+            )
+
+    def delete_frame(self, frame_id: int) -> None:
+        with transaction(self._conn):
+            self._conn.execute("DELETE FROM frames WHERE id = ?", (frame_id,))
+
+    def complete_frame(
+        self,
+        frame_id: int,
+        result: str,
+        events: list[tuple[str, str]],
+        removals: list[tuple[int, int, str]],
+    ) -> list[int]:
+        """Store a frame's result, its events and removals in one transaction; event ids."""
+        now = time.time()
+        ids: list[int] = []
+        with transaction(self._conn):
+            self._conn.execute("UPDATE frames SET result = ? WHERE id = ?", (result, frame_id))
+            self._conn.executemany(
+                "INSERT OR IGNORE INTO removals (landmark_id, frame, record) VALUES (?, ?, ?)",
+                removals,
+            )
+            for kind, data in events:
+                cur = self._conn.execute(
+                    "INSERT INTO events (kind, data, created) VALUES (?, ?, ?)", (kind, data, now)
+                )
+                assert cur.lastrowid is not None
+                ids.append(cur.lastrowid)
+        return ids
+
+    def add_event(self, kind: str, data: str) -> int:
+        with transaction(self._conn):
+            cur = self._conn.execute(
+                "INSERT INTO events (kind, data, created) VALUES (?, ?, ?)",
+                (kind, data, time.time()),
+            )
+        assert cur.lastrowid is not None
+        return cur.lastrowid
+
+    def frames_after(self, frame_id: int) -> list[StoredFrame]:
+        rows = self._conn.execute(
+            "SELECT id, robot, seq, body, result, attempts FROM frames WHERE id > ? ORDER BY id",
+            (frame_id,),
+        ).fetchall()
+        return [StoredFrame(*r) for r in rows]
+
+    def frame_count(self) -> int:
+        return int(self._conn.execute("SELECT count(*) FROM frames").fetchone()[0])
+
+    # snapshots
+    def save_snapshot(self, upto: int, state: bytes, *, keep: int) -> None:
+        with transaction(self._conn):
+            self._conn.execute(
+                "INSERT INTO snapshots (upto, created, state) VALUES (?, ?, ?)",
+                (upto, time.time(), state),
+            )
+            self._conn.execute(
+                "DELETE FROM snapshots WHERE id NOT IN "
+                "(SELECT id FROM snapshots ORDER BY id DESC LIMIT ?)",
+                (keep,),
+            )
+
+    def latest_snapshot(self) -> tuple[int, bytes] | None:
+        row = self._conn.execute(
+            "SELECT upto, state FROM snapshots ORDER BY id DESC LIMIT 1"
+        ).fetchone()
+        return None if row is None else (int(row[0]), bytes(row[1]))
+
+    # removals and events
+    def removals(self, limit: int | None = None) -> list[dict[str, Any]]:
+        """The most recent `limit` removals (all if None), oldest first."""
+        rows = self._conn.execute(
+            "SELECT record FROM (SELECT frame, landmark_id, record FROM removals "
+            "ORDER BY frame DESC, landmark_id DESC LIMIT ?) ORDER BY frame, landmark_id",
+            (-1 if limit is None else limit,),
+        ).fetchall()
+        return [json.loads(r[0]) for r in rows]
+
+    def removal_count(self) -> int:
+        return int(self._conn.execute("SELECT count(*) FROM removals").fetchone()[0])
+
+    def prune_events(self, keep: int) -> None:
+        with transaction(self._conn):
+            self._conn.execute(
+                "DELETE FROM events WHERE id <= (SELECT max(id) FROM events) - ?", (keep,)
+            )
+
+
+def read_events(path: Path, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
+    """Events with id > `after` from a map's database: (id, kind, data JSON), oldest first."""
+    if not path.exists():
+        return []
+    conn = connect(path, synchronous="NORMAL", readonly=True)
+    try:
+        rows = conn.execute(
+            "SELECT id, kind, data FROM events WHERE id > ? ORDER BY id LIMIT ?", (after, limit)
+        ).fetchall()
+    finally:
+        conn.close()
+    return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+
+
+def latest_event_id(path: Path) -> int:
+    """The id of a map's newest event (0 if none)."""
+    if not path.exists():
+        return 0
+    conn = connect(path, synchronous="NORMAL", readonly=True)
+    try:
+        row = conn.execute("SELECT max(id) FROM events").fetchone()
+    finally:
+        conn.close()
+    return int(row[0] or 0)

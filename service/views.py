@@ -1,0 +1,176 @@
+"""Read-only views of a map for the API: poses, trajectories, landmarks, coverage.
+
+Functions of the estimator (and the store, for the removal log); units metres,
+radians, seconds; covariances as nested lists, row-major.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import numpy as np
+
+from graph.policies import LandmarkTable, coverage_clusters, information_content
+from graph.slam import BearingSlam
+from graph.snapshot import last_accepted, latest_pose_keys
+from service.coverage import coverage_grid
+from service.errors import ServiceError
+from service.evaluation import Trajectory, write_tum
+from service.store import MapStore
+
+
+def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
+    """Latest pose of each robot with its (3, 3) covariance."""
+    keys = latest_pose_keys(slam)
+    last = last_accepted(slam)
+    robots = {}
+    for name, key in keys.items():
+        p = slam.graph.pose(key)
+        cov = slam.graph.pose_covariance(key)
+        robots[name] = {
+            "seq": last[name][0],
+            "stamp": last[name][1],
+            "pose": {"x": float(p.x()), "y": float(p.y()), "theta": float(p.theta())},
+            "covariance": np.asarray(cov).tolist(),
+            "localisation": {"status": "tracking", "place": None, "confidence": None},
+        }
+    return {"map_id": map_id, "robots": robots}
+
+
+def trajectory_doc(
+    slam: BearingSlam, map_id: str, robot: str | None = None
+) -> dict[str, list[dict[str, float]]]:
+    """Every frame's pose per robot: [{seq, stamp, x, y, theta}]."""
+    if robot is not None and robot not in slam.robots:
+        raise ServiceError(
+            404,
+            "unknown-robot",
+            "Unknown robot",
+            f"robot: map {map_id!r} has no robot {robot!r} "
+            f"(robots: {', '.join(slam.robots) or 'none'})",
+            field="robot",
+        )
+    out = {}
+    for name, rows in slam.trajectory(robot).items():
+        out[name] = [
+            {"seq": int(r[0]), "stamp": float(r[1]), "x": r[2], "y": r[3], "theta": r[4]}
+            for r in rows.tolist()
+        ]
+    return out
+
+
+def landmark_table(slam: BearingSlam) -> tuple[LandmarkTable, np.ndarray]:
+    """The live landmarks as the policy sees them, with (N, 2, 2) covariances (m²)."""
+    ids = sorted(slam.landmarks)
+    records = [slam.landmarks[i] for i in ids]
+    cov = slam.landmark_covariances(ids) if ids else np.zeros((0, 2, 2), dtype=np.float64)
+    info = information_content(cov) if ids else np.zeros(0)
+    table = LandmarkTable(
+        ids=np.asarray(ids, dtype=np.int64),
+        observed_from=np.array([r.observed_from for r in records]).reshape(-1, 2),
+        counts=np.array([r.count for r in records], dtype=np.int64),
+        first_seen=np.array([r.added_frame for r in records], dtype=np.int64),
+        information=info,
+    )
+    return table, cov
+
+
+def clusters_doc(table: LandmarkTable, seed: int) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """Coverage clusters (seeded k-means, the map's rng untouched): labels and document."""
+    if len(table) == 0:
+        return np.zeros(0, dtype=np.int64), None
+    clusters = coverage_clusters(table, rng=np.random.default_rng(seed))
+    doc = {
+        "k": clusters.k,
+        "clusters": [
+            {
+                "index": c,
+                "members": [int(i) for i in table.ids[clusters.labels == c]],
+                "centre": {
+                    "x": float(clusters.centres[c, 0]),
+                    "y": float(clusters.centres[c, 1]),
+                },
+                "spread": float(clusters.spreads[c]),
+            }
+            for c in range(clusters.k)
+        ],
+    }
+    return clusters.labels, doc
+
+
+def landmarks_doc(slam: BearingSlam, seed: int) -> list[dict[str, Any]]:
+    """Live landmarks: position, covariance, information, E(X), cluster."""
+    table, cov = landmark_table(slam)
+    labels, _ = clusters_doc(table, seed)
+    assert table.information is not None
+    out = []
+    for row, lid in enumerate(table.ids.tolist()):
+        record = slam.landmarks[lid]
+        x, y = (float(v) for v in slam.landmark_position(lid))
+        out.append(
+            {
+                "id": lid,
+                "label": record.label,
+                "x": x,
+                "y": y,
+                "covariance": cov[row].tolist(),
+                "information": float(table.information[row]),
+                "observed_from": {
+                    "x": float(record.observed_from[0]),
+                    "y": float(record.observed_from[1]),
+                    "n": record.count,
+                },
+                "cluster": int(labels[row]),
+                "first_stamp": record.first_stamp,
+                "last_stamp": record.last_stamp,
+            }
+        )
+    return out
+
+
+def coverage_doc(
+    slam: BearingSlam,
+    store: MapStore,
+    map_id: str,
+    seed: int,
+    *,
+    cell_m: float,
+    radius_m: float,
+    removals: int,
+) -> dict[str, Any]:
+    """Clusters with spreads, each landmark's E(X) and information, grid, removal log."""
+    table, _ = landmark_table(slam)
+    _, clusters = clusters_doc(table, seed)
+    positions = [rows[:, 2:4] for rows in slam.trajectory().values()]
+    xy = np.concatenate(positions) if positions else np.zeros((0, 2))
+    assert table.information is not None
+    return {
+        "map_id": map_id,
+        "live_landmarks": len(table),
+        "clusters": clusters["clusters"] if clusters else [],
+        "landmarks": [
+            {
+                "id": int(lid),
+                "observed_from": {
+                    "x": float(table.observed_from[i, 0]),
+                    "y": float(table.observed_from[i, 1]),
+                    "n": int(table.counts[i]),
+                },
+                "information": float(table.information[i]),
+            }
+            for i, lid in enumerate(table.ids)
+        ],
+        "grid": coverage_grid(xy, table.observed_from, cell_m=cell_m, radius_m=radius_m),
+        "removal_count": store.removal_count(),
+        "removals": store.removals(limit=removals),
+    }
+
+
+def tum_text(rows: list[dict[str, float]]) -> str:
+    """TUM lines ``stamp x y 0 0 0 qz qw`` of trajectory rows (as `trajectory` returns)."""
+    stamps = np.array([r["stamp"] for r in rows], dtype=np.float64)
+    poses = np.array([[r["x"], r["y"], r["theta"]] for r in rows], dtype=np.float64)
+    buf = io.StringIO()
+    write_tum(buf, Trajectory.from_poses(stamps, poses.reshape(-1, 3)))  # type: ignore[arg-type]
+    return buf.getvalue()

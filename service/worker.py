@@ -1,0 +1,184 @@
+"""What runs inside a worker process: the maps it owns and one call per request.
+
+`serve` is the process's main loop: it reads ``(request id, op, map_id,
+payload)`` messages from its connection to the API process (see service.pool)
+and answers each in turn, strictly in order, so a map's frames are applied in
+the order they arrived. A map is opened on first use
+(latest snapshot + log tail) and kept open. Every answer is a plain dict:
+``{"ok": True, "value": ...}`` or ``{"ok": False, "error": ServiceError.as_dict()}``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pickle
+import signal
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from service.errors import ServiceError, unknown_map
+from service.exchange import parse_export
+from service.mapconfig import slam_config
+from service.session import MapSession, remove_map_files
+from service.settings import Settings
+from service.store import MapRecord, map_db_path
+
+log = logging.getLogger(__name__)
+
+_settings: Settings | None = None
+_sessions: dict[str, MapSession] = {}
+
+
+def init_worker(settings: dict[str, Any], index: int) -> None:
+    """Process initialiser: settings from the parent, logging."""
+    global _settings
+    # Ctrl+C or a SIGTERM to the whole process group stops the API process, whose
+    # shutdown closes our connection: we end on that end-of-file, after the current call.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _settings = Settings.model_validate(settings)
+    if _settings.workers.nice:
+        os.nice(_settings.workers.nice)
+    logging.basicConfig(
+        level=_settings.log_level.upper(),
+        format=f"%(asctime)s %(levelname)s worker{index} %(name)s: %(message)s",
+    )
+
+
+def _cfg() -> Settings:
+    if _settings is None:
+        raise RuntimeError("worker not initialised")
+    return _settings
+
+
+def _path(map_id: str) -> Path:
+    return map_db_path(_cfg().data_dir, map_id)
+
+
+def _session(map_id: str) -> MapSession:
+    session = _sessions.get(map_id)
+    if session is None:
+        if not _path(map_id).exists():
+            raise unknown_map(map_id)
+        session = MapSession(_path(map_id), _cfg().store)
+        _sessions[map_id] = session
+    return session
+
+
+def _ping(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    return {"pid": os.getpid(), "maps": sorted(_sessions)}
+
+
+def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    record = MapRecord.from_dict(payload["record"])
+    old = _sessions.pop(map_id, None)
+    if old is not None:
+        old.close()
+    _sessions[map_id] = MapSession.create(_path(map_id), record, _cfg().store)
+    return _sessions[map_id].summary()
+
+
+def _open(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    return {"frames": _session(map_id).slam.frame_count}
+
+
+def _delete(map_id: str, payload: dict[str, Any]) -> None:
+    session = _sessions.pop(map_id, None)
+    if session is not None:
+        session.close()
+    remove_map_files(_path(map_id))
+
+
+def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    """A new map from an export document's bytes: parse, check, replay its frame log
+    (in mapping mode, as it was built), then set the document's mode."""
+    name, mode, config, frames = parse_export(payload["body"])
+    config = config.with_default_cap(payload["default_cap"])
+    try:
+        slam_config(config.model_dump(mode="json"), mode)
+    except ValueError as exc:
+        detail = f"map.config: {exc}"
+        raise ServiceError(422, "invalid-import", "Invalid map document", detail) from exc
+    record = MapRecord(map_id, name, "mapping", config.model_dump(mode="json"), payload["created"])
+    _create(map_id, {"record": record.as_dict()})
+    try:
+        session = _sessions[map_id]
+        session.import_frames(frames)
+        if mode != "mapping":
+            session.set_mode(mode)
+    except BaseException:
+        _delete(map_id, {})
+        raise
+    return {"record": session.record.as_dict(), "summary": session.summary()}
+
+
+def _export(map_id: str, payload: dict[str, Any]) -> bytes:
+    return json.dumps(_session(map_id).export(), separators=(",", ":")).encode()
+
+
+def _set_mode(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    session = _session(map_id)
+    session.set_mode(payload["mode"])
+    return session.summary()
+
+
+_OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
+    "ping": _ping,
+    "create": _create,
+    "open": _open,
+    "delete": _delete,
+    "import": _import,
+    "set_mode": _set_mode,
+    "frame": lambda m, p: _session(m).submit(p["frame"]),
+    "summary": lambda m, p: _session(m).summary(),
+    "pose": lambda m, p: _session(m).pose(),
+    "trajectory": lambda m, p: _session(m).trajectory(p.get("robot")),
+    "landmarks": lambda m, p: _session(m).landmarks(),
+    "coverage": lambda m, p: _session(m).coverage(**p),
+    "export": _export,
+}
+
+
+def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
+    """Main loop of a worker process; returns when the API process goes away."""
+    init_worker(settings, index)
+    while True:
+        try:
+            message = conn.recv_bytes()
+        except (EOFError, OSError):
+            return
+        request_id, op, map_id, payload = pickle.loads(message)
+        reply = call(op, map_id, payload)
+        try:
+            conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
+        except (BrokenPipeError, OSError):
+            return
+        _idle_work(conn)
+
+
+def _idle_work(conn: Connection) -> None:
+    """Snapshots that are due, one map at a time, while no request is waiting."""
+    for session in list(_sessions.values()):
+        if conn.poll(0):
+            return
+        if session.snapshot_due:
+            try:
+                session.snapshot()
+            except Exception:
+                log.exception("snapshot of map %s failed", session.record.id)
+
+
+def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+    """Run one operation on one map; never raises (errors come back as data)."""
+    try:
+        return {"ok": True, "value": _OPS[op](map_id, payload)}
+    except ServiceError as exc:
+        return {"ok": False, "error": exc.as_dict()}
+    except Exception as exc:
+        log.exception("op %s on map %s failed", op, map_id)
+        error = ServiceError(500, "internal", "Internal error", f"{type(exc).__name__}: {exc}")
+        return {"ok": False, "error": error.as_dict()}

@@ -1,0 +1,113 @@
+"""MapSession in-process: durable log, idempotency, snapshot + tail reload."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from service.errors import ServiceError
+from service.frames_io import frame_to_dict
+from service.session import MapSession, canonical_frame
+from service.settings import StoreSettings
+from service.store import MapRecord
+from tests.graph._world import circle_frames
+
+FRAMES = [frame_to_dict(f) for f in circle_frames(90, seed=2)[0]]
+
+
+def _new(path: Path, every: int = 25) -> MapSession:
+    record = MapRecord(
+        "m1", "test", "mapping", {"landmark_cap": 10, "pose_window": 30}, time.time()
+    )
+    return MapSession.create(path, record, StoreSettings(snapshot_every=every))
+
+
+def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None:
+    path = tmp_path / "m1.sqlite"
+    session = _new(path)
+    results = []
+    for f in FRAMES[:70]:
+        results.append(json.loads(session.submit(f)["result_json"]))
+        if session.snapshot_due:  # what the worker does between requests
+            session.snapshot()
+    before = session.trajectory()["r1"]
+    session.close()
+
+    reopened = MapSession(path, StoreSettings(snapshot_every=25))
+    # 70 frames, a snapshot every 25: the reload restored frame 50's and replayed 20
+    assert reopened.loaded_from_snapshot == 50
+    assert reopened.slam.frame_count == 70
+    after = reopened.trajectory()["r1"]
+    assert [p["seq"] for p in after] == [p["seq"] for p in before]
+    moved = [
+        abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, before, strict=True)
+    ]
+    assert max(moved) < 5e-3
+    replay = reopened.submit(FRAMES[40])
+    assert replay["replayed"] and json.loads(replay["result_json"]) == results[40]
+    assert not reopened.submit(FRAMES[70])["replayed"]
+
+
+def test_frame_logged_before_a_crash_is_processed_on_reload(tmp_path: Path) -> None:
+    path = tmp_path / "m1.sqlite"
+    session = _new(path)
+    for f in FRAMES[:10]:
+        session.submit(f)
+    # the process dies after the append, before processing: only the log has the frame
+    _, text = canonical_frame(FRAMES[10])
+    session.store.append_frame("r1", FRAMES[10]["seq"], text)
+    session.close()
+
+    reopened = MapSession(path, StoreSettings())
+    assert reopened.slam.frame_count == 11
+    stored = reopened.store.find_frame("r1", FRAMES[10]["seq"])
+    assert stored is not None and stored.result is not None
+    assert json.loads(stored.result)["seq"] == FRAMES[10]["seq"]
+
+
+def test_duplicates_and_order(tmp_path: Path) -> None:
+    session = _new(tmp_path / "m1.sqlite")
+    for f in FRAMES[:5]:
+        session.submit(f)
+    with pytest.raises(ServiceError) as dup:
+        session.submit({**FRAMES[3], "stamp": 99.0})
+    assert dup.value.status == 409 and dup.value.slug == "duplicate-seq"
+    with pytest.raises(ServiceError) as late:
+        session.submit({**FRAMES[6], "seq": 2, "stamp": 1e6})
+    assert late.value.status == 409 and late.value.extra["field"] == "seq"
+    with pytest.raises(ServiceError) as bad:
+        session.submit({**FRAMES[5], "observations": [{"bearing": 9.0, "label": "1"}]})
+    assert bad.value.status == 422 and bad.value.extra["field"] == "observations[0].bearing"
+    assert session.slam.frame_count == 5 and session.store.frame_count() == 5
+
+
+def test_a_frame_that_keeps_killing_the_worker_is_dropped(tmp_path: Path) -> None:
+    path = tmp_path / "m1.sqlite"
+    session = _new(path)
+    for f in FRAMES[:5]:
+        session.submit(f)
+    _, text = canonical_frame(FRAMES[5])
+    log_id = session.store.append_frame("r1", FRAMES[5]["seq"], text)
+    for _ in range(2):  # two reloads died while processing it
+        session.store.count_attempt(log_id)
+    session.close()
+
+    reopened = MapSession(path, StoreSettings())
+    assert reopened.slam.frame_count == 5
+    assert reopened.store.find_frame("r1", FRAMES[5]["seq"]) is None
+    assert reopened.replay_errors == 1
+    assert not reopened.submit(FRAMES[5])["replayed"]  # the robot can send it again
+
+
+def test_a_never_idle_map_is_snapshotted_when_overdue(tmp_path: Path) -> None:
+    path = tmp_path / "m1.sqlite"
+    session = _new(path, every=10)
+    for f in FRAMES[:55]:  # no idle time between requests: no idle snapshot
+        session.submit(f)
+    session.close()
+    reopened = MapSession(path, StoreSettings(snapshot_every=10))
+    assert reopened.loaded_from_snapshot == 50  # forced at 5 x snapshot_every
+    assert reopened.slam.frame_count == 55
