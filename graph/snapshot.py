@@ -3,7 +3,8 @@
 iSAM2 does not serialise (GTSAM-NOTES, "Threads and persistence"), but its
 factors and linearisation point do. A snapshot stores the current factors as one
 ``NonlinearFactorGraph`` (``.serialize()``; a ``LinearContainerFactor`` keeps its
-own linearisation point), the linearisation point as ``Values``, and the
+own linearisation point; a relative marginal, whose error is a Python callback,
+is stored as its `RelativeSpec`), the linearisation point as ``Values``, and the
 bookkeeping of `BearingSlam` (robots and their pose windows, landmark records,
 candidate tracks, trajectory arrays, removal log tail, the policy's rng state).
 `restore` builds a fresh iSAM2 from the factors at the stored linearisation
@@ -24,9 +25,10 @@ import gtsam
 import numpy as np
 
 from graph.factors import pose_key
+from graph.relative import RelativeMarginalFactor, RelativeSpec
 from graph.slam import BearingSlam, RemovalRecord
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2
 
 _SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng"})
 """BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is
@@ -49,13 +51,19 @@ def capture(slam: BearingSlam) -> bytes:
     """
     inner = slam.graph
     factors = gtsam.NonlinearFactorGraph()
+    relative: list[RelativeSpec] = []
     for index in sorted(inner._factors):
-        factors.add(inner._factors[index])
+        factor = inner._factors[index]
+        if isinstance(factor, RelativeMarginalFactor):  # a Python callback: keep its data
+            relative.append(factor.spec)
+        else:
+            factors.add(factor)
     linpoint = inner.linearization_point() if inner.num_factors else gtsam.Values()
     state: dict[str, Any] = {
         "version": SNAPSHOT_VERSION,
         "rng": slam._rng.bit_generator.state,
         "factors": factors.serialize(),
+        "relative": relative,
         "linpoint": linpoint.serialize(),
         "slam": {k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
         "graph": {k: v for k, v in vars(inner).items() if k not in _GRAPH_SPECIAL},
@@ -88,10 +96,12 @@ def restore(
     )
     factors = gtsam.NonlinearFactorGraph()
     factors.deserialize(state["factors"])
-    if factors.size():
+    rebuilt = [factors.at(i) for i in range(factors.size())]
+    rebuilt += [RelativeMarginalFactor(spec) for spec in state["relative"]]
+    if rebuilt:
         linpoint = gtsam.Values()
         linpoint.deserialize(state["linpoint"])
-        slam.graph.update([factors.at(i) for i in range(factors.size())], linpoint)
+        slam.graph.update(rebuilt, linpoint)
     for name, value in state["graph"].items():
         setattr(slam.graph, name, value)
     for name, value in plain.items():
