@@ -64,11 +64,13 @@ class AssociationConfig:
     max_gate_rad: float = math.radians(15.0)
     default_landmark_sigma_m: float = 0.1
     """Landmark position sigma used when no covariance is given."""
-    elevation_gate_rad: float = math.radians(3.0)
-    """Elevation tolerance when a landmark's height is known (tracks: per frame)."""
+    elevation_gate_rad: float = math.radians(1.0)
+    """Elevation tolerance (plus gate_sigmas feature sigmas) of a predicted elevation."""
     max_distance: float = 60.0
     """Largest descriptor distance of a match (Hamming bits for ORB; L2 for SIFT: x5)."""
     ratio: float = 0.8
+    min_matches_for_pose: int = 5
+    """Landmark matches needed to correct the pose and match again (consistency check)."""
     """Best distance must be below ratio x the second best (features and landmarks)."""
     views_per_landmark: int = 5
     new_view_angle_rad: float = math.radians(10.0)
@@ -134,6 +136,26 @@ def _distances(a: NDArray[Any], b: NDArray[Any], binary: bool) -> FloatArray:
         return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1).astype(np.float64)
     diff = a.astype(np.float32) - b.astype(np.float32)
     return np.sqrt((diff * diff).sum(axis=1)).astype(np.float64)
+
+
+def _robust_pose_step(
+    jac: FloatArray, resid: FloatArray, var: FloatArray, prior_cov: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Pose correction (3,) and its covariance (3, 3) from matched bearings.
+
+    Minimises sum rho(resid - jac @ delta) with Cauchy weights (IRLS) plus the
+    prior delta ~ N(0, prior_cov). `jac`: (M, 3) bearing Jacobians w.r.t. the pose;
+    `resid`: (M,) bearing residuals; `var`: (M,) their variances.
+    """
+    prior_info = np.linalg.pinv(prior_cov + 1e-12 * np.eye(3))
+    delta = np.zeros(3)
+    info = prior_info
+    for _ in range(6):
+        e = (resid - jac @ delta) / np.sqrt(var)
+        w = 1.0 / (1.0 + (e / 2.0) ** 2)  # Cauchy, scale 2 sigma
+        info = prior_info + (jac * (w / var)[:, None]).T @ jac
+        delta = np.linalg.solve(info, (jac * (w / var)[:, None]).T @ resid)
+    return delta, np.linalg.inv(info)
 
 
 def _pick(
@@ -256,6 +278,12 @@ class Associator:
         cov: FloatArray,
         landmarks: Mapping[str, LandmarkEstimate],
     ) -> dict[str, int]:
+        """Gate and match; then correct the pose from the matches and match again.
+
+        The second pass is the consistency check: a match that only fits under the
+        wide first gate (a look-alike a few degrees off) does not survive once
+        the other landmarks have pinned the pose down.
+        """
         cfg = self.config
         labels = [lb for lb in landmarks if lb in self._landmarks]
         if not labels or len(features) == 0:
@@ -270,32 +298,59 @@ class Associator:
                 for lb in labels
             ]
         )
-        dx, dy = xy[:, 0] - pose[0], xy[:, 1] - pose[1]
-        r2 = np.maximum(dx * dx + dy * dy, 1e-6)
-        predicted = wrap_angles(np.arctan2(dy, dx) - pose[2])
-        # d(bearing)/d(landmark xy) = (-dy, dx) / r^2; d/d(pose) = (dy/r^2, -dx/r^2, -1).
-        jl = np.column_stack([-dy, dx]) / r2[:, None]
-        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(labels))])
-        var = np.einsum("li,ij,lj->l", jp, cov, jp) + np.einsum("li,lij,lj->l", jl, lcov, jl)
-        # (L, N) bearing residual and gate (feature sigma added per pair).
-        resid = wrap_angles(features.bearing_rad[None, :] - predicted[:, None])
-        sd = np.sqrt(var[:, None] + features.sigma_rad[None, :] ** 2)
-        gate = np.clip(cfg.gate_sigmas * sd, cfg.min_gate_rad, cfg.max_gate_rad)
-        inside = np.abs(resid) <= gate
         heights = np.array(
             [
                 np.nan if self._landmarks[lb].height_m is None else self._landmarks[lb].height_m
                 for lb in labels
             ]
         )
+        picked, resid, jp, var_l = self._gate_and_pick(features, labels, xy, lcov, heights, pose, cov)
+        if len(picked) >= cfg.min_matches_for_pose:
+            rows = np.array([r for r, _ in picked])
+            cols = np.array([c for _, c in picked])
+            r = resid[rows, cols]
+            s2 = var_l[rows] + features.sigma_rad[cols] ** 2
+            delta, post = _robust_pose_step(jp[rows], r, s2, cov)
+            corrected = pose + delta
+            picked, _, _, _ = self._gate_and_pick(
+                features, labels, xy, lcov, heights, corrected, post
+            )
+        return {labels[r]: c for r, c in picked}
+
+    def _gate_and_pick(
+        self,
+        features: Features,
+        labels: list[str],
+        xy: FloatArray,
+        lcov: FloatArray,
+        heights: FloatArray,
+        pose: FloatArray,
+        cov: FloatArray,
+    ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray]:
+        """Matches (landmark row, feature) plus (L, N) residuals, (L, 3) pose Jacobians and
+        (L,) landmark-only bearing variances."""
+        cfg = self.config
+        dx, dy = xy[:, 0] - pose[0], xy[:, 1] - pose[1]
+        r2 = np.maximum(dx * dx + dy * dy, 1e-6)
+        predicted = wrap_angles(np.arctan2(dy, dx) - pose[2])
+        # d(bearing)/d(landmark xy) = (-dy, dx) / r^2; d/d(pose) = (dy/r^2, -dx/r^2, -1).
+        jl = np.column_stack([-dy, dx]) / r2[:, None]
+        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(labels))])
+        var_l = np.einsum("li,lij,lj->l", jl, lcov, jl)
+        var = np.einsum("li,ij,lj->l", jp, cov, jp) + var_l
+        resid = wrap_angles(features.bearing_rad[None, :] - predicted[:, None])
+        sd = np.sqrt(var[:, None] + features.sigma_rad[None, :] ** 2)
+        gate = np.clip(cfg.gate_sigmas * sd, cfg.min_gate_rad, cfg.max_gate_rad)
+        inside = np.abs(resid) <= gate
         known = np.isfinite(heights)
         if known.any():
             elev = np.arctan2(np.where(known, heights, 0.0), np.sqrt(r2))
             de = np.abs(features.elevation_rad[None, :] - elev[:, None])
-            inside &= ~known[:, None] | (de <= cfg.elevation_gate_rad)
+            tol = cfg.elevation_gate_rad + cfg.gate_sigmas * features.sigma_rad[None, :]
+            inside &= ~known[:, None] | (de <= 2.0 * tol)
         li, fi = np.nonzero(inside)
         if len(li) == 0:
-            return {}
+            return [], resid, jp, var_l
         # Distance to each stored view; keep the smallest per pair.
         dist = np.full(len(li), np.inf)
         for v in range(cfg.views_per_landmark):
@@ -306,8 +361,7 @@ class Associator:
             d = _distances(views, features.descriptors[fi[has]], features.binary)
             dist[has] = np.minimum(dist[has], d)
         limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
-        picked = _pick(li, fi, dist, limit, cfg.ratio)
-        return {labels[r]: c for r, c in picked}
+        return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
 
     def _match_tracks(
         self, features: Features, robot: str, pose: FloatArray, free: NDArray[np.bool_]
@@ -332,11 +386,32 @@ class Associator:
         sig = features.sigma_rad[cand][None, :]
         margin = cfg.track_margin_rad + cfg.gate_sigmas * sig
         inside = (offset >= lo[:, None] - margin) & (offset <= hi[:, None] + margin)
-        elev = np.array([t.elevation for t in tracks])
-        inside &= np.abs(features.elevation_rad[cand][None, :] - elev[:, None]) <= (
-            cfg.elevation_gate_rad
-        )
         ti, ci = np.nonzero(inside)
+        if len(ti) == 0:
+            return {}
+        # Elevation: triangulate the feature's ray with the track's ray (depth along the
+        # track's ray, clipped to track_depth_m), carry the implied height to the
+        # current distance, and compare. Without parallax the elevation stays put.
+        elev = np.array([t.elevation for t in tracks])[ti]
+        o = origin[ti]
+        wa = world[ti]
+        wb = pose[2] + fb[ci]
+        ua = np.column_stack([np.cos(wa), np.sin(wa)])
+        ub = np.column_stack([np.cos(wb), np.sin(wb)])
+        base = pose[None, :2] - o[:, :2]
+        cross = ua[:, 0] * ub[:, 1] - ua[:, 1] * ub[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = (base[:, 0] * ub[:, 1] - base[:, 1] * ub[:, 0]) / cross
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, hi_d)
+        depth = np.clip(depth, lo_d, hi_d)
+        point = o[:, :2] + depth[:, None] * ua
+        d_now = np.maximum(np.hypot(point[:, 0] - pose[0], point[:, 1] - pose[1]), 1e-3)
+        predicted_e = np.arctan2(depth * np.tan(elev), d_now)
+        sig_e = features.sigma_rad[cand[ci]]
+        ok = np.abs(features.elevation_rad[cand[ci]] - predicted_e) <= (
+            cfg.elevation_gate_rad + cfg.gate_sigmas * sig_e
+        )
+        ti, ci = ti[ok], ci[ok]
         if len(ti) == 0:
             return {}
         descs = np.stack([tracks[i].descriptor for i in ti])

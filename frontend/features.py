@@ -49,8 +49,9 @@ class FeatureConfig:
     fast_threshold: int = 20
     subpixel: bool = True
     """Refine keypoints with cv2.cornerSubPix (the posters' corners: ~0.4 px better)."""
-    sigma_px: float = 1.0
-    """Bearing sigma of a level-0 feature, in pixels; grows with the pyramid scale."""
+    sigma_px: float = 3.0
+    """Bearing sigma of a level-0 feature, in pixels; grows with the pyramid scale. Larger
+    than the corner error (~0.4 px): it also covers viewpoint-dependent corner shifts."""
     threads: int = 2
 
     def __post_init__(self) -> None:
@@ -172,7 +173,7 @@ class FeatureExtractor:
         v = np.array([kp.pt[1] for kp in keypoints]) + shift
         response = np.array([kp.response for kp in keypoints])
         if cfg.subpixel:
-            u, v = self._refine(panorama, u, v)
+            u, v = self._refine(panorama, u, v, octave)
         descriptors = np.concatenate(descs, axis=0)
         idx = self._spread(u, response)
         feats = Features(
@@ -189,17 +190,25 @@ class FeatureExtractor:
         return feats.subset(idx)
 
     def _refine(
-        self, panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray
+        self, panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray, octave: NDArray[np.int64]
     ) -> tuple[FloatArray, FloatArray]:
-        """Subpixel corner positions (cv2.cornerSubPix on a circularly padded copy)."""
-        pad = 8
+        """Subpixel corner positions (cv2.cornerSubPix on a circularly padded copy).
+
+        The search window grows with the pyramid level the feature was found on.
+        """
+        pad = 16
         padded = np.concatenate([panorama[:, -pad:], panorama, panorama[:, :pad]], axis=1)
-        pts = np.column_stack([u + pad, v]).astype(np.float32).reshape(-1, 1, 2)
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 10, 0.01)
-        ref = cv2.cornerSubPix(padded, pts, (3, 3), (-1, -1), criteria).reshape(-1, 2)
-        ru, rv = ref[:, 0].astype(np.float64) - pad, ref[:, 1].astype(np.float64)
+        ru, rv = u.copy(), v.copy()
+        for level in np.unique(octave).tolist():
+            sel = octave == level
+            half = 3 + 2 * int(level)
+            pts = np.column_stack([u[sel] + pad, v[sel]]).astype(np.float32).reshape(-1, 1, 2)
+            ref = cv2.cornerSubPix(padded, pts, (half, half), (-1, -1), criteria).reshape(-1, 2)
+            ru[sel] = ref[:, 0].astype(np.float64) - pad
+            rv[sel] = ref[:, 1].astype(np.float64)
         # A refinement that wandered off (no corner there) keeps the detector's position.
-        moved = np.hypot(ru - u, rv - v) > 2.0
+        moved = np.hypot(ru - u, rv - v) > 2.0 * self.config.orb_scale**octave
         ru, rv = np.where(moved, u, ru), np.where(moved, v, rv)
         return np.mod(ru, self.camera.width), rv
 
