@@ -195,9 +195,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "observations": n_obs,
         "track_observations": n_track_obs,
         "median_bearing_error_deg": math.degrees(float(np.median(errors))) if errors else None,
-        "p90_bearing_error_deg": math.degrees(float(np.percentile(errors, 90)))
-        if errors
-        else None,
+        "p90_bearing_error_deg": math.degrees(float(np.percentile(errors, 90))) if errors else None,
         "ate_images_m": ate_images,
         "ate_oracle_m": ate_oracle,
         "ate_dead_reckoning_m": ate_dr,
@@ -231,9 +229,7 @@ def plot(doc: dict[str, Any], path: Path) -> None:
         xy = np.asarray(tr[name])
         axes[0].plot(xy[:, 0], xy[:, 1], style, lw=0.8, label=name)
     axes[0].set_aspect("equal")
-    axes[0].set_title(
-        f"ATE images {doc['ate_images_m']:.3f} m, oracle {doc['ate_oracle_m']:.3f} m"
-    )
+    axes[0].set_title(f"ATE images {doc['ate_images_m']:.3f} m, oracle {doc['ate_oracle_m']:.3f} m")
     axes[0].legend()
     axes[1].hist(doc["errors_deg"], bins=60, range=(0, 1.0))
     axes[1].set_title(

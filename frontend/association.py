@@ -147,15 +147,16 @@ def _robust_pose_step(
     prior delta ~ N(0, prior_cov). `jac`: (M, 3) bearing Jacobians w.r.t. the pose;
     `resid`: (M,) bearing residuals; `var`: (M,) their variances.
     """
-    prior_info = np.linalg.pinv(prior_cov + 1e-12 * np.eye(3))
-    delta = np.zeros(3)
-    info = prior_info
+    prior_info = np.asarray(np.linalg.pinv(prior_cov + 1e-12 * np.eye(3)), dtype=np.float64)
+    delta: FloatArray = np.zeros(3)
+    info: FloatArray = prior_info
     for _ in range(6):
         e = (resid - jac @ delta) / np.sqrt(var)
         w = 1.0 / (1.0 + (e / 2.0) ** 2)  # Cauchy, scale 2 sigma
-        info = prior_info + (jac * (w / var)[:, None]).T @ jac
-        delta = np.linalg.solve(info, (jac * (w / var)[:, None]).T @ resid)
-    return delta, np.linalg.inv(info)
+        weighted = jac * (w / var)[:, None]
+        info = prior_info + weighted.T @ jac
+        delta = np.asarray(np.linalg.solve(info, weighted.T @ resid), dtype=np.float64)
+    return delta, np.asarray(np.linalg.inv(info), dtype=np.float64)
 
 
 def _pick(
@@ -304,7 +305,9 @@ class Associator:
                 for lb in labels
             ]
         )
-        picked, resid, jp, var_l = self._gate_and_pick(features, labels, xy, lcov, heights, pose, cov)
+        picked, resid, jp, var_l = self._gate_and_pick(
+            features, labels, xy, lcov, heights, pose, cov
+        )
         if len(picked) >= cfg.min_matches_for_pose:
             rows = np.array([r for r, _ in picked])
             cols = np.array([c for _, c in picked])
@@ -464,10 +467,11 @@ class Associator:
         tracks = self._tracks.setdefault(association.robot, [])
         kept: list[_Track] = []
         for t in tracks:
-            c = association.track_matches.get(t.label)
-            if c is None:
+            match = association.track_matches.get(t.label)
+            if match is None:
                 t.missed += 1
             else:
+                c = match
                 t.descriptor = feats.descriptors[c].copy()
                 t.origin = here.copy()
                 t.bearing = float(feats.bearing_rad[c])

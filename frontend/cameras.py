@@ -49,7 +49,9 @@ class PanoramaCamera:
 
     def __post_init__(self) -> None:
         if self.width < 8 or self.height < 1:
-            raise ValueError(f"panorama must be at least 8x1 pixels, got {self.width}x{self.height}")
+            raise ValueError(
+                f"panorama must be at least 8x1 pixels, got {self.width}x{self.height}"
+            )
         if not 0.0 < self.vfov_rad < math.pi:
             raise ValueError("vfov_rad must lie in (0, pi)")
 
@@ -142,8 +144,7 @@ class OmniCamera:
         if not (0 <= cx <= self.width and 0 <= cy <= self.height):
             raise ValueError("centre_xy must lie inside the image")
         # Validate the panorama parameters by building it.
-        object.__setattr__(self, "_maps", None)
-        self.panorama
+        PanoramaCamera(self.pano_width, self.pano_height, self.vfov_rad)
 
     @property
     def kind(self) -> str:

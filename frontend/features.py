@@ -14,6 +14,7 @@ Each feature's bearing and elevation follow `frontend.cameras.PanoramaCamera`.
 
 from __future__ import annotations
 
+import itertools
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -49,6 +50,8 @@ class FeatureConfig:
     fast_threshold: int = 20
     subpixel: bool = True
     """Refine keypoints with cv2.cornerSubPix (the posters' corners: ~0.4 px better)."""
+    duplicate_px: float = 2.0
+    """Detections closer than this to a stronger one are the same feature (dropped)."""
     sigma_px: float = 3.0
     """Bearing sigma of a level-0 feature, in pixels; grows with the pyramid scale. Larger
     than the corner error (~0.4 px): it also covers viewpoint-dependent corner shifts."""
@@ -109,7 +112,7 @@ class FeatureExtractor:
         if cfg.pad_px >= camera.width:
             raise ValueError("pad_px must be smaller than the panorama's width")
         edges = np.linspace(0, camera.width, cfg.bands + 1).round().astype(int)
-        self._bands = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+        self._bands = [(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist())]
         self._pool = ThreadPoolExecutor(max_workers=cfg.threads) if cfg.threads > 1 else None
         self._per_band = max(8, math.ceil(2 * cfg.max_features / cfg.bands))
 
@@ -120,8 +123,8 @@ class FeatureExtractor:
     def _detector(self) -> Any:
         cfg = self.config
         if cfg.detector == "sift":
-            return cv2.SIFT_create(nfeatures=self._per_band)
-        return cv2.ORB_create(
+            return cv2.SIFT.create(nfeatures=self._per_band)
+        return cv2.ORB.create(
             nfeatures=self._per_band,
             scaleFactor=cfg.orb_scale,
             nlevels=cfg.orb_levels,
@@ -137,9 +140,7 @@ class FeatureExtractor:
         keypoints, desc = self._detector().detectAndCompute(strip, None)
         if desc is None or not keypoints:
             return [], None
-        keep = [
-            i for i, kp in enumerate(keypoints) if pad <= kp.pt[0] < pad + stop - start
-        ]
+        keep = [i for i, kp in enumerate(keypoints) if pad <= kp.pt[0] < pad + stop - start]
         kept = [keypoints[i] for i in keep]
         for kp in kept:
             kp.pt = (kp.pt[0] - pad + start, kp.pt[1])
@@ -175,7 +176,9 @@ class FeatureExtractor:
         if cfg.subpixel:
             u, v = self._refine(panorama, u, v, octave)
         descriptors = np.concatenate(descs, axis=0)
-        idx = self._spread(u, response)
+        # ORB finds a corner on several pyramid levels: keep the strongest detection.
+        unique = _suppress_duplicates(u, v, response, cam.width, self.config.duplicate_px)
+        idx = unique[self._spread(u[unique], response[unique])]
         feats = Features(
             u=u,
             v=v,
@@ -226,6 +229,36 @@ class FeatureExtractor:
         # Round-robin over buckets: rank within bucket first, then response.
         chosen = np.lexsort((-response, rank))[: cfg.max_features]
         return np.sort(chosen).astype(np.int64)
+
+
+def _suppress_duplicates(
+    u: FloatArray, v: FloatArray, response: FloatArray, width: int, radius: float
+) -> NDArray[np.int64]:
+    """Indices of detections with no stronger detection within `radius` px (columns wrap)."""
+    order = np.argsort(-response, kind="stable")
+    cell = max(radius, 1.0)
+    cols = math.ceil(width / cell)
+    taken: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    keep: list[int] = []
+    r2 = radius * radius
+    for i in order.tolist():
+        cu, cv = int(u[i] // cell), int(v[i] // cell)
+        clash = False
+        for du in (-1, 0, 1):
+            for dv in (-1, 0, 1):
+                for pu, pv in taken.get(((cu + du) % cols, cv + dv), ()):
+                    dx = (u[i] - pu + width / 2) % width - width / 2
+                    if dx * dx + (v[i] - pv) ** 2 < r2:
+                        clash = True
+                        break
+                if clash:
+                    break
+            if clash:
+                break
+        if not clash:
+            taken.setdefault((cu % cols, cv), []).append((float(u[i]), float(v[i])))
+            keep.append(i)
+    return np.sort(np.array(keep, dtype=np.int64))
 
 
 def _empty(width: int, dtype: Any, binary: bool) -> Features:

@@ -52,7 +52,9 @@ class FrontEnd:
         Raises a frontend.errors.ImageError (status 422 or 413) for a bad image.
         """
         if isinstance(image, bytes | bytearray | memoryview):
-            pixels = decode_image(bytes(image), max_bytes=self.max_bytes, max_pixels=self.max_pixels)
+            pixels = decode_image(
+                bytes(image), max_bytes=self.max_bytes, max_pixels=self.max_pixels
+            )
         else:
             pixels = np.asarray(image)
             if pixels.ndim == 3 and pixels.shape[2] == 1:

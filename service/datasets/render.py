@@ -120,7 +120,11 @@ def _smooth_noise(
     """Smooth noise in [-1, 1]: a coarse random grid resized with cubic interpolation."""
     rows, cols = shape
     coarse = rng.uniform(-1.0, 1.0, (rows // cell_px + 2, cols // cell_px + 2)).astype(np.float32)
-    big = cv2.resize(coarse, (coarse.shape[1] * cell_px, coarse.shape[0] * cell_px), cv2.INTER_CUBIC)
+    big = cv2.resize(
+        coarse,
+        (coarse.shape[1] * cell_px, coarse.shape[0] * cell_px),
+        interpolation=cv2.INTER_CUBIC,
+    )
     return np.asarray(big[:rows, :cols], dtype=np.float32)
 
 
@@ -160,8 +164,8 @@ def _face_texture(
             s_a, s_b = c0 / res, c1 / res
             z_a, z_b = height_m - r1 / res, height_m - r0 / res
             corners.extend([(s_a, z_a), (s_b, z_a), (s_a, z_b), (s_b, z_b)])
-    tex = cv2.GaussianBlur(tex.astype(np.float32), (0, 0), 0.6)
-    return np.clip(tex, 0, 255).astype(np.uint8), corners
+    blurred = cv2.GaussianBlur(tex.astype(np.float32), (0, 0), 0.6)
+    return np.clip(blurred, 0, 255).astype(np.uint8), corners
 
 
 def make_textured_world(
@@ -298,7 +302,9 @@ def render_panorama(
     return _shade(tw, flat, elevation, camera.rad_per_px), truth
 
 
-def render_omni(tw: TexturedWorld, pose_xytheta: ArrayLike, camera: OmniCamera) -> NDArray[np.uint8]:
+def render_omni(
+    tw: TexturedWorld, pose_xytheta: ArrayLike, camera: OmniCamera
+) -> NDArray[np.uint8]:
     """A (height, width) omni ring image at the pose, ray-traced pixel by pixel.
 
     Pixels outside the ring are black.
@@ -341,6 +347,8 @@ def visible_corners(
         & (dist > 0.1)
     )
     truth = raycast(tw, (x, y, theta), bearing[cand])
-    ok = (truth.face == tw.corner_face[cand]) & (np.abs(truth.distance_m - dist[cand]) < tolerance_m)
+    ok = (truth.face == tw.corner_face[cand]) & (
+        np.abs(truth.distance_m - dist[cand]) < tolerance_m
+    )
     ids = cand[ok]
     return ids.astype(np.int64), bearing[ids], elevation[ids]
