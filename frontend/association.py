@@ -159,41 +159,40 @@ def _robust_pose_step(
     return delta, np.asarray(np.linalg.inv(info), dtype=np.float64)
 
 
+def _best_two(
+    keys: IntArray, dist: FloatArray
+) -> tuple[IntArray, FloatArray, FloatArray, IntArray]:
+    """Per distinct key: (key, best distance, second best, index of the best pair)."""
+    order = np.lexsort((dist, keys))
+    k, d = keys[order], dist[order]
+    first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    count = np.diff(np.r_[first, len(k)])
+    second = np.where(count > 1, d[np.minimum(first + 1, len(d) - 1)], np.inf)
+    return k[first], d[first], second, order[first]
+
+
 def _pick(
     rows: IntArray, cols: IntArray, dist: FloatArray, max_distance: float, ratio: float
 ) -> list[tuple[int, int]]:
-    """Unique (row, col) matches: ratio test on both sides, then greedy by distance.
+    """Unique (row, col) matches among gated pairs (one entry per row-col pair).
 
-    `rows`, `cols`, `dist` list the gated pairs (one per row-col pair).
+    A pair is kept when it is the best of its row and of its column (mutual), its
+    distance is at most `max_distance`, and below `ratio` x the second best of its
+    row and of its column. Mutual bests are unique on both sides.
     """
     if len(dist) == 0:
         return []
-    accepted: list[tuple[int, int, float]] = []
-    best_row: dict[int, tuple[float, float, int]] = {}
-    best_col: dict[int, tuple[float, float, int]] = {}
-    for r, c, d in zip(rows.tolist(), cols.tolist(), dist.tolist(), strict=True):
-        for table, key, other in ((best_row, r, c), (best_col, c, r)):
-            b1, b2, arg = table.get(key, (math.inf, math.inf, -1))
-            if d < b1:
-                table[key] = (d, b1, other)
-            elif d < b2:
-                table[key] = (b1, d, arg)
-    for r, (b1, b2, c) in best_row.items():
-        if b1 > max_distance or b1 >= ratio * b2:
-            continue
-        cb1, cb2, cr = best_col[c]
-        if cr != r or cb1 >= ratio * cb2:
-            continue
-        accepted.append((r, c, b1))
-    accepted.sort(key=lambda t: t[2])
-    used_r: set[int] = set()
-    used_c: set[int] = set()
+    _, r_best, r_second, r_pair = _best_two(rows, dist)
+    c_keys, c_best, c_second, c_pair = _best_two(cols, dist)
+    col_pos = {int(c): i for i, c in enumerate(c_keys.tolist())}
     out = []
-    for r, c, _ in accepted:
-        if r not in used_r and c not in used_c:
-            used_r.add(r)
-            used_c.add(c)
-            out.append((r, c))
+    for best, second, pair in zip(r_best.tolist(), r_second.tolist(), r_pair.tolist(), strict=True):
+        if best > max_distance or best >= ratio * second:
+            continue
+        j = col_pos[int(cols[pair])]
+        if int(c_pair[j]) != pair or c_best[j] >= ratio * c_second[j]:
+            continue
+        out.append((int(rows[pair]), int(cols[pair])))
     return out
 
 
@@ -355,16 +354,31 @@ class Associator:
         if len(li) == 0:
             return [], resid, jp, var_l
         # Distance to each stored view; keep the smallest per pair.
-        dist = np.full(len(li), np.inf)
-        for v in range(cfg.views_per_landmark):
-            has = np.array([len(self._landmarks[labels[i]].descriptors) > v for i in li])
-            if not has.any():
-                break
-            views = np.stack([self._landmarks[labels[i]].descriptors[v] for i in li[has]])
-            d = _distances(views, features.descriptors[fi[has]], features.binary)
-            dist[has] = np.minimum(dist[has], d)
+        views, counts = self._view_stack(labels, np.unique(li))
+        pair_views = views[li]  # (P, K, D)
+        k = pair_views.shape[1]
+        d = _distances(
+            pair_views.reshape(len(li) * k, -1),
+            np.repeat(features.descriptors[fi], k, axis=0),
+            features.binary,
+        ).reshape(len(li), k)
+        d[np.arange(k)[None, :] >= counts[li][:, None]] = np.inf
+        dist = d.min(axis=1)
         limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
         return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
+
+    def _view_stack(self, labels: list[str], rows: IntArray) -> tuple[NDArray[Any], IntArray]:
+        """(L, K, D) stored views of the landmarks (zero-padded; only `rows` filled) and
+        (L,) their counts."""
+        k = self.config.views_per_landmark
+        sample = self._landmarks[labels[int(rows[0])]].descriptors[0]
+        views = np.zeros((len(labels), k, sample.shape[-1]), dtype=sample.dtype)
+        counts = np.zeros(len(labels), dtype=np.int64)
+        for r in rows.tolist():
+            descs = self._landmarks[labels[r]].descriptors[:k]
+            views[r, : len(descs)] = np.stack(descs)
+            counts[r] = len(descs)
+        return views, counts
 
     def _match_tracks(
         self, features: Features, robot: str, pose: FloatArray, free: NDArray[np.bool_]

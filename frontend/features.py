@@ -50,6 +50,10 @@ class FeatureConfig:
     fast_threshold: int = 20
     subpixel: bool = True
     """Refine keypoints with cv2.cornerSubPix (the posters' corners: ~0.4 px better)."""
+    min_corner_quality: float = 0.15
+    """Smallest ratio of the structure tensor's eigenvalues (7x7 window at the refined
+    position): a point on an edge (ratio near 0) has a bearing that slides with the
+    viewpoint. 0 keeps every detection."""
     duplicate_px: float = 2.0
     """Detections closer than this to a stronger one are the same feature (dropped)."""
     sigma_px: float = 3.0
@@ -175,6 +179,13 @@ class FeatureExtractor:
         response = np.array([kp.response for kp in keypoints])
         if cfg.subpixel:
             u, v = self._refine(panorama, u, v, octave)
+        if cfg.min_corner_quality > 0:
+            good = _corner_quality(panorama, u, v) >= cfg.min_corner_quality
+            keypoints = [kp for kp, g in zip(keypoints, good.tolist(), strict=True) if g]
+            u, v, response, octave = u[good], v[good], response[good], octave[good]
+            descs = [np.concatenate(descs, axis=0)[good]]
+            if not keypoints:
+                return _empty(descs[0].shape[1], descs[0].dtype, binary)
         descriptors = np.concatenate(descs, axis=0)
         # ORB finds a corner on several pyramid levels: keep the strongest detection.
         unique = _suppress_duplicates(u, v, response, cam.width, self.config.duplicate_px)
@@ -211,7 +222,7 @@ class FeatureExtractor:
             ru[sel] = ref[:, 0].astype(np.float64) - pad
             rv[sel] = ref[:, 1].astype(np.float64)
         # A refinement that wandered off (no corner there) keeps the detector's position.
-        moved = np.hypot(ru - u, rv - v) > 2.0 * self.config.orb_scale**octave
+        moved = np.hypot(ru - u, rv - v) > 3.0 + 2.0 * octave
         ru, rv = np.where(moved, u, ru), np.where(moved, v, rv)
         return np.mod(ru, self.camera.width), rv
 
@@ -229,6 +240,27 @@ class FeatureExtractor:
         # Round-robin over buckets: rank within bucket first, then response.
         chosen = np.lexsort((-response, rank))[: cfg.max_features]
         return np.sort(chosen).astype(np.int64)
+
+
+def _corner_quality(panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray) -> FloatArray:
+    """(N,) lambda_min / lambda_max of the gradient structure tensor in a 7x7 window."""
+    h, w = panorama.shape
+    half = 4
+    cu = np.rint(u).astype(np.int64)
+    cv = np.clip(np.rint(v).astype(np.int64), half, h - half - 1)
+    offs = np.arange(-half, half + 1)
+    rows = (cv[:, None] + offs[None, :])[:, :, None]
+    cols = np.mod(cu[:, None] + offs[None, :], w)[:, None, :]
+    patch = panorama[rows, cols].astype(np.float64)  # (N, 9, 9)
+    gx = 0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2])
+    gy = 0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1])
+    a = (gx * gx).sum(axis=(1, 2))
+    b = (gx * gy).sum(axis=(1, 2))
+    c = (gy * gy).sum(axis=(1, 2))
+    root = np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    lmax = 0.5 * (a + c) + root
+    lmin = 0.5 * (a + c) - root
+    return np.where(lmax > 0, lmin / np.maximum(lmax, 1e-12), 0.0)
 
 
 def _suppress_duplicates(

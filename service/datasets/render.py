@@ -285,7 +285,13 @@ def _shade(
     e = np.broadcast_to(elevation_rad, u0.shape)
     floor = 55.0 + 25.0 * np.cos(e)
     ceiling = 215.0 - 20.0 * np.cos(e)
-    out = np.where(z < 0.0, floor, np.where(z > tw.wall_height_m, ceiling, out))
+    # Antialiased wall edges: the share of the pixel's height (metres on the wall) that
+    # lies above the floor / below the ceiling, so the edges do not staircase.
+    pixel_m = np.maximum(d * rad_per_px / np.cos(e) ** 2, 1e-6)
+    above_floor = np.clip(z / pixel_m + 0.5, 0.0, 1.0)
+    below_ceiling = np.clip((tw.wall_height_m - z) / pixel_m + 0.5, 0.0, 1.0)
+    wall = np.clip(above_floor + below_ceiling - 1.0, 0.0, 1.0)
+    out = wall * out + (1.0 - above_floor) * floor + (1.0 - below_ceiling) * ceiling
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
