@@ -28,6 +28,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import time
 from collections import Counter, defaultdict
 from dataclasses import replace
@@ -37,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from frontend.cameras import PanoramaCamera
-from frontend.features import Features
+from frontend.features import FeatureConfig, FeatureExtractor, Features
 from frontend.pipeline import FrontEnd
 from graph.angles import wrap_angles
 from graph.config import SlamConfig
@@ -82,6 +83,29 @@ def feature_truth(
     return out
 
 
+def speed_test(camera: PanoramaCamera, images: list[np.ndarray]) -> dict[str, Any]:
+    """Features per panorama, alone (no estimator running): wall and CPU ms, 1 and 2 threads."""
+    out: dict[str, Any] = {"images": len(images)}
+    for threads in (1, 2):
+        extractor = FeatureExtractor(camera, FeatureConfig(threads=threads))
+        wall: list[float] = []
+        cpu: list[float] = []
+        for _ in range(3):
+            for image in images:
+                w0, c0 = time.perf_counter(), time.process_time()
+                extractor.extract(image)
+                wall.append(1e3 * (time.perf_counter() - w0))
+                cpu.append(1e3 * (time.process_time() - c0))
+        extractor.close()
+        out[f"threads_{threads}"] = {
+            "wall_ms_median": float(np.median(wall)),
+            "wall_ms_min": float(np.min(wall)),
+            "cpu_ms_median": float(np.median(cpu)),
+        }
+    out["load_average"] = list(os.getloadavg())
+    return out
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     rng = np.random.default_rng(args.seed)
     world = make_world(rooms=(3, 3), landmarks=9, rng=rng)
@@ -89,7 +113,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     sim = simulate(world, frames=args.frames, rng=rng, door_probability=0.5)
     camera = PanoramaCamera(args.width, args.width // 4)
     identity = corner_identities(tw.corners_xyz)
-    config = SlamConfig(landmark_cap=args.landmark_cap, pose_window=args.pose_window)
+    config = SlamConfig(
+        landmark_cap=args.landmark_cap, policy=args.policy, pose_window=args.pose_window
+    )
 
     pipeline = ImagePipeline(
         BearingSlam(config, rng=np.random.default_rng(args.seed)), FrontEnd(camera)
@@ -100,6 +126,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     feature_ms: list[float] = []
     assoc_ms: list[float] = []
     render_ms: list[float] = []
+    kept_images: list[np.ndarray] = []
     label_truth: dict[str, list[int]] = defaultdict(list)
     matched: list[tuple[str, int, float, int]] = []  # label, truth corner, bearing, frame
     n_obs = n_track_obs = 0
@@ -107,6 +134,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         t0 = time.perf_counter()
         image, _ = render_panorama(tw, truth_poses[k], camera)
         render_ms.append(1e3 * (time.perf_counter() - t0))
+        if k % max(1, args.frames // 40) == 0:
+            kept_images.append(image)
         feats = pipeline.front_end.features(image)
         ids, b, e = visible_corners(tw, truth_poses[k], camera)
         truth = feature_truth(feats, camera, ids, b, e, args.truth_px)
@@ -176,6 +205,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         rows = slam.trajectory("r1")["r1"]
         return Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
 
+    speed = speed_test(camera, kept_images)
     ate_images = ate_rmse(trajectory(pipeline.slam), sim.ground_truth)
     ate_oracle = ate_rmse(trajectory(oracle), sim.ground_truth)
     from service.evaluation import dead_reckoning
@@ -185,7 +215,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "frames": args.frames,
         "panorama": [camera.width, camera.height],
         "seed": args.seed,
-        "slam_config": {"landmark_cap": args.landmark_cap, "pose_window": args.pose_window},
+        "slam_config": {
+            "landmark_cap": args.landmark_cap,
+            "policy": args.policy,
+            "pose_window": args.pose_window,
+        },
         "truth_px": args.truth_px,
         "matched_observations": len(matched),
         "matched_with_truth": correct + wrong,
@@ -204,6 +238,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "features_ms_p90": float(np.percentile(feature_ms, 90)),
         "association_ms_median": float(np.median(assoc_ms)),
         "render_ms_median": float(np.median(render_ms)),
+        "speed": speed,
         "live_landmarks_end": len(pipeline.slam.landmarks),
         "oracle_live_landmarks_end": len(oracle.landmarks),
         "feature_ms": [round(t, 3) for t in feature_ms],
@@ -249,6 +284,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=2048)
     p.add_argument("--landmark-cap", type=int, default=None)
+    p.add_argument("--policy", default="least_observed")
     p.add_argument("--pose-window", type=int, default=100)
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")

@@ -118,7 +118,7 @@ class FeatureExtractor:
         edges = np.linspace(0, camera.width, cfg.bands + 1).round().astype(int)
         self._bands = [(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist())]
         self._pool = ThreadPoolExecutor(max_workers=cfg.threads) if cfg.threads > 1 else None
-        self._per_band = max(8, math.ceil(2 * cfg.max_features / cfg.bands))
+        self._per_band = max(8, math.ceil(1.5 * cfg.max_features / cfg.bands))
 
     def close(self) -> None:
         if self._pool is not None:
@@ -212,7 +212,7 @@ class FeatureExtractor:
         """
         pad = 16
         padded = np.concatenate([panorama[:, -pad:], panorama, panorama[:, :pad]], axis=1)
-        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 10, 0.01)
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 6, 0.03)
         ru, rv = u.copy(), v.copy()
         for level in np.unique(octave).tolist():
             sel = octave == level
@@ -266,31 +266,33 @@ def _corner_quality(panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray) -
 def _suppress_duplicates(
     u: FloatArray, v: FloatArray, response: FloatArray, width: int, radius: float
 ) -> NDArray[np.int64]:
-    """Indices of detections with no stronger detection within `radius` px (columns wrap)."""
-    order = np.argsort(-response, kind="stable")
-    cell = max(radius, 1.0)
-    cols = math.ceil(width / cell)
-    taken: dict[tuple[int, int], list[tuple[float, float]]] = {}
-    keep: list[int] = []
-    r2 = radius * radius
-    for i in order.tolist():
-        cu, cv = int(u[i] // cell), int(v[i] // cell)
-        clash = False
-        for du in (-1, 0, 1):
-            for dv in (-1, 0, 1):
-                for pu, pv in taken.get(((cu + du) % cols, cv + dv), ()):
-                    dx = (u[i] - pu + width / 2) % width - width / 2
-                    if dx * dx + (v[i] - pv) ** 2 < r2:
-                        clash = True
-                        break
-                if clash:
-                    break
-            if clash:
-                break
-        if not clash:
-            taken.setdefault((cu % cols, cv), []).append((float(u[i]), float(v[i])))
-            keep.append(i)
-    return np.sort(np.array(keep, dtype=np.int64))
+    """Indices of detections with no stronger detection within `radius` px (columns wrap).
+
+    Vectorised: detections sorted by column are compared with their next `_NEIGHBOURS`
+    neighbours (plus the first columns again after the last, for the seam).
+    """
+    n = len(u)
+    if n < 2:
+        return np.arange(n, dtype=np.int64)
+    order = np.argsort(u, kind="stable")
+    wrap = order[u[order] < radius]
+    idx = np.concatenate([order, wrap])
+    us = np.concatenate([u[order], u[wrap] + width])
+    vs = v[idx]
+    drop = np.zeros(n, dtype=bool)
+    for shift in range(1, min(_NEIGHBOURS, len(idx) - 1) + 1):
+        close = (us[shift:] - us[:-shift] < radius) & (np.abs(vs[shift:] - vs[:-shift]) < radius)
+        if not close.any():
+            continue
+        a, b = idx[:-shift][close], idx[shift:][close]
+        weaker = np.where(response[a] < response[b], a, b)
+        tie = (response[a] == response[b]) & (a != b)
+        drop[weaker[a != b]] = True
+        drop[np.maximum(a, b)[tie]] = True
+    return np.flatnonzero(~drop).astype(np.int64)
+
+
+_NEIGHBOURS = 32
 
 
 def _empty(width: int, dtype: Any, binary: bool) -> Features:
