@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from frontend.association import Association, AssociationConfig, Associator, LandmarkEstimate
 from frontend.cameras import CameraModel, OmniCamera, PanoramaCamera
+from frontend.errors import WrongImageSize
 from frontend.features import FeatureConfig, FeatureExtractor, Features
 from frontend.image_io import MAX_IMAGE_BYTES, MAX_IMAGE_PIXELS, decode_image, image_for_camera
 
@@ -60,8 +61,6 @@ class FrontEnd:
             if pixels.ndim == 3 and pixels.shape[2] == 1:
                 pixels = pixels[:, :, 0]
             if pixels.dtype != np.uint8:
-                from frontend.errors import WrongImageSize
-
                 raise WrongImageSize(f"expected 8-bit pixels, got {pixels.dtype}")
         return image_for_camera(pixels, self.camera)
 
