@@ -48,3 +48,19 @@ def test_rolled_panorama_gives_the_same_features_turned() -> None:
     )
     close = d.min(axis=1) < 0.5 * cam.rad_per_px
     assert close.mean() > 0.9
+
+
+def test_sift_option_float_descriptors_and_the_same_seam_handling() -> None:
+    cam = PanoramaCamera(width=1024, height=256)
+    image, _ = render_panorama(small_world(), (3.0, 3.0, 0.4), cam)
+    extractor = FeatureExtractor(cam, FeatureConfig(detector="sift", threads=2))
+    a = extractor.extract(image)
+    b = extractor.extract(np.roll(image, 512, axis=1))
+    assert not a.binary and a.descriptors.dtype == np.float32
+    assert a.descriptors.shape == (len(a), 128) and len(a) > 30
+    shifted = np.array([angle_diff(x, math.pi) for x in b.bearing_rad])
+    d = (
+        np.abs(np.vectorize(angle_diff)(shifted[:, None], a.bearing_rad[None, :]))
+        + np.abs(b.v[:, None] - a.v[None, :]) * cam.rad_per_px
+    )
+    assert (d.min(axis=1) < 0.5 * cam.rad_per_px).mean() > 0.8
