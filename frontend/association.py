@@ -58,21 +58,23 @@ _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
 class AssociationConfig:
     """Association parameters; angles in radians."""
 
-    gate_sigmas: float = 3.0
+    gate_sigmas: float = 2.5
     """Bearing gate half-width in predicted standard deviations."""
     min_gate_rad: float = math.radians(0.5)
-    max_gate_rad: float = math.radians(15.0)
+    max_gate_rad: float = math.radians(5.0)
     default_landmark_sigma_m: float = 0.1
     """Landmark position sigma used when no covariance is given."""
     elevation_gate_rad: float = math.radians(1.0)
     """Elevation tolerance (plus gate_sigmas feature sigmas) of a predicted elevation."""
-    max_distance: float = 60.0
+    max_distance: float = 45.0
     """Largest descriptor distance of a match (Hamming bits for ORB; L2 for SIFT: x5)."""
-    ratio: float = 0.8
+    ratio: float = 0.7
     min_matches_for_pose: int = 5
     """Landmark matches needed to correct the pose and match again (consistency check)."""
     """Best distance must be below ratio x the second best (features and landmarks)."""
     views_per_landmark: int = 5
+    view_fit_sigmas: float = 2.0
+    """A match adds a view (or a height sample) only if it fits within this many sigmas."""
     new_view_angle_rad: float = math.radians(10.0)
     """A matched landmark stores a new view when seen this far from all its views."""
     track_depth_m: tuple[float, float] = (0.3, 30.0)
@@ -128,6 +130,8 @@ class Association:
     landmark_matches: dict[str, int]
     track_matches: dict[str, int]
     unmatched: IntArray
+    landmark_fit: dict[str, float] = field(default_factory=dict)
+    """|bearing residual| / its sigma (pose and feature only) of each landmark match."""
 
 
 def _distances(a: NDArray[Any], b: NDArray[Any], binary: bool) -> FloatArray:
@@ -204,6 +208,7 @@ class Associator:
         self._landmarks: dict[str, _Landmark] = {}
         self._tracks: dict[str, list[_Track]] = {}
         self._next_track = 0
+        self._last_fit: dict[str, float] = {}
 
     @property
     def known_landmarks(self) -> int:
@@ -227,6 +232,7 @@ class Associator:
         cov = np.zeros((3, 3)) if pose_cov is None else np.asarray(pose_cov, dtype=np.float64)
         n = len(features)
         free = np.ones(n, dtype=bool)
+        self._last_fit = {}
         lm_matches = self._match_landmarks(features, pose, cov, landmarks)
         for c in lm_matches.values():
             free[c] = False
@@ -261,6 +267,7 @@ class Associator:
             landmark_matches=lm_matches,
             track_matches=tr_matches,
             unmatched=np.flatnonzero(free).astype(np.int64),
+            landmark_fit=dict(self._last_fit),
         )
 
     @staticmethod
@@ -307,16 +314,23 @@ class Associator:
         picked, resid, jp, var_l = self._gate_and_pick(
             features, labels, xy, lcov, heights, pose, cov
         )
+        post = cov
         if len(picked) >= cfg.min_matches_for_pose:
             rows = np.array([r for r, _ in picked])
             cols = np.array([c for _, c in picked])
             r = resid[rows, cols]
             s2 = var_l[rows] + features.sigma_rad[cols] ** 2
             delta, post = _robust_pose_step(jp[rows], r, s2, cov)
-            corrected = pose + delta
-            picked, _, _, _ = self._gate_and_pick(
-                features, labels, xy, lcov, heights, corrected, post
+            pose = pose + delta
+            picked, resid, jp, var_l = self._gate_and_pick(
+                features, labels, xy, lcov, heights, pose, post
             )
+        # Normalised residual of each match without the landmark's own uncertainty:
+        # only close fits may add a view to a landmark (a look-alike must not).
+        self._last_fit = {}
+        for r, c in picked:
+            sd = math.sqrt(float(jp[r] @ post @ jp[r]) + float(features.sigma_rad[c]) ** 2)
+            self._last_fit[labels[r]] = abs(float(resid[r, c])) / sd
         return {labels[r]: c for r, c in picked}
 
     def _gate_and_pick(
@@ -460,7 +474,7 @@ class Associator:
 
         for label, c in association.landmark_matches.items():
             lm = self._landmarks.get(label)
-            if lm is None:
+            if lm is None or association.landmark_fit.get(label, 0.0) > cfg.view_fit_sigmas:
                 continue
             if label in positions:
                 self._learn_height(lm, here, np.asarray(positions[label]), feats, c)
