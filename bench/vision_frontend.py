@@ -284,7 +284,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=2048)
     p.add_argument("--landmark-cap", type=int, default=None)
-    p.add_argument("--policy", default="least_observed")
+    p.add_argument("--policy", default="oldest")
     p.add_argument("--pose-window", type=int, default=100)
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")
