@@ -12,14 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
+from frontend.cameras import PanoramaCamera, camera_from_config
+from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
 from graph.types import FrameInput
 from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
+from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
-from service.frames_io import read_frames
-from service.replay import replay
+from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
 
@@ -88,6 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
         "replaying in-process; retries on 503; then fetches the TUM trajectory",
     )
     rp.add_argument("--map-id", help="with --url: post into this existing map")
+    rp.add_argument(
+        "--camera",
+        type=Path,
+        help="camera config (JSON) for frames with an image (default: camera.json beside them)",
+    )
     _add_map_options(rp)
 
     sv = sub.add_parser(
@@ -100,6 +107,15 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--port", type=int, help="TCP port (default 8000, COVSLAM_PORT)")
     sv.add_argument("--data-dir", type=Path, help="store directory (default ./covslam-data)")
     sv.add_argument("--workers", type=int, help="worker processes (default: CPU count)")
+
+    rn = sub.add_parser(
+        "render",
+        help="render a run of the textured indoor world (frames.jsonl + PNGs + camera.json)",
+    )
+    rn.add_argument("out_dir", type=Path)
+    rn.add_argument("--frames", type=int, default=200)
+    rn.add_argument("--width", type=int, default=2048, help="panorama width (height = width/4)")
+    rn.add_argument("--seed", type=int, default=0)
 
     sp = sub.add_parser("simulate", help="write a simulated indoor run as a frames file")
     sp.add_argument("frames_out", type=Path, help="frames file to write (JSON lines)")
@@ -124,21 +140,41 @@ def _config(args: argparse.Namespace) -> SlamConfig:
 
 def _replay(args: argparse.Namespace) -> int:
     gt: Trajectory | None
+    front_end = None
+    sequence: list[FrameInput | ImageFrame]
     if args.source == "mrclam":
         if args.directory is None:
             raise SystemExit("covslam replay mrclam: give the dataset folder")
         frames, gt = mrclam_frames(load_mrclam(args.directory, args.robot))
+        sequence = list(frames)
         robot = f"r{args.robot}"
         log.info("MRCLAM robot %d: %d frames", args.robot, len(frames))
     else:
-        frames = list(read_frames(args.source))
+        sequence = read_replay_frames(args.source)
+        frames = [it.frame if isinstance(it, ImageFrame) else it for it in sequence]
         gt = read_tum(args.ground_truth) if args.ground_truth else None
         robot = frames[0].robot if frames else ""
+        if any(isinstance(it, ImageFrame) for it in sequence):
+            camera_path = args.camera or Path(args.source).parent / "camera.json"
+            camera = camera_from_config(json.loads(Path(camera_path).read_text()))
+            front_end = FrontEnd(camera)
     if args.url:
+        if front_end is not None:
+            front_end.close()
+            raise SystemExit("covslam replay --url: image frames are not posted yet")
         return _replay_http(args, frames, gt, robot)
-    result = replay(
-        frames, config=_config(args), seed=args.seed, total=len(frames), progress=args.progress
-    )
+    try:
+        result = replay(
+            sequence,
+            config=_config(args),
+            seed=args.seed,
+            total=len(sequence),
+            progress=args.progress,
+            front_end=front_end,
+        )
+    finally:
+        if front_end is not None:
+            front_end.close()
     traj = result.trajectory(robot) if frames else None
     if args.trajectory and traj is not None:
         write_tum(args.trajectory, traj)
@@ -234,6 +270,15 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _render(args: argparse.Namespace) -> int:
+    camera = PanoramaCamera(args.width, args.width // 4)
+    run = write_rendered_run(
+        args.out_dir, frames=args.frames, rng=np.random.default_rng(args.seed), camera=camera
+    )
+    sys.stdout.write(f"wrote {run.frames} frames to {run.frames_path}\n")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
@@ -244,6 +289,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _replay(args)
     if args.command == "serve":
         return _serve(args)
+    if args.command == "render":
+        return _render(args)
     return _simulate(args)
 
 

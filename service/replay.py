@@ -20,10 +20,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
+from graph.errors import InvalidFrame
 from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
 from service.evaluation import Trajectory
+from service.frames_io import FrameFileError, frame_from_dict
+from service.vision import ImagePipeline
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +83,10 @@ class ReplayResult:
     """(frames processed, current RSS MiB), sampled."""
     removal_log: RemovalLog = field(default_factory=lambda: RemovalLog())
     """Every removal, spooled to a temporary file (not kept in memory)."""
+    image_frames: int = 0
+    """Frames whose observations came from the front end."""
+    image_observations: int = 0
+    """Bearing factors to live landmarks those frames added."""
 
     def trajectory(self, robot: str) -> Trajectory:
         """The latest estimate of every frame's pose of one robot."""
@@ -97,8 +105,49 @@ class ReplayResult:
             "peak_rss_mb": peak_rss_mb(),
             "rss_mb": self.rss_mb,
             "median_frame_ms": float(np.median(ms)) if ms.size else None,
+            "image_frames": self.image_frames,
+            "image_landmark_observations": self.image_observations,
             "p99_frame_ms": float(np.percentile(ms, 99)) if ms.size else None,
         }
+
+
+@dataclass(frozen=True)
+class ImageFrame:
+    """A frame whose observations come from an image file (the front end runs on it)."""
+
+    frame: FrameInput
+    image_path: Path
+
+
+def read_replay_frames(path: str | os.PathLike[str]) -> list[FrameInput | ImageFrame]:
+    """The frames of a JSON-lines file; a frame with ``"image": "rel/path.png"`` (relative
+    to the file's folder) becomes an ImageFrame, its ``observations`` ignored.
+
+    Raises:
+        FrameFileError: naming the 1-based line and the offending field.
+    """
+    p = Path(path)
+    out: list[FrameInput | ImageFrame] = []
+    with p.open(encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                doc = json.loads(line)
+            except json.JSONDecodeError as exc:
+                raise FrameFileError(str(p), lineno, "line", f"not JSON: {exc.msg}") from exc
+            try:
+                frame = frame_from_dict(doc)
+            except InvalidFrame as exc:
+                raise FrameFileError(str(p), lineno, exc.field, exc.detail) from exc
+            image = doc.get("image")
+            if image is None:
+                out.append(frame)
+            elif not isinstance(image, str) or not image:
+                raise FrameFileError(str(p), lineno, "image", "must be a relative path string")
+            else:
+                out.append(ImageFrame(frame, p.parent / image))
+    return out
 
 
 def _config_dict(config: SlamConfig) -> dict[str, Any]:
@@ -106,7 +155,7 @@ def _config_dict(config: SlamConfig) -> dict[str, Any]:
 
 
 def replay(
-    frames: Iterable[FrameInput],
+    frames: Iterable[FrameInput | ImageFrame],
     *,
     config: SlamConfig,
     seed: int = 0,
@@ -114,20 +163,30 @@ def replay(
     progress: bool | None = None,
     rss_every: int = 100,
     with_covariance: bool = False,
+    front_end: FrontEnd | None = None,
 ) -> ReplayResult:
     """Process `frames` in order through a fresh map.
 
-    `progress`: None shows a bar only when stderr is a terminal.
+    `progress`: None shows a bar only when stderr is a terminal. An ImageFrame
+    goes through `front_end` (required then) and the map's ImagePipeline.
     """
     removal_log = RemovalLog()
     slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removal_log.append)
     result = ReplayResult(slam, removal_log=removal_log)
+    pipeline = ImagePipeline(slam, front_end) if front_end is not None else None
     bar = tqdm(
         frames, total=total, unit="frame", disable=None if progress is None else not progress
     )
-    for frame in bar:
+    for item in bar:
         t0 = time.perf_counter()
-        out = slam.process(frame, with_covariance=with_covariance)
+        if isinstance(item, ImageFrame):
+            if pipeline is None:
+                raise ValueError("an image frame needs a front end (a camera config)")
+            out = pipeline.submit(item.frame, item.image_path.read_bytes()).outcome
+            result.image_frames += 1
+            result.image_observations += len(out.observed)
+        else:
+            out = slam.process(item, with_covariance=with_covariance)
         result.frame_ms.append(1e3 * (time.perf_counter() - t0))
         result.live_landmarks.append(out.live)
         if slam.frame_count % rss_every == 0:

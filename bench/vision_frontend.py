@@ -1,0 +1,302 @@
+"""Vision front end on a rendered indoor run: bearing error, association precision, ATE, speed.
+
+A robot drives `indoor_sim`'s 3x3 rooms (doors, revisits); every frame is
+rendered as a 2048x512 panorama (service.datasets.render). Two maps are run on
+the same frames with the same estimator settings:
+
+- images: the front end's features and association (service.vision.ImagePipeline);
+- oracle: the same features, labelled with their true identity (the poster
+  corner they lie on, within `--truth-px` pixels; others dropped).
+
+Truth of a feature: the visible poster corner whose projection is nearest,
+within `--truth-px`; its identity is the corner's 2-D wall point (corners of a
+poster edge one above the other are one point for a 2-D map). A landmark's
+identity is the most common truth among all observations carrying its label.
+
+Figures: median bearing error of observations matched to live landmarks (vs the
+true bearing of the landmark's corner from the true pose), association
+precision (observations matched to live landmarks whose truth is the
+landmark's identity / those with a truth), ATE RMSE of both maps, and front-end
+milliseconds per panorama (features; association separately).
+
+    python -m bench.vision_frontend --frames 1000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import time
+from collections import Counter, defaultdict
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from frontend.cameras import PanoramaCamera
+from frontend.features import FeatureConfig, FeatureExtractor, Features
+from frontend.pipeline import FrontEnd
+from graph.angles import wrap_angles
+from graph.config import SlamConfig
+from graph.slam import BearingSlam
+from graph.types import BearingObservation
+from service.datasets.indoor_sim import make_world, simulate
+from service.datasets.render import make_textured_world, render_panorama, visible_corners
+from service.evaluation import Trajectory, ate_rmse
+from service.vision import ImagePipeline
+
+log = logging.getLogger("bench.vision_frontend")
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def corner_identities(corners_xyz: np.ndarray) -> np.ndarray:
+    """(C,) identity of each corner: corners sharing a 2-D wall point (1 cm) share one."""
+    key = np.round(corners_xyz[:, :2] * 100.0).astype(np.int64)
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    return inverse.reshape(-1).astype(np.int64)
+
+
+def feature_truth(
+    feats: Features,
+    camera: PanoramaCamera,
+    ids: np.ndarray,
+    bearings: np.ndarray,
+    elevations: np.ndarray,
+    max_px: float,
+) -> np.ndarray:
+    """(N,) corner index each feature lies on (nearest projection within max_px), -1 if none."""
+    out = np.full(len(feats), -1, dtype=np.int64)
+    if len(ids) == 0 or len(feats) == 0:
+        return out
+    cu = camera.column_of_bearing(bearings)
+    cv = camera.row_of_elevation(elevations)
+    w = camera.width
+    du = np.mod(feats.u[:, None] - cu[None, :] + w / 2, w) - w / 2
+    d = np.hypot(du, feats.v[:, None] - cv[None, :])
+    j = np.argmin(d, axis=1)
+    near = d[np.arange(len(j)), j] <= max_px
+    out[near] = ids[j[near]]
+    return out
+
+
+def speed_test(camera: PanoramaCamera, images: list[np.ndarray]) -> dict[str, Any]:
+    """Features per panorama, alone (no estimator running): wall and CPU ms, 1 and 2 threads."""
+    out: dict[str, Any] = {"images": len(images)}
+    for threads in (1, 2):
+        extractor = FeatureExtractor(camera, FeatureConfig(threads=threads))
+        wall: list[float] = []
+        cpu: list[float] = []
+        for _ in range(3):
+            for image in images:
+                w0, c0 = time.perf_counter(), time.process_time()
+                extractor.extract(image)
+                wall.append(1e3 * (time.perf_counter() - w0))
+                cpu.append(1e3 * (time.process_time() - c0))
+        extractor.close()
+        out[f"threads_{threads}"] = {
+            "wall_ms_median": float(np.median(wall)),
+            "wall_ms_min": float(np.min(wall)),
+            "cpu_ms_median": float(np.median(cpu)),
+        }
+    out["load_average"] = list(os.getloadavg())
+    return out
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    rng = np.random.default_rng(args.seed)
+    world = make_world(rooms=(3, 3), landmarks=9, rng=rng)
+    tw = make_textured_world(world, rng=rng)
+    sim = simulate(world, frames=args.frames, rng=rng, door_probability=0.5)
+    camera = PanoramaCamera(args.width, args.width // 4)
+    identity = corner_identities(tw.corners_xyz)
+    config = SlamConfig(
+        landmark_cap=args.landmark_cap, policy=args.policy, pose_window=args.pose_window
+    )
+
+    pipeline = ImagePipeline(
+        BearingSlam(config, rng=np.random.default_rng(args.seed)), FrontEnd(camera)
+    )
+    oracle = BearingSlam(config, rng=np.random.default_rng(args.seed))
+    truth_poses = sim.ground_truth.poses()
+
+    feature_ms: list[float] = []
+    assoc_ms: list[float] = []
+    render_ms: list[float] = []
+    kept_images: list[np.ndarray] = []
+    label_truth: dict[str, list[int]] = defaultdict(list)
+    matched: list[tuple[str, int, float, int]] = []  # label, truth corner, bearing, frame
+    n_obs = n_track_obs = 0
+    for k, frame in enumerate(sim.frames):
+        t0 = time.perf_counter()
+        image, _ = render_panorama(tw, truth_poses[k], camera)
+        render_ms.append(1e3 * (time.perf_counter() - t0))
+        if k % max(1, args.frames // 40) == 0:
+            kept_images.append(image)
+        feats = pipeline.front_end.features(image)
+        ids, b, e = visible_corners(tw, truth_poses[k], camera)
+        truth = feature_truth(feats, camera, ids, b, e, args.truth_px)
+        result = pipeline.submit(frame, image)
+        feature_ms.append(result.timing_ms["features"])
+        assoc_ms.append(result.timing_ms["association"])
+        assoc = result.association
+        for ob, fi, kind in zip(
+            assoc.observations, assoc.feature_index.tolist(), assoc.kind, strict=True
+        ):
+            c = int(truth[fi])
+            label_truth[ob.label].append(int(identity[c]) if c >= 0 else -1)
+            n_obs += 1
+            if kind == "landmark":
+                matched.append((ob.label, c, ob.bearing_rad, k))
+            else:
+                n_track_obs += 1
+        # Oracle: the same features, labelled by their true identity, one per identity.
+        seen: set[int] = set()
+        obs: list[BearingObservation] = []
+        for fi in np.argsort(feats.response)[::-1].tolist():
+            c = int(truth[fi])
+            if c < 0 or int(identity[c]) in seen:
+                continue
+            seen.add(int(identity[c]))
+            obs.append(
+                BearingObservation(
+                    float(feats.bearing_rad[fi]), f"c{identity[c]}", float(feats.sigma_rad[fi])
+                )
+            )
+        oracle.process(replace(frame, observations=tuple(obs)), with_covariance=False)
+        if (k + 1) % 100 == 0:
+            log.info(
+                "frame %d: live %d (oracle %d), %.1f ms features",
+                k + 1,
+                len(pipeline.slam.landmarks),
+                len(oracle.landmarks),
+                float(np.median(feature_ms[-100:])),
+            )
+
+    # Identity of each label: the most common truth among its observations.
+    label_id = {}
+    for label, truths in label_truth.items():
+        known = [t for t in truths if t >= 0]
+        if known:
+            label_id[label] = Counter(known).most_common(1)[0][0]
+    correct = wrong = unknown = 0
+    errors: list[float] = []
+    for label, c, bearing, k in matched:
+        if c < 0 or label not in label_id:
+            unknown += 1
+            continue
+        if int(identity[c]) == label_id[label]:
+            correct += 1
+            x, y, th = truth_poses[k]
+            cx, cy = tw.corners_xyz[c, :2]
+            true_b = math.atan2(cy - y, cx - x) - th
+            errors.append(abs(float(wrap_angles(bearing - true_b))))
+        else:
+            wrong += 1
+    all_correct = sum(
+        1 for lb, ts in label_truth.items() for t in ts if t >= 0 and t == label_id.get(lb)
+    )
+    all_known = sum(1 for ts in label_truth.values() for t in ts if t >= 0)
+
+    def trajectory(slam: BearingSlam) -> Trajectory:
+        rows = slam.trajectory("r1")["r1"]
+        return Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
+
+    speed = speed_test(camera, kept_images)
+    ate_images = ate_rmse(trajectory(pipeline.slam), sim.ground_truth)
+    ate_oracle = ate_rmse(trajectory(oracle), sim.ground_truth)
+    from service.evaluation import dead_reckoning
+
+    ate_dr = ate_rmse(dead_reckoning(sim.frames), sim.ground_truth)
+    return {
+        "frames": args.frames,
+        "panorama": [camera.width, camera.height],
+        "seed": args.seed,
+        "slam_config": {
+            "landmark_cap": args.landmark_cap,
+            "policy": args.policy,
+            "pose_window": args.pose_window,
+        },
+        "truth_px": args.truth_px,
+        "matched_observations": len(matched),
+        "matched_with_truth": correct + wrong,
+        "matched_without_truth": unknown,
+        "precision_matched": correct / max(1, correct + wrong),
+        "precision_all_labelled": all_correct / max(1, all_known),
+        "observations": n_obs,
+        "track_observations": n_track_obs,
+        "median_bearing_error_deg": math.degrees(float(np.median(errors))) if errors else None,
+        "p90_bearing_error_deg": math.degrees(float(np.percentile(errors, 90))) if errors else None,
+        "ate_images_m": ate_images,
+        "ate_oracle_m": ate_oracle,
+        "ate_dead_reckoning_m": ate_dr,
+        "ate_ratio": ate_images / ate_oracle if ate_oracle > 0 else None,
+        "features_ms_median": float(np.median(feature_ms)),
+        "features_ms_p90": float(np.percentile(feature_ms, 90)),
+        "association_ms_median": float(np.median(assoc_ms)),
+        "render_ms_median": float(np.median(render_ms)),
+        "speed": speed,
+        "live_landmarks_end": len(pipeline.slam.landmarks),
+        "oracle_live_landmarks_end": len(oracle.landmarks),
+        "feature_ms": [round(t, 3) for t in feature_ms],
+        "errors_deg": [round(math.degrees(e), 4) for e in errors],
+        "trajectories": {
+            "truth": truth_poses[:, :2].round(4).tolist(),
+            "images": trajectory(pipeline.slam).poses()[:, :2].round(4).tolist(),
+            "oracle": trajectory(oracle).poses()[:, :2].round(4).tolist(),
+        },
+        "note": "2-core machine shared with two other engineers' jobs: timings are noisy",
+    }
+
+
+def plot(doc: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    tr = doc["trajectories"]
+    for name, style in (("truth", "k-"), ("oracle", "b-"), ("images", "r-")):
+        xy = np.asarray(tr[name])
+        axes[0].plot(xy[:, 0], xy[:, 1], style, lw=0.8, label=name)
+    axes[0].set_aspect("equal")
+    axes[0].set_title(f"ATE images {doc['ate_images_m']:.3f} m, oracle {doc['ate_oracle_m']:.3f} m")
+    axes[0].legend()
+    axes[1].hist(doc["errors_deg"], bins=60, range=(0, 1.0))
+    axes[1].set_title(
+        f"bearing error of matched features, median {doc['median_bearing_error_deg']:.3f}°"
+    )
+    axes[1].set_xlabel("deg")
+    axes[2].plot(doc["feature_ms"], lw=0.5)
+    axes[2].set_title(f"front end ms/panorama, median {doc['features_ms_median']:.1f}")
+    axes[2].set_xlabel("frame")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=2048)
+    p.add_argument("--landmark-cap", type=int, default=None)
+    p.add_argument("--policy", default="oldest")
+    p.add_argument("--pose-window", type=int, default=100)
+    p.add_argument("--truth-px", type=float, default=2.0)
+    p.add_argument("--out", default="vision_frontend")
+    args = p.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    doc = run(args)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{args.out}.json").write_text(json.dumps(doc))
+    plot(doc, RESULTS / f"{args.out}.png")
+    summary = {k: v for k, v in doc.items() if not isinstance(v, list | dict)}
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()

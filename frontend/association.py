@@ -1,0 +1,560 @@
+"""Data association: which feature of this frame is which landmark, or which track.
+
+`Associator` is a small stateful object that lives next to one map's estimator.
+Per frame:
+
+1. `associate(features, robot=..., predicted_pose=..., pose_cov=..., landmarks=...)`
+   matches features to live landmarks: for each landmark the bearing predicted
+   from the pose estimate gates the features (gate from the pose's and the
+   landmark's covariance and the feature's sigma), then the descriptor distance
+   (the smallest over the landmark's stored views) with a ratio test against the
+   second-best feature in the gate, and against the second-best landmark for the
+   feature. A landmark gets at most one feature and a feature at most one
+   landmark. Remaining features are matched frame to frame to the robot's
+   candidate tracks: the gate is the arc of bearings the track's last ray can
+   project to from the predicted pose (any depth in `track_depth_m`), plus the
+   elevation. Each observation carries the landmark's or the track's label; a
+   track is reported once it has been seen `track_min_length` times.
+2. `commit(association, pose=..., live_labels=...)` after the estimator processed
+   the frame: stores new views of matched landmarks, extends, starts and ends
+   tracks, promotes tracks whose label became a landmark, and forgets the
+   landmarks that are no longer live (marginalised).
+
+Labels of new tracks are ``f"{label_prefix}{n:06d}"`` with n counting up; a label
+is never reused.
+
+Convention: poses are (x, y, theta) in the map frame (m, m, rad CCW from +x);
+`pose_cov` is the (3, 3) covariance of (x, y, theta) with x, y in the map frame;
+landmark positions (2,) in metres with (2, 2) covariances in the map frame;
+bearings as in graph.types (rad, CCW from forward, wrapped to (-pi, pi]).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from frontend.features import Features
+from graph.angles import wrap_angles
+from graph.types import BearingObservation
+
+__all__ = ["Association", "AssociationConfig", "Associator", "LandmarkEstimate"]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+LandmarkEstimate = tuple[ArrayLike, ArrayLike | None]
+"""(xy (2,), covariance (2, 2) or None) of one live landmark, map frame, metres."""
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
+
+
+@dataclass(frozen=True, slots=True)
+class AssociationConfig:
+    """Association parameters; angles in radians."""
+
+    gate_sigmas: float = 2.5
+    """Bearing gate half-width in predicted standard deviations."""
+    min_gate_rad: float = math.radians(0.5)
+    max_gate_rad: float = math.radians(5.0)
+    default_landmark_sigma_m: float = 0.1
+    """Landmark position sigma used when no covariance is given."""
+    elevation_gate_rad: float = math.radians(1.0)
+    """Elevation tolerance (plus gate_sigmas feature sigmas) of a predicted elevation."""
+    max_distance: float = 45.0
+    """Largest descriptor distance of a match (Hamming bits for ORB; L2 for SIFT: x5)."""
+    ratio: float = 0.7
+    min_matches_for_pose: int = 5
+    """Landmark matches needed to correct the pose and match again (consistency check)."""
+    """Best distance must be below ratio x the second best (features and landmarks)."""
+    views_per_landmark: int = 5
+    view_fit_sigmas: float = 2.0
+    """A match adds a view (or a height sample) only if it fits within this many sigmas."""
+    new_view_angle_rad: float = math.radians(10.0)
+    """A matched landmark stores a new view when seen this far from all its views."""
+    track_depth_m: tuple[float, float] = (0.3, 30.0)
+    track_margin_rad: float = math.radians(1.0)
+    """Extra gate for the relative motion error between two frames."""
+    track_max_missed: int = 2
+    """A track not matched for more frames than this ends."""
+    track_min_length: int = 2
+    """Sightings before a track is reported to the estimator."""
+    max_track_observations: int = 60
+    """Most track observations reported per frame (longest tracks first)."""
+    label_prefix: str = "t"
+
+
+@dataclass
+class _Landmark:
+    descriptors: list[NDArray[Any]] = field(default_factory=list)
+    view_angles: list[float] = field(default_factory=list)
+    """World direction from the landmark to the robot at each stored view, rad."""
+    height_m: float | None = None
+    """Running mean of the feature's height above the camera, metres."""
+    height_n: int = 0
+
+
+@dataclass
+class _Track:
+    label: str
+    descriptor: NDArray[Any]
+    origin: FloatArray
+    """(3,) pose of the last sighting."""
+    bearing: float
+    elevation: float
+    length: int = 1
+    missed: int = 0
+    views: list[tuple[NDArray[Any], FloatArray, float]] = field(default_factory=list)
+    """(descriptor, pose (3,), bearing) of sightings kept for the landmark it may become."""
+
+
+@dataclass(frozen=True)
+class Association:
+    """One frame's association result.
+
+    observations: what to give the estimator. feature_index: (len(observations),)
+    feature of each. kind: 'landmark' or 'track' per observation. The rest is
+    what `commit` needs.
+    """
+
+    robot: str
+    features: Features
+    observations: tuple[BearingObservation, ...]
+    feature_index: IntArray
+    kind: tuple[str, ...]
+    landmark_matches: dict[str, int]
+    track_matches: dict[str, int]
+    unmatched: IntArray
+    landmark_fit: dict[str, float] = field(default_factory=dict)
+    """|bearing residual| / its sigma (pose and feature only) of each landmark match."""
+
+
+def _distances(a: NDArray[Any], b: NDArray[Any], binary: bool) -> FloatArray:
+    """(P,) descriptor distances of row pairs a[p], b[p]: Hamming bits or L2."""
+    if binary:
+        return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1).astype(np.float64)
+    diff = a.astype(np.float32) - b.astype(np.float32)
+    return np.sqrt((diff * diff).sum(axis=1)).astype(np.float64)
+
+
+def _robust_pose_step(
+    jac: FloatArray, resid: FloatArray, var: FloatArray, prior_cov: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Pose correction (3,) and its covariance (3, 3) from matched bearings.
+
+    Minimises sum rho(resid - jac @ delta) with Cauchy weights (IRLS) plus the
+    prior delta ~ N(0, prior_cov). `jac`: (M, 3) bearing Jacobians w.r.t. the pose;
+    `resid`: (M,) bearing residuals; `var`: (M,) their variances.
+    """
+    prior_info = np.asarray(np.linalg.pinv(prior_cov + 1e-12 * np.eye(3)), dtype=np.float64)
+    delta: FloatArray = np.zeros(3)
+    info: FloatArray = prior_info
+    for _ in range(6):
+        e = (resid - jac @ delta) / np.sqrt(var)
+        w = 1.0 / (1.0 + (e / 2.0) ** 2)  # Cauchy, scale 2 sigma
+        weighted = jac * (w / var)[:, None]
+        info = prior_info + weighted.T @ jac
+        delta = np.asarray(np.linalg.solve(info, weighted.T @ resid), dtype=np.float64)
+    return delta, np.asarray(np.linalg.inv(info), dtype=np.float64)
+
+
+def _best_two(
+    keys: IntArray, dist: FloatArray
+) -> tuple[IntArray, FloatArray, FloatArray, IntArray]:
+    """Per distinct key: (key, best distance, second best, index of the best pair)."""
+    order = np.lexsort((dist, keys))
+    k, d = keys[order], dist[order]
+    first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    count = np.diff(np.r_[first, len(k)])
+    second = np.where(count > 1, d[np.minimum(first + 1, len(d) - 1)], np.inf)
+    return k[first], d[first], second, order[first]
+
+
+def _pick(
+    rows: IntArray, cols: IntArray, dist: FloatArray, max_distance: float, ratio: float
+) -> list[tuple[int, int]]:
+    """Unique (row, col) matches among gated pairs (one entry per row-col pair).
+
+    A pair is kept when it is the best of its row and of its column (mutual), its
+    distance is at most `max_distance`, and below `ratio` x the second best of its
+    row and of its column. Mutual bests are unique on both sides.
+    """
+    if len(dist) == 0:
+        return []
+    _, r_best, r_second, r_pair = _best_two(rows, dist)
+    c_keys, c_best, c_second, c_pair = _best_two(cols, dist)
+    col_pos = {int(c): i for i, c in enumerate(c_keys.tolist())}
+    out = []
+    for best, second, pair in zip(r_best.tolist(), r_second.tolist(), r_pair.tolist(), strict=True):
+        if best > max_distance or best >= ratio * second:
+            continue
+        j = col_pos[int(cols[pair])]
+        if int(c_pair[j]) != pair or c_best[j] >= ratio * c_second[j]:
+            continue
+        out.append((int(rows[pair]), int(cols[pair])))
+    return out
+
+
+class Associator:
+    """Landmark descriptors and per-robot candidate tracks of one map."""
+
+    def __init__(self, config: AssociationConfig | None = None) -> None:
+        self.config = config or AssociationConfig()
+        self._landmarks: dict[str, _Landmark] = {}
+        self._tracks: dict[str, list[_Track]] = {}
+        self._next_track = 0
+        self._last_fit: dict[str, float] = {}
+
+    @property
+    def known_landmarks(self) -> int:
+        return len(self._landmarks)
+
+    def track_count(self, robot: str) -> int:
+        return len(self._tracks.get(robot, []))
+
+    # ------------------------------------------------------------------ associate
+    def associate(
+        self,
+        features: Features,
+        *,
+        robot: str,
+        predicted_pose: ArrayLike,
+        pose_cov: ArrayLike | None,
+        landmarks: Mapping[str, LandmarkEstimate],
+    ) -> Association:
+        """Label the features of one frame (nothing is changed until `commit`)."""
+        pose = np.asarray(predicted_pose, dtype=np.float64)
+        cov = np.zeros((3, 3)) if pose_cov is None else np.asarray(pose_cov, dtype=np.float64)
+        n = len(features)
+        free = np.ones(n, dtype=bool)
+        self._last_fit = {}
+        lm_matches = self._match_landmarks(features, pose, cov, landmarks)
+        for c in lm_matches.values():
+            free[c] = False
+        tr_matches = self._match_tracks(features, robot, pose, free)
+        for c in tr_matches.values():
+            free[c] = False
+
+        obs: list[BearingObservation] = []
+        index: list[int] = []
+        kind: list[str] = []
+        for label, c in sorted(lm_matches.items(), key=lambda t: t[1]):
+            obs.append(self._observation(features, c, label))
+            index.append(c)
+            kind.append("landmark")
+        tracks = {t.label: t for t in self._tracks.get(robot, [])}
+        report = [
+            (label, c)
+            for label, c in tr_matches.items()
+            if tracks[label].length + 1 >= self.config.track_min_length
+        ]
+        report.sort(key=lambda t: (-tracks[t[0]].length, t[1]))
+        for label, c in report[: self.config.max_track_observations]:
+            obs.append(self._observation(features, c, label))
+            index.append(c)
+            kind.append("track")
+        return Association(
+            robot=robot,
+            features=features,
+            observations=tuple(obs),
+            feature_index=np.array(index, dtype=np.int64),
+            kind=tuple(kind),
+            landmark_matches=lm_matches,
+            track_matches=tr_matches,
+            unmatched=np.flatnonzero(free).astype(np.int64),
+            landmark_fit=dict(self._last_fit),
+        )
+
+    @staticmethod
+    def _observation(features: Features, c: int, label: str) -> BearingObservation:
+        return BearingObservation(
+            bearing_rad=float(features.bearing_rad[c]),
+            label=label,
+            sigma_rad=float(features.sigma_rad[c]),
+        )
+
+    def _match_landmarks(
+        self,
+        features: Features,
+        pose: FloatArray,
+        cov: FloatArray,
+        landmarks: Mapping[str, LandmarkEstimate],
+    ) -> dict[str, int]:
+        """Gate and match; then correct the pose from the matches and match again.
+
+        The second pass is the consistency check: a match that only fits under the
+        wide first gate (a look-alike a few degrees off) does not survive once
+        the other landmarks have pinned the pose down.
+        """
+        cfg = self.config
+        labels = [lb for lb in landmarks if lb in self._landmarks]
+        if not labels or len(features) == 0:
+            return {}
+        xy = np.array([np.asarray(landmarks[lb][0], dtype=np.float64) for lb in labels])
+        default = cfg.default_landmark_sigma_m**2 * np.eye(2)
+        lcov = np.array(
+            [
+                default
+                if landmarks[lb][1] is None
+                else np.asarray(landmarks[lb][1], dtype=np.float64)
+                for lb in labels
+            ]
+        )
+        heights = np.array(
+            [
+                np.nan if self._landmarks[lb].height_m is None else self._landmarks[lb].height_m
+                for lb in labels
+            ]
+        )
+        picked, resid, jp, var_l = self._gate_and_pick(
+            features, labels, xy, lcov, heights, pose, cov
+        )
+        post = cov
+        if len(picked) >= cfg.min_matches_for_pose:
+            rows = np.array([r for r, _ in picked])
+            cols = np.array([c for _, c in picked])
+            r = resid[rows, cols]
+            s2 = var_l[rows] + features.sigma_rad[cols] ** 2
+            delta, post = _robust_pose_step(jp[rows], r, s2, cov)
+            pose = pose + delta
+            picked, resid, jp, var_l = self._gate_and_pick(
+                features, labels, xy, lcov, heights, pose, post
+            )
+        # Normalised residual of each match without the landmark's own uncertainty:
+        # only close fits may add a view to a landmark (a look-alike must not).
+        self._last_fit = {}
+        for r, c in picked:
+            sd = math.sqrt(float(jp[r] @ post @ jp[r]) + float(features.sigma_rad[c]) ** 2)
+            self._last_fit[labels[r]] = abs(float(resid[r, c])) / sd
+        return {labels[r]: c for r, c in picked}
+
+    def _gate_and_pick(
+        self,
+        features: Features,
+        labels: list[str],
+        xy: FloatArray,
+        lcov: FloatArray,
+        heights: FloatArray,
+        pose: FloatArray,
+        cov: FloatArray,
+    ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray]:
+        """Matches (landmark row, feature) plus (L, N) residuals, (L, 3) pose Jacobians and
+        (L,) landmark-only bearing variances."""
+        cfg = self.config
+        dx, dy = xy[:, 0] - pose[0], xy[:, 1] - pose[1]
+        r2 = np.maximum(dx * dx + dy * dy, 1e-6)
+        predicted = wrap_angles(np.arctan2(dy, dx) - pose[2])
+        # d(bearing)/d(landmark xy) = (-dy, dx) / r^2; d/d(pose) = (dy/r^2, -dx/r^2, -1).
+        jl = np.column_stack([-dy, dx]) / r2[:, None]
+        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(labels))])
+        var_l = np.einsum("li,lij,lj->l", jl, lcov, jl)
+        var = np.einsum("li,ij,lj->l", jp, cov, jp) + var_l
+        resid = wrap_angles(features.bearing_rad[None, :] - predicted[:, None])
+        sd = np.sqrt(var[:, None] + features.sigma_rad[None, :] ** 2)
+        gate = np.clip(cfg.gate_sigmas * sd, cfg.min_gate_rad, cfg.max_gate_rad)
+        inside = np.abs(resid) <= gate
+        known = np.isfinite(heights)
+        if known.any():
+            elev = np.arctan2(np.where(known, heights, 0.0), np.sqrt(r2))
+            de = np.abs(features.elevation_rad[None, :] - elev[:, None])
+            tol = cfg.elevation_gate_rad + cfg.gate_sigmas * features.sigma_rad[None, :]
+            inside &= ~known[:, None] | (de <= 2.0 * tol)
+        li, fi = np.nonzero(inside)
+        if len(li) == 0:
+            return [], resid, jp, var_l
+        # Distance to each stored view; keep the smallest per pair.
+        views, counts = self._view_stack(labels, np.unique(li))
+        pair_views = views[li]  # (P, K, D)
+        k = pair_views.shape[1]
+        d = _distances(
+            pair_views.reshape(len(li) * k, -1),
+            np.repeat(features.descriptors[fi], k, axis=0),
+            features.binary,
+        ).reshape(len(li), k)
+        d[np.arange(k)[None, :] >= counts[li][:, None]] = np.inf
+        dist = d.min(axis=1)
+        limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
+        return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
+
+    def _view_stack(self, labels: list[str], rows: IntArray) -> tuple[NDArray[Any], IntArray]:
+        """(L, K, D) stored views of the landmarks (zero-padded; only `rows` filled) and
+        (L,) their counts."""
+        k = self.config.views_per_landmark
+        sample = self._landmarks[labels[int(rows[0])]].descriptors[0]
+        views = np.zeros((len(labels), k, sample.shape[-1]), dtype=sample.dtype)
+        counts = np.zeros(len(labels), dtype=np.int64)
+        for r in rows.tolist():
+            descs = self._landmarks[labels[r]].descriptors[:k]
+            views[r, : len(descs)] = np.stack(descs)
+            counts[r] = len(descs)
+        return views, counts
+
+    def _match_tracks(
+        self, features: Features, robot: str, pose: FloatArray, free: NDArray[np.bool_]
+    ) -> dict[str, int]:
+        cfg = self.config
+        tracks = self._tracks.get(robot, [])
+        cand = np.flatnonzero(free)
+        if not tracks or len(cand) == 0:
+            return {}
+        origin = np.array([t.origin for t in tracks])
+        world = origin[:, 2] + np.array([t.bearing for t in tracks])
+        lo_d, hi_d = cfg.track_depth_m
+        depths = np.concatenate([np.geomspace(lo_d, hi_d, 16), [1e4]])
+        px = origin[:, 0:1] + depths[None, :] * np.cos(world)[:, None]
+        py = origin[:, 1:2] + depths[None, :] * np.sin(world)[:, None]
+        b = np.arctan2(py - pose[1], px - pose[0]) - pose[2]  # (T, D)
+        ref = b[:, -1:]
+        rel = wrap_angles(b - ref)
+        lo, hi = rel.min(axis=1), rel.max(axis=1)
+        fb = features.bearing_rad[cand]
+        offset = wrap_angles(fb[None, :] - ref)  # (T, C)
+        sig = features.sigma_rad[cand][None, :]
+        margin = cfg.track_margin_rad + cfg.gate_sigmas * sig
+        inside = (offset >= lo[:, None] - margin) & (offset <= hi[:, None] + margin)
+        ti, ci = np.nonzero(inside)
+        if len(ti) == 0:
+            return {}
+        # Elevation: triangulate the feature's ray with the track's ray (depth along the
+        # track's ray, clipped to track_depth_m), carry the implied height to the
+        # current distance, and compare. Without parallax the elevation stays put.
+        elev = np.array([t.elevation for t in tracks])[ti]
+        o = origin[ti]
+        wa = world[ti]
+        wb = pose[2] + fb[ci]
+        ua = np.column_stack([np.cos(wa), np.sin(wa)])
+        ub = np.column_stack([np.cos(wb), np.sin(wb)])
+        base = pose[None, :2] - o[:, :2]
+        cross = ua[:, 0] * ub[:, 1] - ua[:, 1] * ub[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = (base[:, 0] * ub[:, 1] - base[:, 1] * ub[:, 0]) / cross
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, hi_d)
+        depth = np.clip(depth, lo_d, hi_d)
+        point = o[:, :2] + depth[:, None] * ua
+        d_now = np.maximum(np.hypot(point[:, 0] - pose[0], point[:, 1] - pose[1]), 1e-3)
+        predicted_e = np.arctan2(depth * np.tan(elev), d_now)
+        sig_e = features.sigma_rad[cand[ci]]
+        ok = np.abs(features.elevation_rad[cand[ci]] - predicted_e) <= (
+            cfg.elevation_gate_rad + cfg.gate_sigmas * sig_e
+        )
+        ti, ci = ti[ok], ci[ok]
+        if len(ti) == 0:
+            return {}
+        descs = np.stack([tracks[i].descriptor for i in ti])
+        dist = _distances(descs, features.descriptors[cand[ci]], features.binary)
+        limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
+        picked = _pick(ti, cand[ci], dist, limit, cfg.ratio)
+        return {tracks[r].label: c for r, c in picked}
+
+    # ------------------------------------------------------------------ commit
+    def commit(
+        self,
+        association: Association,
+        *,
+        pose: ArrayLike,
+        live_labels: Collection[str],
+        landmark_xy: Mapping[str, ArrayLike] | None = None,
+    ) -> None:
+        """Update descriptors and tracks after the estimator processed the frame.
+
+        `pose`: the frame's pose estimate (3,). `live_labels`: the labels of every
+        live landmark after the frame. `landmark_xy`: positions of (some) live
+        landmarks, used to learn their height for the elevation gate.
+        """
+        cfg = self.config
+        feats = association.features
+        here = np.asarray(pose, dtype=np.float64)
+        live = set(live_labels)
+        positions = landmark_xy or {}
+
+        for label, c in association.landmark_matches.items():
+            lm = self._landmarks.get(label)
+            if lm is None or association.landmark_fit.get(label, 0.0) > cfg.view_fit_sigmas:
+                continue
+            if label in positions:
+                self._learn_height(lm, here, np.asarray(positions[label]), feats, c)
+            xy = positions.get(label)
+            angle = float(feats.bearing_rad[c] + here[2] + math.pi)
+            if xy is not None:
+                p = np.asarray(xy, dtype=np.float64)
+                angle = math.atan2(here[1] - p[1], here[0] - p[0])
+            gaps = np.abs(wrap_angles(np.array(lm.view_angles) - angle))
+            if len(lm.descriptors) == 0 or gaps.min() >= cfg.new_view_angle_rad:
+                lm.descriptors.append(feats.descriptors[c].copy())
+                lm.view_angles.append(angle)
+                if len(lm.descriptors) > cfg.views_per_landmark:
+                    # Keep the first view, drop the oldest of the others.
+                    del lm.descriptors[1]
+                    del lm.view_angles[1]
+
+        tracks = self._tracks.setdefault(association.robot, [])
+        kept: list[_Track] = []
+        for t in tracks:
+            match = association.track_matches.get(t.label)
+            if match is None:
+                t.missed += 1
+            else:
+                c = match
+                t.descriptor = feats.descriptors[c].copy()
+                t.origin = here.copy()
+                t.bearing = float(feats.bearing_rad[c])
+                t.elevation = float(feats.elevation_rad[c])
+                t.length += 1
+                t.missed = 0
+                self._add_track_view(t, feats, c, here)
+            if t.label in live:
+                self._promote(t, here, positions.get(t.label))
+            elif t.missed <= cfg.track_max_missed:
+                kept.append(t)
+        for c in association.unmatched.tolist():
+            t = _Track(
+                label=f"{cfg.label_prefix}{self._next_track:06d}",
+                descriptor=feats.descriptors[c].copy(),
+                origin=here.copy(),
+                bearing=float(feats.bearing_rad[c]),
+                elevation=float(feats.elevation_rad[c]),
+            )
+            self._next_track += 1
+            self._add_track_view(t, feats, c, here)
+            kept.append(t)
+        self._tracks[association.robot] = kept
+        for label in [lb for lb in self._landmarks if lb not in live]:
+            del self._landmarks[label]
+
+    def _add_track_view(self, t: _Track, feats: Features, c: int, here: FloatArray) -> None:
+        world = float(here[2] + feats.bearing_rad[c])
+        if t.views:
+            gaps = np.abs(wrap_angles(np.array([p[2] + b for _, p, b in t.views]) - world))
+            if gaps.min() < self.config.new_view_angle_rad:
+                return
+        t.views.append((feats.descriptors[c].copy(), here.copy(), float(feats.bearing_rad[c])))
+        if len(t.views) > self.config.views_per_landmark:
+            del t.views[1]
+
+    def _promote(self, t: _Track, here: FloatArray, xy: ArrayLike | None) -> None:
+        """A track's label became a live landmark: it keeps the track's views."""
+        lm = _Landmark()
+        views = t.views or [(t.descriptor, here, t.bearing)]
+        for desc, p, b in views:
+            lm.descriptors.append(desc)
+            lm.view_angles.append(float(p[2] + b + math.pi))
+        if xy is not None:
+            p = np.asarray(xy, dtype=np.float64)
+            d = math.hypot(p[0] - t.origin[0], p[1] - t.origin[1])
+            lm.height_m = d * math.tan(t.elevation)
+            lm.height_n = 1
+        self._landmarks[t.label] = lm
+
+    @staticmethod
+    def _learn_height(
+        lm: _Landmark, here: FloatArray, xy: FloatArray, feats: Features, c: int
+    ) -> None:
+        d = math.hypot(xy[0] - here[0], xy[1] - here[1])
+        h = d * math.tan(float(feats.elevation_rad[c]))
+        lm.height_n = min(lm.height_n + 1, 20)
+        lm.height_m = h if lm.height_m is None else lm.height_m + (h - lm.height_m) / lm.height_n

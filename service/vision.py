@@ -1,0 +1,130 @@
+"""Image frames through one map: the front end and the estimator wired together.
+
+`ImagePipeline.submit(frame, image)` is the one call a map's session (or the
+replay) makes for a frame that carries an image instead of observations:
+
+1. predict the robot's pose from its last estimate and the frame's odometry,
+   with the covariance grown by the odometry noise (map frame);
+2. the front end labels the image's features (live landmarks' positions and,
+   optionally, covariances from the graph);
+3. the estimator processes the frame with those observations;
+4. the front end learns what the estimator did (promoted tracks, marginalised
+   landmarks).
+
+A refused image (frontend.errors.ImageError) or frame (graph.errors.InvalidFrame)
+leaves both the front end and the map unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontend.association import Association
+from frontend.pipeline import FrontEnd
+from graph.factors import odometry_sigmas
+from graph.slam import BearingSlam, FrameOutcome
+from graph.types import FrameInput
+
+__all__ = ["ImageFrameResult", "ImagePipeline"]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ImageFrameResult:
+    """The estimator's outcome and the front end's association of one image frame."""
+
+    outcome: FrameOutcome
+    association: Association
+    timing_ms: dict[str, float]
+
+
+def _rotate_cov(cov: FloatArray, theta: float) -> FloatArray:
+    """A pose covariance with x, y in the robot frame -> x, y in the map frame."""
+    c, s = math.cos(theta), math.sin(theta)
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return r @ cov @ r.T
+
+
+class ImagePipeline:
+    """One map's front end next to its estimator."""
+
+    def __init__(
+        self, slam: BearingSlam, front_end: FrontEnd, *, landmark_covariances: bool = False
+    ) -> None:
+        """`landmark_covariances`: gate with the graph's landmark marginals (one joint
+        marginal per frame; costly with many landmarks) instead of a default sigma."""
+        self.slam = slam
+        self.front_end = front_end
+        self.landmark_covariances = landmark_covariances
+        self._last: dict[str, tuple[FloatArray, FloatArray]] = {}
+
+    def predict(self, frame: FrameInput) -> tuple[FloatArray, FloatArray]:
+        """Predicted (pose (3,), covariance (3, 3), map frame) of the frame's robot."""
+        cfg = self.slam.config
+        last = self._last.get(frame.robot)
+        if last is None or frame.odometry is None:
+            if frame.initial_pose is None:
+                raise ValueError(f"robot {frame.robot!r}: first frame needs initial_pose")
+            p = frame.initial_pose
+            return np.array([p.x, p.y, p.theta]), np.diag(np.square(cfg.initial_pose_sigma))
+        pose, cov = last
+        odo = frame.odometry
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dxw, dyw = c * odo.dx - s * odo.dy, s * odo.dx + c * odo.dy
+        new = np.array([pose[0] + dxw, pose[1] + dyw, pose[2] + odo.dtheta])
+        new[2] = math.atan2(math.sin(new[2]), math.cos(new[2]))
+        jac = np.array([[1.0, 0.0, -dyw], [0.0, 1.0, dxw], [0.0, 0.0, 1.0]])
+        q = _rotate_cov(np.diag(np.square(odometry_sigmas(odo, cfg))), pose[2])
+        return new, jac @ cov @ jac.T + q
+
+    def submit(self, frame: FrameInput, image: bytes | NDArray[np.uint8]) -> ImageFrameResult:
+        """Process one frame whose observations come from `image` (its own are ignored)."""
+        t0 = time.perf_counter()
+        feats = self.front_end.features(image)
+        t1 = time.perf_counter()
+        predicted, cov = self.predict(frame)
+        slam = self.slam
+        ids = sorted(slam.landmarks)
+        labels = [slam.landmarks[i].label for i in ids]
+        xy = [slam.landmark_position(i) for i in ids]
+        covs: list[FloatArray | None] = [None] * len(ids)
+        if self.landmark_covariances and ids:
+            covs = list(slam.landmark_covariances(ids))
+        association = self.front_end.observe(
+            feats,
+            robot=frame.robot,
+            predicted_pose=predicted,
+            pose_cov=cov,
+            landmarks={lb: (p, c) for lb, p, c in zip(labels, xy, covs, strict=True)},
+        )
+        t2 = time.perf_counter()
+        outcome = slam.process(replace(frame, observations=association.observations))
+        t3 = time.perf_counter()
+        pose = np.array([outcome.pose.x, outcome.pose.y, outcome.pose.theta])
+        pose_cov = (
+            _rotate_cov(np.asarray(outcome.covariance), pose[2])
+            if outcome.covariance is not None
+            else cov
+        )
+        self._last[frame.robot] = (pose, pose_cov)
+        live = {rec.label: rec.id for rec in slam.landmarks.values()}
+        touched = set(association.landmark_matches) | set(association.track_matches)
+        positions = {lb: slam.landmark_position(i) for lb, i in live.items() if lb in touched}
+        self.front_end.commit(association, pose=pose, live_labels=live, landmark_xy=positions)
+        t4 = time.perf_counter()
+        return ImageFrameResult(
+            outcome=outcome,
+            association=association,
+            timing_ms={
+                "features": 1e3 * (t1 - t0),
+                "association": 1e3 * (t2 - t1 + t4 - t3),
+                "estimator": 1e3 * (t3 - t2),
+                "total": 1e3 * (t4 - t0),
+            },
+        )

@@ -1,0 +1,26 @@
+"""Small hand-made images and scenes shared by the front-end tests."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.datasets.indoor_sim import make_world
+from service.datasets.render import TexturedWorld, make_textured_world
+
+
+def blank(height: int, width: int, level: int = 90) -> NDArray[np.uint8]:
+    return np.full((height, width), level, dtype=np.uint8)
+
+
+def paint_corner(image: NDArray[np.uint8], column: int, row: int, size: int = 24) -> None:
+    """A bright square whose top-left corner is the pixel corner left of (column, row);
+    columns wrap around."""
+    width = image.shape[1]
+    cols = np.arange(column, column + size) % width
+    image[row : row + size][:, cols] = 230
+
+
+def small_world(seed: int = 3) -> TexturedWorld:
+    rng = np.random.default_rng(seed)
+    return make_textured_world(make_world(rooms=(2, 1), landmarks=2, rng=rng), rng=rng)

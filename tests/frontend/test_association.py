@@ -1,0 +1,231 @@
+"""Association on hand-built cases: look-alike landmarks, ratio test, tracks and labels."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from frontend.association import AssociationConfig, Associator
+from frontend.features import Features
+
+
+def _features(bearings_deg: list[float], descriptors: np.ndarray, v: float = 100.0) -> Features:
+    n = len(bearings_deg)
+    b = np.radians(np.asarray(bearings_deg, dtype=np.float64))
+    return Features(
+        u=np.zeros(n),
+        v=np.full(n, v),
+        bearing_rad=b,
+        elevation_rad=np.zeros(n),
+        sigma_rad=np.full(n, math.radians(0.2)),
+        response=np.ones(n),
+        octave=np.zeros(n, dtype=np.int64),
+        descriptors=descriptors.astype(np.uint8),
+        binary=True,
+    )
+
+
+def _flip(desc: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarray:
+    """The descriptor with `bits` random bits flipped."""
+    out = desc.copy()
+    for i in rng.choice(256, bits, replace=False):
+        out[i // 8] ^= np.uint8(1 << (i % 8))
+    return out
+
+
+def _learn(assoc: Associator, feats: Features, labels: dict[int, str]) -> None:
+    """Make the associator know landmarks `labels` (feature index -> label) via tracks."""
+    first = assoc.associate(
+        feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={}
+    )
+    assoc.commit(first, pose=(0, 0, 0), live_labels=())
+    track_labels = sorted(t.label for t in assoc._tracks["r1"])
+    # The graph turned the tracks of these features into landmarks with their labels.
+    live = {track_labels[i] for i in labels}
+    assoc.commit(
+        assoc.associate(feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={}),
+        pose=(0, 0, 0),
+        live_labels=live,
+    )
+    for i, name in labels.items():
+        assert track_labels[i] in assoc._landmarks
+        assoc._landmarks[name] = assoc._landmarks.pop(track_labels[i])
+
+
+def test_lookalike_landmarks_are_told_apart_by_the_predicted_bearing() -> None:
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    # Two landmarks that look the same (descriptors 3 bits apart), 40° apart.
+    descs = np.stack([base, _flip(base, 3, rng)])
+    assoc = Associator()
+    _learn(assoc, _features([0.0, 40.0], descs), {0: "A", 1: "B"})
+    landmarks = {
+        "A": (np.array([2.0, 0.0]), 0.01 * np.eye(2)),
+        "B": (np.array([2.0 * math.cos(math.radians(40)), 2.0 * math.sin(math.radians(40))]), None),
+    }
+    # Seen again, each with a few more bits changed, in the other order.
+    feats = _features([40.5, -0.4], np.stack([_flip(descs[1], 4, rng), _flip(descs[0], 4, rng)]))
+    result = assoc.associate(
+        feats,
+        robot="r1",
+        predicted_pose=(0.0, 0.0, 0.0),
+        pose_cov=np.diag([1e-4, 1e-4, math.radians(1.0) ** 2]),
+        landmarks=landmarks,
+    )
+    assert result.landmark_matches == {"A": 1, "B": 0}
+    labels = {ob.label: ob.bearing_rad for ob in result.observations}
+    assert labels["A"] == feats.bearing_rad[1] and labels["B"] == feats.bearing_rad[0]
+
+
+def test_two_lookalikes_in_one_gate_give_no_match() -> None:
+    rng = np.random.default_rng(1)
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    assoc = Associator()
+    _learn(assoc, _features([10.0], base[None, :]), {0: "A"})
+    landmarks = {"A": (np.array([2.0 * math.cos(0.1745), 2.0 * math.sin(0.1745)]), None)}
+    # Heading uncertain by 5°: both features (2° apart) fall in A's gate and look alike.
+    feats = _features([9.0, 11.0], np.stack([_flip(base, 5, rng), _flip(base, 6, rng)]))
+    result = assoc.associate(
+        feats,
+        robot="r1",
+        predicted_pose=(0, 0, 0),
+        pose_cov=np.diag([1e-4, 1e-4, math.radians(5.0) ** 2]),
+        landmarks=landmarks,
+    )
+    assert result.landmark_matches == {}
+    # One look-alike and one stranger: the look-alike is taken.
+    feats = _features([9.0, 11.0], np.stack([_flip(base, 5, rng), rng.integers(0, 256, 32)]))
+    result = assoc.associate(
+        feats,
+        robot="r1",
+        predicted_pose=(0, 0, 0),
+        pose_cov=np.diag([1e-4, 1e-4, math.radians(5.0) ** 2]),
+        landmarks=landmarks,
+    )
+    assert result.landmark_matches == {"A": 0}
+
+
+def test_a_landmark_outside_its_gate_is_not_matched() -> None:
+    rng = np.random.default_rng(2)
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    assoc = Associator()
+    _learn(assoc, _features([0.0], base[None, :]), {0: "A"})
+    feats = _features([25.0], base[None, :])  # identical look, 25° off a well-known pose
+    result = assoc.associate(
+        feats,
+        robot="r1",
+        predicted_pose=(0, 0, 0),
+        pose_cov=np.diag([1e-4, 1e-4, 1e-4]),
+        landmarks={"A": (np.array([3.0, 0.0]), None)},
+    )
+    assert result.landmark_matches == {}
+
+
+def test_tracks_get_fresh_labels_are_reported_when_seen_twice_and_never_reused() -> None:
+    rng = np.random.default_rng(3)
+    descs = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    cfg = AssociationConfig(track_min_length=2)
+    assoc = Associator(cfg)
+    seen_labels: set[str] = set()
+    pose = np.zeros(3)
+    frame0 = assoc.associate(
+        _features([10.0, 100.0, -60.0], descs),
+        robot="r1",
+        predicted_pose=pose,
+        pose_cov=None,
+        landmarks={},
+    )
+    assert frame0.observations == ()  # first sighting: not reported yet
+    assoc.commit(frame0, pose=pose, live_labels=())
+    labels0 = {t.label for t in assoc._tracks["r1"]}
+    assert len(labels0) == 3
+    # The robot moves 0.1 m forward: the features move a little; all three are tracked.
+    pose1 = np.array([0.1, 0.0, 0.0])
+    frame1 = assoc.associate(
+        _features([10.4, 100.1, -60.2], descs),
+        robot="r1",
+        predicted_pose=pose1,
+        pose_cov=None,
+        landmarks={},
+    )
+    assert {ob.label for ob in frame1.observations} == labels0
+    assert set(frame1.kind) == {"track"}
+    assoc.commit(frame1, pose=pose1, live_labels=())
+    seen_labels |= labels0
+    # The features disappear for longer than track_max_missed: tracks end.
+    for _ in range(cfg.track_max_missed + 1):
+        empty = assoc.associate(
+            _features([], np.zeros((0, 32))),
+            robot="r1",
+            predicted_pose=pose1,
+            pose_cov=None,
+            landmarks={},
+        )
+        assoc.commit(empty, pose=pose1, live_labels=())
+    assert assoc.track_count("r1") == 0
+    # They come back: new tracks, new labels.
+    again = assoc.associate(
+        _features([10.4, 100.1, -60.2], descs),
+        robot="r1",
+        predicted_pose=pose1,
+        pose_cov=None,
+        landmarks={},
+    )
+    assoc.commit(again, pose=pose1, live_labels=())
+    new_labels = {t.label for t in assoc._tracks["r1"]}
+    assert len(new_labels) == 3 and not (new_labels & seen_labels)
+
+
+def test_promoted_track_becomes_a_landmark_and_is_forgotten_when_marginalised() -> None:
+    rng = np.random.default_rng(4)
+    descs = rng.integers(0, 256, (2, 32), dtype=np.uint8)
+    assoc = Associator()
+    f = _features([30.0, -30.0], descs)
+    r = assoc.associate(f, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={})
+    assoc.commit(r, pose=(0, 0, 0), live_labels=())
+    r = assoc.associate(f, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={})
+    first = r.observations[0].label
+    assoc.commit(r, pose=(0, 0, 0), live_labels={first})
+    assert assoc.known_landmarks == 1 and assoc.track_count("r1") == 1
+    # Next frame: the landmark is matched as a landmark, with its own label.
+    xy = np.array([2.0 * math.cos(math.radians(30)), 2.0 * math.sin(math.radians(30))])
+    if r.observations[0].bearing_rad < 0:
+        xy[1] = -xy[1]
+    r = assoc.associate(
+        f,
+        robot="r1",
+        predicted_pose=(0, 0, 0),
+        pose_cov=np.diag([1e-4, 1e-4, 1e-4]),
+        landmarks={first: (xy, None)},
+    )
+    assert list(r.landmark_matches) == [first]
+    # The graph marginalised it: its descriptors are forgotten.
+    assoc.commit(r, pose=(0, 0, 0), live_labels=())
+    assert assoc.known_landmarks == 0
+
+
+def test_at_most_one_observation_per_landmark_and_per_feature() -> None:
+    rng = np.random.default_rng(5)
+    base = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    assoc = Associator()
+    bearings = [0.0, 60.0, 120.0, 180.0, -120.0, -60.0]
+    _learn(assoc, _features(bearings, base), {i: f"L{i}" for i in range(6)})
+    landmarks = {
+        f"L{i}": (np.array([3 * math.cos(math.radians(b)), 3 * math.sin(math.radians(b))]), None)
+        for i, b in enumerate(bearings)
+    }
+    noisy = np.stack([_flip(d, 6, rng) for d in base] + [_flip(base[0], 6, rng)])
+    feats = _features([*bearings, 0.3], noisy)
+    result = assoc.associate(
+        feats,
+        robot="r1",
+        predicted_pose=(0, 0, 0),
+        pose_cov=np.diag([1e-4, 1e-4, 1e-4]),
+        landmarks=landmarks,
+    )
+    labels = [ob.label for ob in result.observations if ob.label.startswith("L")]
+    assert len(labels) == len(set(labels))
+    assert len(set(result.feature_index.tolist())) == len(result.feature_index)
+    # L0 has two look-alike candidates 0.3° apart: refused; the other five match.
+    assert set(result.landmark_matches) == {f"L{i}" for i in range(1, 6)}
