@@ -244,13 +244,15 @@ def _open_text(path: Path, *, write: bool) -> IO[str]:
     return path.open("w" if write else "r", encoding="utf-8")
 
 
-def read_frames(path: str | os.PathLike[str]) -> Iterator[FrameInput]:
-    """Yield the frames of a JSON-lines file in file order.
+def read_frame_lines(
+    path: str | os.PathLike[str],
+) -> Iterator[tuple[int, dict[str, Any], FrameInput]]:
+    """Yield (1-based line number, JSON object, frame) for each frame of a JSON-lines file.
 
-    Blank lines are skipped. The file is read lazily, line by line.
+    Blank lines are skipped; the file (plain or ``.gz``) is read lazily, line by line.
 
     Raises:
-        FrameFileError: naming the 1-based line number and the offending field.
+        FrameFileError: naming the line number and the offending field.
     """
     p = Path(path)
     with _open_text(p, write=False) as fh:
@@ -265,7 +267,13 @@ def read_frames(path: str | os.PathLike[str]) -> Iterator[FrameInput]:
                 frame = frame_from_dict(d)
             except InvalidFrame as exc:
                 raise FrameFileError(str(p), lineno, exc.field, exc.detail) from exc
-            yield frame
+            yield lineno, d, frame
+
+
+def read_frames(path: str | os.PathLike[str]) -> Iterator[FrameInput]:
+    """Yield the frames of a JSON-lines file in file order (see read_frame_lines)."""
+    for _, _, frame in read_frame_lines(path):
+        yield frame
 
 
 def write_frames(path: str | os.PathLike[str], frames: Iterable[FrameInput]) -> int:

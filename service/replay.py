@@ -22,11 +22,10 @@ from tqdm import tqdm
 
 from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
-from graph.errors import InvalidFrame
 from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
 from service.evaluation import Trajectory
-from service.frames_io import FrameFileError, frame_from_dict
+from service.frames_io import FrameFileError, read_frame_lines
 from service.vision import ImagePipeline
 
 log = logging.getLogger(__name__)
@@ -128,25 +127,14 @@ def read_replay_frames(path: str | os.PathLike[str]) -> list[FrameInput | ImageF
     """
     p = Path(path)
     out: list[FrameInput | ImageFrame] = []
-    with p.open(encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            if not line.strip():
-                continue
-            try:
-                doc = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise FrameFileError(str(p), lineno, "line", f"not JSON: {exc.msg}") from exc
-            try:
-                frame = frame_from_dict(doc)
-            except InvalidFrame as exc:
-                raise FrameFileError(str(p), lineno, exc.field, exc.detail) from exc
-            image = doc.get("image")
-            if image is None:
-                out.append(frame)
-            elif not isinstance(image, str) or not image:
-                raise FrameFileError(str(p), lineno, "image", "must be a relative path string")
-            else:
-                out.append(ImageFrame(frame, p.parent / image))
+    for lineno, doc, frame in read_frame_lines(p):
+        image = doc.get("image")
+        if image is None:
+            out.append(frame)
+        elif not isinstance(image, str) or not image:
+            raise FrameFileError(str(p), lineno, "image", "must be a relative path string")
+        else:
+            out.append(ImageFrame(frame, p.parent / image))
     return out
 
 
