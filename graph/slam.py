@@ -234,8 +234,10 @@ class BearingSlam:
         t1 = time.perf_counter()
         # Estimates before the update: what a marginalised pose keeps.
         before = {k: self._graph.pose(k) for k, _ in plan.leaving}
-        if robot is not None and robot.keyframes:
-            before.setdefault(robot.keyframes[-1][0], self._graph.pose(robot.keyframes[-1][0]))
+        if robot is not None and robot.keyframes and plan.exiting and not plan.promoted:
+            # The anchor of the exiting non-keyframe pose (see _commit).
+            anchor = robot.keyframes[-1][0]
+            before.setdefault(anchor, self._graph.pose(anchor))
         self._graph.update(
             plan.factors,
             plan.values,
