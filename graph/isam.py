@@ -164,7 +164,12 @@ class IncrementalGraph:
         for index in indices:
             local.add(self._factors[index])
         linear = local.linearize(theta)
-        _, remaining = linear.eliminatePartialSequential(gtsam.Ordering(list(keys)))
+        ordering = gtsam.Ordering(list(keys))
+        try:
+            # QR leaves Jacobian factors: a square root that relative marginals use as is.
+            _, remaining = linear.eliminatePartialSequential(ordering, gtsam.EliminateQR)
+        except RuntimeError:  # a Hessian factor that QR cannot take (e.g. rank-deficient)
+            _, remaining = linear.eliminatePartialSequential(ordering)
         marginals: list[gtsam.NonlinearFactor] = []
         poses_only = not any(is_landmark_key(k) for k in keys)
         for i in range(remaining.size()):

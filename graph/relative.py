@@ -34,12 +34,6 @@ from numpy.typing import NDArray
 from graph.factors import is_landmark_key
 
 FloatArray = NDArray[np.float64]
-_EPS = 1e-6
-
-
-def _skew_jacobian(p: FloatArray) -> FloatArray:
-    """d(R^-1 L)/d(xi_R) for a right perturbation xi = (vx, vy, omega) of R; p = R^-1 L."""
-    return np.array([[-1.0, 0.0, p[1]], [0.0, -1.0, -p[0]]])
 
 
 class _Blanket:
@@ -60,65 +54,78 @@ class _Blanket:
             else np.zeros((0, 2))
         )
 
+    def _landmark_rows(self, r: gtsam.Pose2, values: gtsam.Values) -> FloatArray:
+        """R^-1 L for every landmark of the blanket, one row each."""
+        if not self.landmarks:
+            return np.zeros((0, 2))
+        points = np.array([values.atPoint2(k) for k in self.landmarks])
+        c, s = np.cos(r.theta()), np.sin(r.theta())
+        d = points - np.array([r.x(), r.y()])
+        return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+
     def y(self, values: gtsam.Values) -> FloatArray:
         out = np.empty(self.offsets[-1])
         r = values.atPose2(self.reference)
         out[0:3] = gtsam.Pose2.Logmap(self.r0.between(r))
         for j, k in enumerate(self.poses):
             o = self.offsets[1 + j]
-            out[o : o + 3] = self._y_pose(r, values.atPose2(k), j)
+            out[o : o + 3] = gtsam.Pose2.Logmap(self.q0[j].between(r.between(values.atPose2(k))))
         base = self.offsets[1 + len(self.poses)]
-        for i, k in enumerate(self.landmarks):
-            out[base + 2 * i : base + 2 * i + 2] = r.transformTo(values.atPoint2(k)) - self.l0[i]
+        out[base:] = (self._landmark_rows(r, values) - self.l0).ravel()
         return out
 
-    def _y_pose(self, r: gtsam.Pose2, p: gtsam.Pose2, j: int) -> FloatArray:
-        return np.asarray(gtsam.Pose2.Logmap(self.q0[j].between(r.between(p))))
-
-    def jacobians(self, values: gtsam.Values) -> list[FloatArray]:
-        """dy/d(local coordinates of each key), one (len(y), dim) block per key."""
+    def jacobians(self, values: gtsam.Values) -> tuple[FloatArray, list[FloatArray]]:
+        """dy/dx in its sparse form: the reference pose's full column block (len(y), 3),
+        and for every other key its diagonal block (the rows of its own y)."""
         n = int(self.offsets[-1])
         r = values.atPose2(self.reference)
-        blocks = [np.zeros((n, d)) for d in self.dims]
-        # Reference pose: numerically for the pose rows (small), analytically for landmarks.
-        for c in range(3):
-            step = np.zeros(3)
-            step[c] = _EPS
-            rp, rm = r.retract(step), r.retract(-step)
-            blocks[0][0:3, c] = (
-                gtsam.Pose2.Logmap(self.r0.between(rp)) - gtsam.Pose2.Logmap(self.r0.between(rm))
-            ) / (2 * _EPS)
-            for j, k in enumerate(self.poses):
-                o = self.offsets[1 + j]
-                p = values.atPose2(k)
-                blocks[0][o : o + 3, c] = (self._y_pose(rp, p, j) - self._y_pose(rm, p, j)) / (
-                    2 * _EPS
-                )
+        column = np.zeros((n, 3))
+        column[0:3] = gtsam.Pose2.LogmapDerivative(self.r0.between(r))
+        diagonal: list[FloatArray] = []
         for j, k in enumerate(self.poses):
             o = self.offsets[1 + j]
             p = values.atPose2(k)
-            for c in range(3):
-                step = np.zeros(3)
-                step[c] = _EPS
-                blocks[1 + j][o : o + 3, c] = (
-                    self._y_pose(r, p.retract(step), j) - self._y_pose(r, p.retract(-step), j)
-                ) / (2 * _EPS)
-        rot_t = r.rotation().matrix().T
+            d = np.asarray(gtsam.Pose2.LogmapDerivative(self.q0[j].between(r.between(p))))
+            diagonal.append(d)
+            # R -> R Exp(xi): q0^-1 R^-1 P -> (q0^-1 R^-1 P) Exp(-Ad(P^-1 R) xi)
+            column[o : o + 3] = -d @ np.asarray(p.between(r).AdjointMap())
         base = self.offsets[1 + len(self.poses)]
-        for i, k in enumerate(self.landmarks):
-            rows = slice(base + 2 * i, base + 2 * i + 2)
-            blocks[0][rows, :] = _skew_jacobian(r.transformTo(values.atPoint2(k)))
-            blocks[1 + len(self.poses) + i][rows, :] = rot_t
-        return blocks
+        rows = self._landmark_rows(r, values)
+        if len(rows):
+            # R -> R Exp(xi) moves R^-1 L by (-v - omega x R^-1 L) to first order.
+            column[base::2] = np.column_stack(
+                [-np.ones(len(rows)), np.zeros(len(rows)), rows[:, 1]]
+            )
+            column[base + 1 :: 2] = np.column_stack(
+                [np.zeros(len(rows)), -np.ones(len(rows)), -rows[:, 0]]
+            )
+            rot_t = np.asarray(r.rotation().matrix()).T
+            diagonal.extend(rot_t for _ in self.landmarks)
+        return column, diagonal
+
+    def dense_jacobian(self, values: gtsam.Values) -> FloatArray:
+        """dy/dx as one dense matrix, columns in the blanket's key order."""
+        column, diagonal = self.jacobians(values)
+        n = int(self.offsets[-1])
+        out = np.zeros((n, n))
+        out[:, 0:3] = column
+        for i, block in enumerate(diagonal):
+            o, e = self.offsets[1 + i], self.offsets[2 + i]
+            out[o:e, o:e] = block
+        return out
 
 
 def _square_root(factor: gtsam.GaussianFactor) -> tuple[FloatArray, FloatArray]:
     """[A | b] with [A | b]^T [A | b] = the factor's augmented information.
 
-    By eigen-decomposition rather than Cholesky: a marginal is often rank-deficient
-    (a landmark seen along one ray only), which GaussianFactor.jacobian() refuses
-    with IndeterminantLinearSystem.
+    A Jacobian factor (what QR elimination of Jacobian factors leaves) already is
+    one. A Hessian factor is factored by eigen-decomposition rather than Cholesky:
+    a marginal is often rank-deficient (a landmark seen along one ray only), which
+    GaussianFactor.jacobian() refuses with IndeterminantLinearSystem.
     """
+    if isinstance(factor, gtsam.JacobianFactor):
+        a, b = factor.jacobian()  # whitened
+        return np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     info = np.asarray(factor.augmentedInformation(), dtype=np.float64)
     w, v = np.linalg.eigh(0.5 * (info + info.T))
     keep = w > 1e-12 * max(float(w[-1]), 1e-300)
@@ -155,14 +162,18 @@ class RelativeMarginalFactor(gtsam.CustomFactor):
     def __init__(self, spec: RelativeSpec) -> None:
         blanket = _Blanket(spec.reference, spec.keys, spec.theta())
         m, b = spec.m, spec.b
+        offsets = blanket.offsets
 
         def error(
             _factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
         ) -> FloatArray:
             residual: FloatArray = m @ blanket.y(values) - b
             if jacobians is not None:
-                for i, block in enumerate(blanket.jacobians(values)):
-                    jacobians[i] = m @ block
+                column, diagonal = blanket.jacobians(values)
+                jacobians[0] = m @ column
+                for i, block in enumerate(diagonal):
+                    o, e = offsets[1 + i], offsets[2 + i]
+                    jacobians[1 + i] = m[:, o:e] @ block
             return residual
 
         super().__init__(
@@ -184,7 +195,7 @@ def relative_marginal(
     offsets = np.concatenate([[0], np.cumsum([dims[k] for k in keys])]).astype(int)
     starts = dict(zip(keys, offsets[:-1], strict=True))
     a = np.hstack([a[:, starts[k] : starts[k] + dims[k]] for k in blanket.keys])
-    t = np.hstack(blanket.jacobians(theta))  # y ~ T delta at theta
+    t = blanket.dense_jacobian(theta)  # y ~ T delta at theta
     m = np.asarray(np.linalg.solve(t.T, a.T).T, dtype=np.float64)  # A T^-1
     at = tuple(
         tuple(float(c) for c in theta.atPoint2(k))
