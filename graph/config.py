@@ -61,6 +61,11 @@ class SlamConfig:
     keyframe_angle_rad: float = math.radians(15.0)
     max_keyframes: int = 300
     """Keyframes kept per robot beyond the window (oldest marginalised first); 0 = none."""
+    max_linked_keyframes: int = 24
+    """At most this many keyframes in one marginal factor. Marginalising a landmark
+    links every pose that saw it, and those links accumulate into one dense factor
+    over all keyframes; beyond this bound the oldest keyframes in it are
+    marginalised too (down to 3/4 of it), so the dense part of the graph stays small."""
     allow_new_landmarks: bool = True
     """False freezes the map (localisation mode): no candidates become landmarks."""
 
@@ -81,5 +86,7 @@ class SlamConfig:
             raise ValueError("optimizer must be 'dogleg' or 'gauss_newton'")
         if self.max_keyframes < 0:
             raise ValueError("max_keyframes must be >= 0")
+        if self.max_linked_keyframes < 1:
+            raise ValueError("max_linked_keyframes must be >= 1")
         if self.candidate_ttl_frames < 1:
             raise ValueError("candidate_ttl_frames must be >= 1")

@@ -65,6 +65,8 @@ class IncrementalGraph:
         self._factors: dict[int, gtsam.NonlinearFactor] = {}
         self._key_factors: dict[int, set[int]] = {}
         self._estimate: gtsam.Values | None = None
+        self.marginal_keys: list[tuple[int, ...]] = []
+        """Keys of every marginal factor added since the caller last cleared this."""
 
     # ------------------------------------------------------------------ queries
     def __contains__(self, key: int) -> bool:
@@ -80,6 +82,10 @@ class IncrementalGraph:
 
     def factors_of(self, key: int) -> list[int]:
         return sorted(self._key_factors.get(key, ()))
+
+    def neighbourhoods(self, key: int) -> list[tuple[int, ...]]:
+        """The keys of every factor that touches `key`."""
+        return [tuple(self._factors[i].keys()) for i in self.factors_of(key)]
 
     def estimate(self) -> gtsam.Values:
         """The current estimate of every variable (cached until the next update)."""
@@ -125,21 +131,22 @@ class IncrementalGraph:
         """Add factors (and new variables' initial values) and marginalise keys, in one step."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
-        fresh = bool(added) or values is not None
         remove: list[int] = []
         if marginalise:
             remove, marginals = self._schur_complement(marginalise)
             added.extend(marginals)
+            self.marginal_keys.extend(tuple(m.keys()) for m in marginals)
         for factor in added:
             new.add(factor)
         try:
             result = self._isam.update(new, values or gtsam.Values(), remove)
         except RuntimeError as exc:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
             raise EstimationError(str(exc)) from exc
-        if fresh:
-            self._estimate = None
-        # else: a pure marginalisation leaves the MAP of the remaining variables where
-        # it was, so the cached estimate stays valid (the removed keys are never read).
+        # Even a pure marginalisation moves the estimate a little: iSAM2 re-eliminates
+        # the cliques it touched, and its partial (wildfire) updates had left their
+        # delta behind the MAP. A stale cache here made a restored map (rebuilt with a
+        # full step) diverge from the original by centimetres.
+        self._estimate = None
         for index in remove:
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]

@@ -103,15 +103,20 @@ class _Blanket:
             diagonal.extend(rot_t for _ in self.landmarks)
         return column, diagonal
 
-    def dense_jacobian(self, values: gtsam.Values) -> FloatArray:
-        """dy/dx as one dense matrix, columns in the blanket's key order."""
+    def right_divide(self, a: FloatArray, values: gtsam.Values) -> FloatArray:
+        """A T^-1 for T = dy/dx at `values`, using T's structure: the reference's
+        block column plus a block diagonal. With T = [[D0, 0], [C, D]],
+        (A T^-1)_i = A_i D_i^-1 for the other keys and
+        (A T^-1)_0 = (A_0 - sum_i (A T^-1)_i C_i) D0^-1."""
         column, diagonal = self.jacobians(values)
-        n = int(self.offsets[-1])
-        out = np.zeros((n, n))
-        out[:, 0:3] = column
+        out = np.empty_like(a)
+        o = self.offsets
+        acc = a[:, 0:3].copy()
         for i, block in enumerate(diagonal):
-            o, e = self.offsets[1 + i], self.offsets[2 + i]
-            out[o:e, o:e] = block
+            cols = slice(o[1 + i], o[2 + i])
+            out[:, cols] = np.linalg.solve(block.T, a[:, cols].T).T
+            acc -= out[:, cols] @ column[cols]
+        out[:, 0:3] = np.linalg.solve(column[0:3].T, acc.T).T
         return out
 
 
@@ -195,8 +200,7 @@ def relative_marginal(
     offsets = np.concatenate([[0], np.cumsum([dims[k] for k in keys])]).astype(int)
     starts = dict(zip(keys, offsets[:-1], strict=True))
     a = np.hstack([a[:, starts[k] : starts[k] + dims[k]] for k in blanket.keys])
-    t = blanket.dense_jacobian(theta)  # y ~ T delta at theta
-    m = np.asarray(np.linalg.solve(t.T, a.T).T, dtype=np.float64)  # A T^-1
+    m = blanket.right_divide(a, theta)  # A T^-1, where y ~ T delta at theta
     at = tuple(
         tuple(float(c) for c in theta.atPoint2(k))
         if is_landmark_key(k)

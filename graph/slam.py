@@ -247,6 +247,10 @@ class BearingSlam:
         robot = self._commit(frame, robot, plan, before)
         pose = from_pose2(self._graph.pose(plan.key))
         marginalised = self._enforce_budget(frame)
+        if plan.promoted and plan.exiting is not None:
+            # A new keyframe joins the marginal factors its pose was already in.
+            self._graph.marginal_keys.extend(self._graph.neighbourhoods(plan.exiting[0]))
+        self._thin_keyframes()
         t3 = time.perf_counter()
         covariance = self._graph.pose_covariance(plan.key) if with_covariance else None
         t4 = time.perf_counter()
@@ -446,13 +450,7 @@ class BearingSlam:
                 continue
             if robot.keyframes and robot.keyframes[0][0] == key:
                 robot.keyframes.popleft()
-            pose = before[key]
-            self._live_frames.pop(old_frame, None)
-            self._set_traj_pose(old_frame, pose)
-            for f in self._anchored.pop(key, ()):
-                i = 3 * f
-                rel = gtsam.Pose2(*self._traj_pose[i : i + 3])
-                self._set_traj_pose(f, pose.compose(rel))
+            self._retire(key, old_frame, before[key])
         self._traj_robot.append(robot.slot)
         self._traj_seq.append(frame.seq)
         self._traj_stamp.append(frame.stamp)
@@ -481,6 +479,42 @@ class BearingSlam:
             for label in [lb for lb, c in self._candidates.items() if c.last_frame < horizon]:
                 del self._candidates[label]
         return robot
+
+    def _retire(self, key: int, frame: int, pose: gtsam.Pose2) -> None:
+        """A marginalised pose's frame keeps `pose`; frames anchored to it follow."""
+        self._live_frames.pop(frame, None)
+        self._set_traj_pose(frame, pose)
+        for f in self._anchored.pop(key, ()):
+            i = 3 * f
+            rel = gtsam.Pose2(*self._traj_pose[i : i + 3])
+            self._set_traj_pose(f, pose.compose(rel))
+
+    def _thin_keyframes(self) -> None:
+        """Marginalise the oldest keyframes of any marginal factor that links more than
+        max_linked_keyframes of them (see SlamConfig.max_linked_keyframes)."""
+        bound = self.config.max_linked_keyframes
+        for _ in range(4):  # each round shrinks the factor; a few always suffice
+            linked, self._graph.marginal_keys = self._graph.marginal_keys, []
+            if not linked or max(len(k) for k in linked) <= bound:
+                return
+            owner = {
+                key: (robot, frame)
+                for robot in self._robots.values()
+                for key, frame in robot.keyframes
+            }
+            drop: set[int] = set()
+            for keys in linked:
+                mine = sorted((k for k in keys if k in owner), key=lambda k: owner[k][1])
+                if len(mine) > bound:
+                    drop.update(mine[: len(mine) - (3 * bound) // 4])
+            if not drop:
+                return
+            poses = {k: self._graph.pose(k) for k in drop}
+            self._graph.update(marginalise=sorted(drop))
+            for key in sorted(drop, key=lambda k: owner[k][1]):
+                robot, frame = owner[key]
+                robot.keyframes.remove((key, frame))
+                self._retire(key, frame, poses[key])
 
     def _set_traj_pose(self, frame: int, pose: gtsam.Pose2) -> None:
         i = 3 * frame

@@ -115,6 +115,34 @@ def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
     assert _rmse(traj, truth) < 1.5 * _rmse(full.trajectory()["r1"], truth) + 0.02
 
 
+def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> None:
+    """Marginalising landmarks links the keyframes that saw them; the oldest
+    keyframes of an over-full marginal factor are marginalised too, so no factor
+    links more than max_linked_keyframes keyframes, and the trajectory stays whole."""
+    frames, truth, _ = circle_frames(260, seed=5, n_landmarks=30)
+    cfg = SlamConfig(
+        landmark_cap=8,
+        pose_window=10,
+        max_keyframes=200,
+        keyframe_distance_m=0.2,
+        max_linked_keyframes=6,
+    )
+    slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+    thinned = 0
+    for f in frames:
+        kept = len(slam._robots["r1"].keyframes) if slam.robots else 0
+        slam.process(f, with_covariance=False)
+        thinned += max(0, kept - len(slam._robots["r1"].keyframes))
+        keyframes = {k for k, _ in slam._robots["r1"].keyframes}
+        graph = slam.graph.nonlinear_graph()
+        linked = [len(keyframes.intersection(graph.at(i).keys())) for i in range(graph.size())]
+        assert max(linked, default=0) <= 6
+    assert thinned > 0, "the run must exercise thinning"
+    traj = slam.trajectory()["r1"]
+    assert len(traj) == len(frames) and np.all(np.isfinite(traj[:, 2:]))
+    assert _rmse(traj, truth) < 1.0
+
+
 def test_marginalised_frames_follow_their_keyframe() -> None:
     """With every keyframe kept, a frame marginalised early still ends where the
     final estimate puts its keyframe (not where it was when it left the window)."""
