@@ -7,7 +7,7 @@ plus up to 300 keyframes; and with every pose kept), (d) covslam with a landmark
 cap of 8 for each policy. Odometry noise: graph defaults plus MRCLAM's heading
 drift (service.datasets.mrclam.mrclam_noise), the same for every method.
 
-    python -m bench.mrclam_accuracy [--seeds 3] [--out bench/results]
+    python -m bench.mrclam_accuracy [--seeds 3] [--jobs 2] [--out bench/results]
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import json
 import os
 import platform
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -118,34 +119,46 @@ def main() -> None:
     parser.add_argument("--robots", default="1,2,3,4,5")
     parser.add_argument("--data", type=Path, default=default_mrclam_dir())
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--jobs", type=int, default=1, help="robots replayed in parallel")
     args = parser.parse_args()
     if not args.data.is_dir():
         raise SystemExit(f"MRCLAM data not found at {args.data} (set COVSLAM_DATA)")
-    rows = {}
-    for robot in (int(r) for r in args.robots.split(",")):
-        rows[f"r{robot}"] = run_robot(robot, args.seeds, args.data)
-        r = rows[f"r{robot}"]
-        print(
-            f"r{robot}: DR {r['dead_reckoning']:.3f}  batch {r['batch_lm']:.3f}  "
-            f"uncapped {r['uncapped_nowindow']:.3f} (bounded {r['uncapped_bounded']:.3f})  "
-            + "  ".join(f"{p} {r[f'cap8_{p}']:.3f}" for p in POLICY_NAMES),
-            flush=True,
-        )
+    robots = [int(r) for r in args.robots.split(",")]
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows: dict[str, dict[str, Any]] = {}
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = {pool.submit(run_robot, r, args.seeds, args.data): r for r in robots}
+        for future in as_completed(futures):
+            robot = futures[future]
+            r = rows[f"r{robot}"] = future.result()
+            print(
+                f"r{robot}: DR {r['dead_reckoning']:.3f}  batch {r['batch_lm']:.3f}  "
+                f"uncapped {r['uncapped_nowindow']:.3f} (bounded {r['uncapped_bounded']:.3f})  "
+                + "  ".join(f"{p} {r[f'cap8_{p}']:.3f}" for p in POLICY_NAMES),
+                flush=True,
+            )
+            # Written after every robot, so that a long run leaves its figures so far.
+            _write(dict(sorted(rows.items())), robots, args)
+    print(json.dumps(summarise(rows), indent=1))
+
+
+def _write(rows: dict[str, dict[str, Any]], robots: list[int], args: argparse.Namespace) -> None:
     doc = {
         "rows": rows,
         "summary": summarise(rows),
+        "complete": len(rows) == len(robots),
+        "protocol": {"robots": robots, "seeds": args.seeds, "jobs": args.jobs},
         "machine": {
             "cpus": os.cpu_count(),
+            "loadavg_at_write": os.getloadavg(),
             "platform": platform.platform(),
             "gtsam": gtsam.__version__ if hasattr(gtsam, "__version__") else "?",
             "numpy": np.__version__,
             "date": dt.date.today().isoformat(),
         },
     }
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mrclam_accuracy.json").write_text(json.dumps(doc, indent=1))
     plot(rows, args.out / "mrclam_accuracy.png")
-    print(json.dumps(doc["summary"], indent=1))
 
 
 if __name__ == "__main__":
