@@ -127,6 +127,7 @@ def run_worker(
     slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removal_log.append)
     result = ReplayResult(slam, removal_log=removal_log)
     stages: dict[str, list[float]] = {k: [] for k in STAGES}
+    cpu_ms: list[float] = []
     step = checkpoint_step(frames)
     stop = "all requested frames" if max_frames >= frames else "--baseline-frames limit"
     error = None
@@ -136,6 +137,7 @@ def run_worker(
             stop = f"wall-time budget of {budget_s:g} s"
             break
         t0 = time.perf_counter()
+        c0 = time.process_time()
         try:
             outcome = slam.process(frame, with_covariance=False)
         except Exception as exc:  # report how far it got, do not lose the run
@@ -143,6 +145,7 @@ def run_worker(
             stop = "estimator error"
             break
         result.frame_ms.append(1e3 * (time.perf_counter() - t0))
+        cpu_ms.append(1e3 * (time.process_time() - c0))
         result.live_landmarks.append(outcome.live)
         for key in STAGES:
             stages[key].append(outcome.timing_ms[key])
@@ -176,6 +179,7 @@ def run_worker(
         "loadavg_start": load_start,
         "loadavg_end": load_end,
         "frame_ms": result.frame_ms,
+        "cpu_ms": cpu_ms,
         "stage_ms": stages,
         "live_landmarks": result.live_landmarks,
         "rss_mb": result.rss_mb,
@@ -336,6 +340,11 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
     early = window_median(ms, *win["early"])
     late = window_median(ms, *win["late"])
     ratio = late / early if early and late is not None else None
+    # CPU time of the process: what the frame cost, whatever else the machine ran.
+    cpu = record.get("cpu_ms", [])
+    cpu_early = window_median(cpu, *win["early"])
+    cpu_late = window_median(cpu, *win["late"])
+    cpu_ratio = cpu_late / cpu_early if cpu_early and cpu_late is not None else None
     quarter = rss_at(record, n // 4)
     peak = record["peak_rss_mb"]
     growth = 100.0 * (peak - quarter[1]) / quarter[1] if quarter else None
@@ -348,6 +357,9 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         "time_ratio_late_over_early": _r(ratio, 4),
         "time_ratio_goal_max": TIME_RATIO_GOAL,
         "time_ratio_goal_met": None if ratio is None else ratio <= TIME_RATIO_GOAL,
+        "median_cpu_ms_early": _r(cpu_early),
+        "median_cpu_ms_late": _r(cpu_late),
+        "cpu_time_ratio_late_over_early": _r(cpu_ratio, 4),
         "rss_quarter_frame": quarter[0] if quarter else None,
         "rss_at_quarter_mb": _r(quarter[1] if quarter else None, 2),
         "peak_rss_end_mb": _r(peak, 2),
@@ -356,6 +368,16 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         "rss_growth_goal_max_pct": RSS_GROWTH_GOAL_PCT,
         "rss_growth_goal_met": None if growth is None else growth <= RSS_GROWTH_GOAL_PCT,
     }
+
+
+def _cpu_slowdown(
+    bounded: dict[str, Any], baseline: dict[str, Any], lo: int, hi: int
+) -> float | None:
+    """baseline / bounded median CPU ms over frames [lo, hi), if both recorded it."""
+    b, p = bounded.get("cpu_ms", [])[lo:hi], baseline.get("cpu_ms", [])[lo:hi]
+    if not b or not p:
+        return None
+    return _r(float(np.median(p)) / float(np.median(b)), 3)
 
 
 def comparison(
@@ -385,6 +407,7 @@ def comparison(
             "bounded_median_ms": _r(b),
             "baseline_median_ms": _r(p),
             "slowdown_baseline_over_bounded": _r(p / b, 3),
+            "slowdown_cpu_time": _cpu_slowdown(bounded, baseline, lo, last_end),
             "slowdown_goal_met_at_window": p / b >= BASELINE_SLOWDOWN_GOAL,
             "slowdown_is_at_end_of_run": not truncated,
             "accuracy_on_baseline_frames": {
