@@ -64,6 +64,12 @@ class ApiSettings(BaseModel):
     max_import_bytes: int = Field(
         256 << 20, ge=1024, description="largest body of POST /v1/maps/import, bytes"
     )
+    max_image_bytes: int = Field(
+        16 << 20,
+        ge=1024,
+        description="largest image part of a multipart image frame, bytes (413 above); "
+        "the whole multipart body may be 1 MiB more",
+    )
 
 
 class Settings(BaseSettings):

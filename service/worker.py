@@ -133,7 +133,7 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "delete": _delete,
     "import": _import,
     "set_mode": _set_mode,
-    "frame": lambda m, p: _session(m).submit(p["frame"]),
+    "frame": lambda m, p: _session(m).submit(p["frame"], p.get("image")),
     "summary": lambda m, p: _session(m).summary(),
     "pose": lambda m, p: _session(m).pose(),
     "trajectory": lambda m, p: _session(m).trajectory(p.get("robot")),
