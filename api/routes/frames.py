@@ -84,7 +84,7 @@ async def post_frame(
     service.record(map_id)
     ctype = request.headers.get("content-type", "")
     try:
-        if ctype.lower().startswith("multipart/"):
+        if ctype.lower().startswith(("multipart/", "application/x-www-form-urlencoded")):
             limit = request.app.state.settings.api.max_image_bytes
             meta, image = await read_image_frame(request, max_image_bytes=limit)
             reply = await service.submit(map_id, meta, image)
@@ -113,7 +113,10 @@ async def read_image_frame(
     JSON object; 413 for an image over `max_image_bytes`.
     """
     if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
-        raise _form_error("content-type: an image frame is multipart/form-data (meta + image)")
+        raise _form_error(
+            f"content-type: {request.headers.get('content-type')!r}; an image frame is "
+            "multipart/form-data (a meta part and an image file part)"
+        )
     try:
         async with request.form(max_files=1, max_fields=2, max_part_size=META_MAX_BYTES) as form:
             meta_part = form.get("meta")
