@@ -9,6 +9,7 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -159,11 +160,11 @@ def _replay(args: argparse.Namespace) -> int:
             camera = camera_from_config(json.loads(Path(camera_path).read_text()))
             front_end = FrontEnd(camera)
     if args.url:
-        camera = None
+        camera_config = None
         if front_end is not None:  # the service runs the front end: it needs the camera
-            camera = front_end.camera.as_config()
+            camera_config = front_end.camera.as_config()
             front_end.close()
-        return _replay_http(args, sequence, frames, gt, robot, camera)
+        return _replay_http(args, sequence, frames, gt, robot, camera_config)
     try:
         result = replay(
             sequence,
@@ -204,7 +205,7 @@ def _replay_http(
     frames: list[FrameInput],
     gt: Trajectory | None,
     robot: str,
-    camera: dict[str, object] | None,
+    camera: dict[str, Any] | None,
 ) -> int:
     from service.http_client import fetch_tum, replay_http
 
