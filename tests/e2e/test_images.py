@@ -253,3 +253,20 @@ def _fake_png_header(width: int, height: int) -> bytes:
 
 def _meta_with(meta: dict[str, str], **changes: Any) -> str:
     return json.dumps({**json.loads(meta["meta"]), **changes})
+
+
+def test_replay_cli_posts_image_frames_with_the_camera_config(
+    server: Server, client: httpx.Client, rendered: RenderedRun, capsys: pytest.CaptureFixture
+) -> None:
+    from service.cli import main
+
+    short = rendered.frames_path.parent / "short.jsonl"
+    short.write_text("".join(rendered.frames_path.read_text().splitlines(True)[:8]))
+    stats = rendered.frames_path.parent / "http-stats.json"
+    code = main(["replay", str(short), "--url", server.url, "--stats", str(stats)])
+    assert code == 0
+    map_id = json.loads(stats.read_text())["map_id"]
+    summary = client.get(f"/v1/maps/{map_id}").json()
+    assert summary["config"]["camera"] == {**CAMERA.as_config(), "model": "panorama"}
+    assert summary["counts"]["frames"] == 8
+    assert "8 frames over HTTP" in capsys.readouterr().out
