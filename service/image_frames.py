@@ -12,6 +12,11 @@ three steps per image frame:
 3. a refused image (frontend.errors.ImageError) becomes `image_refused(exc)`,
    a 422 or 413 problem.
 
+When more frames wait in the worker's pipe, the worker calls `prefetch(image)` for
+them: their features are extracted while the current frame is associated and
+estimated (Python and GTSAM, holding the GIL), and `take(image)` hands them to
+their own `submit`.
+
 Its state between frames (the associator's landmark views and candidate tracks,
 each robot's last pose) travels with the estimator's snapshots (`state`,
 `attach`), so a map reopened from a snapshot and the log's tail goes on as if it
@@ -38,6 +43,9 @@ from service.mapconfig import camera_model
 from service.vision import ImageFrameResult, ImagePipeline
 
 __all__ = ["MapVision", "image_digest", "image_refused"]
+
+PREFETCH_LIMIT = 8
+"""Most images whose features are extracted ahead of their frame."""
 
 Pending = Future[tuple[Features, float]]
 """Features of one image being extracted, with the extraction's milliseconds."""
@@ -76,6 +84,7 @@ class MapVision:
         self.front_end = front_end
         self._threads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="covslam-features")
         self._pipeline: ImagePipeline | None = None
+        self._prefetched: dict[bytes, Pending] = {}
 
     @classmethod
     def for_config(cls, config: dict[str, Any]) -> MapVision | None:
@@ -135,6 +144,18 @@ class MapVision:
             return features, 1e3 * (time.perf_counter() - t0)
 
         return self._threads.submit(run)
+
+    def prefetch(self, image: bytes) -> None:
+        """Start extracting the features of a frame that waits behind the current one."""
+        if image in self._prefetched:
+            return
+        while len(self._prefetched) >= PREFETCH_LIMIT:
+            self._prefetched.pop(next(iter(self._prefetched)))
+        self._prefetched[image] = self.extract(image)
+
+    def take(self, image: bytes) -> Pending | None:
+        """The prefetched extraction of `image`, if `prefetch` started one."""
+        return self._prefetched.pop(image, None)
 
     def process(
         self, frame: FrameInput, image: Pending | bytes, *, with_covariance: bool

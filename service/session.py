@@ -252,6 +252,7 @@ class MapSession:
         "store_ms", "event_ids", "live", "marginalised"}.
         """
         t0 = time.perf_counter()
+        prefetched = None if self.vision is None or image is None else self.vision.take(image)
         frame, text = canonical_frame(body, image)
         if image is not None:
             self._check_image_frame(frame)
@@ -267,7 +268,9 @@ class MapSession:
                 f"{frame.seq}; a retry must repeat the frame exactly",
                 field="seq",
             )
-        pending = None if self.vision is None or image is None else self.vision.extract(image)
+        pending = None
+        if self.vision is not None and image is not None:
+            pending = prefetched or self.vision.extract(image)
         last = last_accepted(self.slam).get(frame.robot)
         try:
             validate_frame(

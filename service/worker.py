@@ -15,6 +15,7 @@ import logging
 import os
 import pickle
 import signal
+from collections import deque
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -144,20 +145,51 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
 
 
 def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
-    """Main loop of a worker process; returns when the API process goes away."""
+    """Main loop of a worker process; returns when the API process goes away.
+
+    Requests are handled strictly in arrival order. Requests already waiting in the
+    pipe are read ahead (at most `workers.read_ahead`), so that the features of their images are
+    extracted (OpenCV, without the GIL) while the current request computes.
+    """
     init_worker(settings, index)
+    queued: deque[tuple[Any, str, str, dict[str, Any]]] = deque()
     while True:
-        try:
-            message = conn.recv_bytes()
-        except (EOFError, OSError):
-            return
-        request_id, op, map_id, payload = pickle.loads(message)
+        if queued:
+            request_id, op, map_id, payload = queued.popleft()
+        else:
+            try:
+                message = conn.recv_bytes()
+            except (EOFError, OSError):
+                return
+            request_id, op, map_id, payload = pickle.loads(message)
+        _read_ahead(conn, queued, _cfg().workers.read_ahead)
         reply = call(op, map_id, payload)
         try:
             conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
         except (BrokenPipeError, OSError):
             return
-        _idle_work(conn)
+        if not queued:
+            _idle_work(conn)
+
+
+def _read_ahead(
+    conn: Connection, queued: deque[tuple[Any, str, str, dict[str, Any]]], limit: int
+) -> None:
+    """Move waiting requests from the pipe to `queued` (at most `limit` there); prefetch
+    their images' features."""
+    while len(queued) < limit:
+        try:
+            if not conn.poll(0):
+                return
+            request = pickle.loads(conn.recv_bytes())
+        except (EOFError, OSError):
+            return  # the main loop's next recv sees the end of the connection
+        queued.append(request)
+        _, op, map_id, payload = request
+        session = _sessions.get(map_id)
+        image = payload.get("image") if op == "frame" else None
+        if image is not None and session is not None and session.vision is not None:
+            session.vision.prefetch(image)
 
 
 def _idle_work(conn: Connection) -> None:

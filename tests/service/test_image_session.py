@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import pickle
 import time
+from collections import deque
+from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
 
@@ -153,3 +156,33 @@ def test_map_without_camera_refuses_image_frames(
     session = _new(tmp_path / "plain.sqlite", config={"landmark_cap": 10})
     assert "without a camera" in _refused(session, run[0][0], run[0][1], 422)
     session.close()
+
+
+def test_worker_reads_ahead_and_prefetches_the_features_of_waiting_frames(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    from service import worker
+
+    session = _new(tmp_path / "cam.sqlite")
+    assert session.vision is not None
+    worker._sessions["cam"] = session
+    api_end, worker_end = Pipe()
+    try:
+        for k in range(3):
+            request = (k, "frame", "cam", {"frame": run[k][0], "image": run[k][1]})
+            api_end.send_bytes(pickle.dumps(request))
+        queued: deque[Any] = deque()
+        worker._read_ahead(worker_end, queued, 4)
+        assert [q[0] for q in queued] == [0, 1, 2], "read in arrival order"
+        assert len(session.vision._prefetched) == 3
+        replies = [worker.call(op, m, payload) for _, op, m, payload in queued]
+        assert all(r["ok"] for r in replies), replies
+        assert not session.vision._prefetched, "each frame took its own prefetched features"
+        assert [json.loads(r["value"]["result_json"])["seq"] for r in replies] == [
+            run[k][0]["seq"] for k in range(3)
+        ]
+    finally:
+        worker._sessions.pop("cam")
+        session.close()
+        api_end.close()
+        worker_end.close()
