@@ -12,10 +12,10 @@ three steps per image frame:
 3. a refused image (frontend.errors.ImageError) becomes `image_refused(exc)`,
    a 422 or 413 problem.
 
-When more frames wait in the worker's pipe, the worker calls `prefetch(image)` for
-them: their features are extracted while the current frame is associated and
-estimated (Python and GTSAM, holding the GIL), and `take(image)` hands them to
-their own `submit`.
+When a frame arrives while another is processed, the worker's reader thread calls
+`prefetch(image)` for it: its features are extracted while the current frame is
+associated and estimated (Python and GTSAM, holding the GIL), and `take(image)`
+hands them to its own `submit`.
 
 Its state between frames (the associator's landmark views and candidate tracks,
 each robot's last pose) travels with the estimator's snapshots (`state`,
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import pickle
+import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -85,6 +86,8 @@ class MapVision:
         self._threads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="covslam-features")
         self._pipeline: ImagePipeline | None = None
         self._prefetched: dict[bytes, Pending] = {}
+        self._lock = threading.Lock()
+        """Guards `_prefetched`: the worker's reader thread prefetches, its main thread takes."""
 
     @classmethod
     def for_config(cls, config: dict[str, Any]) -> MapVision | None:
@@ -147,15 +150,17 @@ class MapVision:
 
     def prefetch(self, image: bytes) -> None:
         """Start extracting the features of a frame that waits behind the current one."""
-        if image in self._prefetched:
-            return
-        while len(self._prefetched) >= PREFETCH_LIMIT:
-            self._prefetched.pop(next(iter(self._prefetched)))
-        self._prefetched[image] = self.extract(image)
+        with self._lock:
+            if image in self._prefetched:
+                return
+            while len(self._prefetched) >= PREFETCH_LIMIT:
+                self._prefetched.pop(next(iter(self._prefetched)))
+            self._prefetched[image] = self.extract(image)
 
     def take(self, image: bytes) -> Pending | None:
         """The prefetched extraction of `image`, if `prefetch` started one."""
-        return self._prefetched.pop(image, None)
+        with self._lock:
+            return self._prefetched.pop(image, None)
 
     def process(
         self, frame: FrameInput, image: Pending | bytes, *, with_covariance: bool

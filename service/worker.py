@@ -14,8 +14,9 @@ import json
 import logging
 import os
 import pickle
+import queue
 import signal
-from collections import deque
+import threading
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -144,58 +145,69 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
 }
 
 
+Request = tuple[Any, str, str, dict[str, Any]]
+"""(request id, op, map id, payload) as the API process sends it."""
+
+
 def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
     """Main loop of a worker process; returns when the API process goes away.
 
-    Requests are handled strictly in arrival order. Requests already waiting in the
-    pipe are read ahead (at most `workers.read_ahead`), so that the features of their images are
-    extracted (OpenCV, without the GIL) while the current request computes.
+    Requests are handled strictly in arrival order. A reader thread takes them from
+    the pipe as they arrive (at most `workers.read_ahead` waiting; 0 = one at a time,
+    no prefetch) and starts extracting the features of an image frame's image
+    right away (OpenCV, without the GIL), while the current request computes.
     """
     init_worker(settings, index)
-    queued: deque[tuple[Any, str, str, dict[str, Any]]] = deque()
+    limit = _cfg().workers.read_ahead
+    inbox: queue.Queue[Request | None] = queue.Queue(maxsize=max(1, limit))
+    reader = threading.Thread(
+        target=_reader, args=(conn, inbox, limit > 0), name="covslam-reader", daemon=True
+    )
+    reader.start()
     while True:
-        if queued:
-            request_id, op, map_id, payload = queued.popleft()
-        else:
-            try:
-                message = conn.recv_bytes()
-            except (EOFError, OSError):
-                return
-            request_id, op, map_id, payload = pickle.loads(message)
-        _read_ahead(conn, queued, _cfg().workers.read_ahead)
+        request = inbox.get()
+        if request is None:  # end of the connection
+            return
+        request_id, op, map_id, payload = request
         reply = call(op, map_id, payload)
         try:
             conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
         except (BrokenPipeError, OSError):
             return
-        if not queued:
-            _idle_work(conn)
+        if inbox.empty():
+            _idle_work(inbox)
 
 
-def _read_ahead(
-    conn: Connection, queued: deque[tuple[Any, str, str, dict[str, Any]]], limit: int
-) -> None:
-    """Move waiting requests from the pipe to `queued` (at most `limit` there); prefetch
-    their images' features."""
-    while len(queued) < limit:
+def _reader(conn: Connection, inbox: queue.Queue[Request | None], prefetch: bool) -> None:
+    """Thread: requests from the pipe into `inbox`, in order; None at end of file."""
+    while True:
         try:
-            if not conn.poll(0):
-                return
-            request = pickle.loads(conn.recv_bytes())
+            request: Request = pickle.loads(conn.recv_bytes())
         except (EOFError, OSError):
-            return  # the main loop's next recv sees the end of the connection
-        queued.append(request)
-        _, op, map_id, payload = request
-        session = _sessions.get(map_id)
-        image = payload.get("image") if op == "frame" else None
-        if image is not None and session is not None and session.vision is not None:
-            session.vision.prefetch(image)
+            inbox.put(None)
+            return
+        if prefetch:
+            _prefetch(request)
+        inbox.put(request)
 
 
-def _idle_work(conn: Connection) -> None:
+def _prefetch(request: Request) -> None:
+    """Start extracting the features of an image frame for an open camera map."""
+    _, op, map_id, payload = request
+    image = payload.get("image") if op == "frame" else None
+    session = _sessions.get(map_id)
+    if image is None or session is None or session.vision is None:
+        return
+    try:
+        session.vision.prefetch(image)
+    except RuntimeError:  # the map was closed meanwhile: its frame will say so
+        log.debug("no prefetch for map %s (closed)", map_id)
+
+
+def _idle_work(inbox: queue.Queue[Request | None]) -> None:
     """Snapshots that are due, one map at a time, while no request is waiting."""
     for session in list(_sessions.values()):
-        if conn.poll(0):
+        if not inbox.empty():
             return
         if session.snapshot_due:
             try:

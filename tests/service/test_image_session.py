@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 import pickle
+import queue
 import time
-from collections import deque
 from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
@@ -158,7 +158,7 @@ def test_map_without_camera_refuses_image_frames(
     session.close()
 
 
-def test_worker_reads_ahead_and_prefetches_the_features_of_waiting_frames(
+def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waiting_frames(
     tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
 ) -> None:
     from service import worker
@@ -171,11 +171,14 @@ def test_worker_reads_ahead_and_prefetches_the_features_of_waiting_frames(
         for k in range(3):
             request = (k, "frame", "cam", {"frame": run[k][0], "image": run[k][1]})
             api_end.send_bytes(pickle.dumps(request))
-        queued: deque[Any] = deque()
-        worker._read_ahead(worker_end, queued, 4)
-        assert [q[0] for q in queued] == [0, 1, 2], "read in arrival order"
+        api_end.close()  # end of file after the three requests
+        inbox: queue.Queue[Any] = queue.Queue()
+        worker._reader(worker_end, inbox, True)
+        queued = [inbox.get_nowait() for _ in range(4)]
+        assert queued[3] is None, "end of the connection comes last"
+        assert [q[0] for q in queued[:3]] == [0, 1, 2], "read in arrival order"
         assert len(session.vision._prefetched) == 3
-        replies = [worker.call(op, m, payload) for _, op, m, payload in queued]
+        replies = [worker.call(op, m, payload) for _, op, m, payload in queued[:3]]
         assert all(r["ok"] for r in replies), replies
         assert not session.vision._prefetched, "each frame took its own prefetched features"
         assert [json.loads(r["value"]["result_json"])["seq"] for r in replies] == [
@@ -184,5 +187,20 @@ def test_worker_reads_ahead_and_prefetches_the_features_of_waiting_frames(
     finally:
         worker._sessions.pop("cam")
         session.close()
-        api_end.close()
         worker_end.close()
+
+
+def test_export_of_an_image_map_is_refused_on_import(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "cam.sqlite")
+    session.submit(*run[0])
+    doc = session.export()
+    assert doc["frames"][0]["frame"]["image"]["bytes"] == len(run[0][1])
+    session.close()
+    target = _new(tmp_path / "imported.sqlite")
+    with pytest.raises(ServiceError) as info:
+        target.import_frames(doc["frames"])
+    assert info.value.status == 422 and "image frame" in info.value.detail
+    assert target.slam.frame_count == 0
+    target.close()
