@@ -276,9 +276,10 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
     names = ["pipeline", "session", "http", "http_2_robots", "http_2_robots_read_ahead_off"]
     fps = [doc[n]["frames_per_s"] for n in names]
-    axes[0].bar(["in-process\npipeline", "in-process\nsession+log", "HTTP\n1 client",
-                 "HTTP 1 map\n2 robots", "2 robots\nno read-ahead"], fps,
+    axes[0].bar(["pipeline\nin-process", "session\n+log", "HTTP\n1 client",
+                 "HTTP\n2 robots", "2 robots\nno read-\nahead"], fps,
                 color=["C0", "C1", "C2", "C3", "C4"])  # fmt: skip
+    axes[0].tick_params(axis="x", labelsize=8)
     axes[0].axhline(doc["goal_frames_per_s"], color="k", ls="--", lw=1, label="goal 25/s")
     axes[0].set_ylabel("frames/s")
     axes[0].legend()
@@ -293,7 +294,8 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     axes[1].legend()
     stages = doc["http"]["stages_ms_median"]
     keys = [k for k in STAGES if k in stages]
-    axes[2].barh(keys, [stages[k] for k in keys])
+    names = {"total": "estimator total"}
+    axes[2].barh([names.get(k, k) for k in keys], [stages[k] for k in keys])
     axes[2].set_xlabel("median ms (worker, HTTP run)")
     axes[2].set_title("worker stages")
     fig.tight_layout()
