@@ -294,8 +294,8 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     axes[1].legend()
     stages = doc["http"]["stages_ms_median"]
     keys = [k for k in STAGES if k in stages]
-    names = {"total": "estimator total"}
-    axes[2].barh([names.get(k, k) for k in keys], [stages[k] for k in keys])
+    stage_labels = {"total": "estimator total"}
+    axes[2].barh([stage_labels.get(k, k) for k in keys], [stages[k] for k in keys])
     axes[2].set_xlabel("median ms (worker, HTTP run)")
     axes[2].set_title("worker stages")
     fig.tight_layout()
