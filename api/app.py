@@ -56,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         errors.BodyLimit,
         max_bytes=settings.api.max_body_bytes,
         max_import_bytes=settings.api.max_import_bytes,
+        max_image_frame_bytes=settings.api.max_image_bytes + (1 << 20),
     )
     for module in (maps, frames, queries, events, places, system):
         app.include_router(module.router)

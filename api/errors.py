@@ -120,19 +120,37 @@ class _TooLarge(Exception):
 
 
 class BodyLimit:
-    """ASGI middleware: 413 problem+json for bodies over the limit (imports have their own)."""
+    """ASGI middleware: 413 problem+json for bodies over the limit (imports and multipart
+    image frames have their own)."""
 
-    def __init__(self, app: ASGIApp, *, max_bytes: int, max_import_bytes: int) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        max_bytes: int,
+        max_import_bytes: int,
+        max_image_frame_bytes: int | None = None,
+    ) -> None:
         self.app = app
         self.max_bytes = max_bytes
         self.max_import_bytes = max_import_bytes
+        self.max_image_frame_bytes = max_image_frame_bytes or max_bytes
+
+    def _limit(self, scope: Scope) -> int:
+        path: str = scope["path"]
+        if path == "/v1/maps/import":
+            return self.max_import_bytes
+        if path.endswith("/frames"):
+            for name, value in scope.get("headers", ()):
+                if name == b"content-type" and value.lower().startswith(b"multipart/"):
+                    return self.max_image_frame_bytes
+        return self.max_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
             await self.app(scope, receive, send)
             return
-        path = scope["path"]
-        limit = self.max_import_bytes if path == "/v1/maps/import" else self.max_bytes
+        limit = self._limit(scope)
         for name, value in scope.get("headers", ()):
             if name == b"content-length" and value.isdigit() and int(value) > limit:
                 await self._reject(scope, send, limit, int(value))

@@ -183,7 +183,9 @@ class FrameResult(BaseModel):
     landmarks: LandmarkChanges = Field(description="what the frame did to the landmarks")
     timing_ms: dict[str, float] = Field(
         description="worker time per stage, milliseconds (prepare, update, budget, "
-        "covariance, total; log = parse, checks and the committed append to the durable log)"
+        "covariance, total; log = parse, checks and the committed append to the durable log; "
+        "image frames also: features = decode + validate + extraction in the helper thread, "
+        "features_wait = how long the frame waited for them after logging, association)"
     )
 
 

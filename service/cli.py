@@ -9,6 +9,7 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -159,10 +160,11 @@ def _replay(args: argparse.Namespace) -> int:
             camera = camera_from_config(json.loads(Path(camera_path).read_text()))
             front_end = FrontEnd(camera)
     if args.url:
-        if front_end is not None:
+        camera_config = None
+        if front_end is not None:  # the service runs the front end: it needs the camera
+            camera_config = front_end.camera.as_config()
             front_end.close()
-            raise SystemExit("covslam replay --url: image frames are not posted yet")
-        return _replay_http(args, frames, gt, robot)
+        return _replay_http(args, sequence, frames, gt, robot, camera_config)
     try:
         result = replay(
             sequence,
@@ -198,7 +200,12 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _replay_http(
-    args: argparse.Namespace, frames: list[FrameInput], gt: Trajectory | None, robot: str
+    args: argparse.Namespace,
+    sequence: list[FrameInput | ImageFrame],
+    frames: list[FrameInput],
+    gt: Trajectory | None,
+    robot: str,
+    camera: dict[str, Any] | None,
 ) -> int:
     from service.http_client import fetch_tum, replay_http
 
@@ -208,10 +215,16 @@ def _replay_http(
         "pose_window": args.pose_window,
         "noise": {"huber_k": args.huber},
         "seed": args.seed,
+        "camera": camera,
     }
     name = Path(str(args.directory or args.source)).name
     run = replay_http(
-        frames, url=args.url, map_id=args.map_id, name=name, config=config, progress=args.progress
+        sequence,
+        url=args.url,
+        map_id=args.map_id,
+        name=name,
+        config=config,
+        progress=args.progress,
     )
     summary = run.summary()
     if frames:

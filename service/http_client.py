@@ -2,11 +2,14 @@
 
 Retries on 503 (honouring Retry-After) and on connection errors, so a replay
 survives a worker restart or a service restart: `(robot, seq)` makes every retry
-safe. Used by ``covslam replay ... --url URL``.
+safe. Used by ``covslam replay ... --url URL``. A frame with an image
+(`service.replay.ImageFrame`) is posted as multipart/form-data: ``meta`` (the
+frame JSON without observations) and ``image`` (the file's bytes).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Sequence
@@ -19,6 +22,7 @@ from tqdm import tqdm
 
 from graph.types import FrameInput
 from service.frames_io import frame_to_dict
+from service.replay import ImageFrame
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +70,22 @@ def _request(
     raise ReplayHTTPError(f"{method} {path}: still 503 after {attempts} attempts")
 
 
+_IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
+
+
+def image_frame_parts(item: ImageFrame) -> dict[str, Any]:
+    """httpx keyword arguments (`data`, `files`) posting one image frame as multipart."""
+    meta = frame_to_dict(item.frame)
+    del meta["observations"]
+    media = _IMAGE_TYPES.get(item.image_path.suffix.lower(), "application/octet-stream")
+    return {
+        "data": {"meta": json.dumps(meta, separators=(",", ":"))},
+        "files": {"image": (item.image_path.name, item.image_path.read_bytes(), media)},
+    }
+
+
 def replay_http(
-    frames: Sequence[FrameInput],
+    frames: Sequence[FrameInput | ImageFrame],
     *,
     url: str,
     map_id: str | None = None,
@@ -87,14 +105,14 @@ def replay_http(
             map_id = str(r.json()["id"])
         out = HttpReplay(map_id)
         bar = tqdm(frames, unit="frame", disable=None if progress is None else not progress)
-        for frame in bar:
+        for item in bar:
+            if isinstance(item, ImageFrame):
+                frame, body = item.frame, image_frame_parts(item)
+            else:
+                frame, body = item, {"json": frame_to_dict(item)}
             t0 = time.perf_counter()
             r, retries = _request(
-                client,
-                "POST",
-                f"/v1/maps/{map_id}/frames",
-                json=frame_to_dict(frame),
-                attempts=attempts,
+                client, "POST", f"/v1/maps/{map_id}/frames", attempts=attempts, **body
             )
             out.latency_ms.append(1e3 * (time.perf_counter() - t0))
             out.retries += retries

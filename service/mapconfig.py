@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import fields
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
+
+if TYPE_CHECKING:
+    from frontend.cameras import CameraModel
 
 Mode = Literal["mapping", "localisation"]
 
@@ -61,6 +64,67 @@ class NoiseConfig(BaseModel):
         return value
 
 
+MAX_CAMERA_PIXELS = 16 * 2**20
+"""Largest image a camera may expect, pixels (the front end's decode limit)."""
+
+
+class PanoramaCameraConfig(BaseModel):
+    """An unwrapped 360° strip. Column u looks at bearing wrap(pi - 2 pi (u + 0.5) / width):
+    the middle column looks forward, bearings grow towards the left (DESIGN.md, Cameras)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    model: Literal["panorama"] = Field("panorama", description="camera model")
+    width: int = Field(2048, ge=8, description="image width, pixels (covers 360°)")
+    height: int = Field(512, ge=1, description="image height, pixels")
+    vfov_deg: float = Field(
+        90.0, gt=0, lt=180, description="vertical field of view, degrees, centred on the horizon"
+    )
+
+    @model_validator(mode="after")
+    def _bounded(self) -> PanoramaCameraConfig:
+        if self.width * self.height > MAX_CAMERA_PIXELS:
+            raise ValueError(f"width x height must be at most {MAX_CAMERA_PIXELS} pixels")
+        return self
+
+
+class OmniCameraConfig(BaseModel):
+    """A raw catadioptric ring image, unwrapped to a panorama (frontend.cameras.OmniCamera)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    model: Literal["omni"] = Field(description="camera model")
+    width: int = Field(ge=8, description="image width, pixels")
+    height: int = Field(ge=8, description="image height, pixels")
+    centre_xy: tuple[float, float] = Field(
+        description="mirror centre in pixel coordinates (x right, y down), pixels"
+    )
+    inner_radius_px: float = Field(ge=0, description="radius seeing the bottom of the vfov, px")
+    outer_radius_px: float = Field(gt=0, description="radius seeing the top of the vfov, px")
+    forward_deg: float = Field(
+        0.0, description="image angle (degrees, counter-clockwise from +x) looking forward"
+    )
+    mirrored: bool = Field(False, description="true if bearings grow clockwise in the image")
+    pano_width: int = Field(2048, ge=8, description="width of the unwrapped panorama, pixels")
+    pano_height: int = Field(512, ge=1, description="height of the unwrapped panorama, pixels")
+    vfov_deg: float = Field(90.0, gt=0, lt=180, description="vertical field of view, degrees")
+
+    @model_validator(mode="after")
+    def _bounded(self) -> OmniCameraConfig:
+        if not self.inner_radius_px < self.outer_radius_px:
+            raise ValueError("need inner_radius_px < outer_radius_px")
+        cx, cy = self.centre_xy
+        if not (0 <= cx <= self.width and 0 <= cy <= self.height):
+            raise ValueError("centre_xy must lie inside the image")
+        for w, h in ((self.width, self.height), (self.pano_width, self.pano_height)):
+            if w * h > MAX_CAMERA_PIXELS:
+                raise ValueError(f"images must be at most {MAX_CAMERA_PIXELS} pixels")
+        return self
+
+
+CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discriminator="model")]
+
+
 class MapConfig(BaseModel):
     """How a map estimates. Omitted fields take the service's defaults."""
 
@@ -81,13 +145,26 @@ class MapConfig(BaseModel):
         ge=2,
         description="poses kept per robot before the oldest is marginalised; null = keep all",
     )
-    camera: Literal["panorama", "omni"] | None = Field(
+    camera: CameraConfig | None = Field(
         None,
-        description="camera of image frames (arrives with the image frontend); "
-        "null for maps fed with bearing observations",
+        description="camera of the map's image frames (multipart meta + image); "
+        "null for maps fed with bearing observations only. The string 'panorama' "
+        "means a default 2048x512 panorama",
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
     seed: int = Field(0, ge=0, description="seed of the map's random choices (policy, k-means)")
+
+    @field_validator("camera", mode="before")
+    @classmethod
+    def _camera_shorthand(cls, value: Any) -> Any:
+        if value == "panorama":
+            return {"model": "panorama"}
+        if isinstance(value, str):
+            raise ValueError(
+                f"camera {value!r}: give an object, e.g. {{'model': 'panorama', "
+                "'width': 2048, 'height': 512}} (an omni camera needs its ring geometry)"
+            )
+        return value
 
     @field_validator("policy")
     @classmethod
@@ -121,6 +198,17 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         initial_pose_sigma=cfg.noise.initial_pose_sigma,
         allow_new_landmarks=mode == "mapping",
     )
+
+
+def camera_model(config: dict[str, Any]) -> CameraModel | None:
+    """The camera of a stored map config (None: the map takes no image frames).
+
+    Raises ValueError when the camera's parameters are inconsistent.
+    """
+    from frontend.cameras import camera_from_config  # OpenCV: workers only, not the API
+
+    camera = MapConfig.model_validate(config).camera
+    return None if camera is None else camera_from_config(camera.model_dump())
 
 
 def slam_config_dict(config: SlamConfig) -> dict[str, Any]:

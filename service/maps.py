@@ -116,10 +116,18 @@ class MapService:
         return {**summary, "worker": self.pool.worker_of(map_id)}
 
     # ------------------------------------------------------------ frames and queries
-    async def submit(self, map_id: str, frame: dict[str, Any]) -> dict[str, Any]:
-        """One frame to its map; the worker's reply (result, replayed, event ids, ...)."""
+    async def submit(
+        self, map_id: str, frame: dict[str, Any], image: bytes | None = None
+    ) -> dict[str, Any]:
+        """One frame to its map; the worker's reply (result, replayed, event ids, ...).
+
+        With `image`, `frame` is the meta of an image frame (PNG/JPEG bytes, decoded by
+        the map's worker)."""
         self.record(map_id)
-        reply: dict[str, Any] = await self.pool.call(map_id, "frame", {"frame": frame})
+        payload: dict[str, Any] = {"frame": frame}
+        if image is not None:
+            payload["image"] = image
+        reply: dict[str, Any] = await self.pool.call(map_id, "frame", payload)
         if reply.get("event_ids"):
             self.notifier.notify(map_id)
         return reply

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import pickle
 import shutil
 import time
 from collections import deque
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
 from graph.snapshot import SnapshotError, capture, last_accepted, restore
@@ -26,6 +28,7 @@ from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.frames_io import frame_from_dict, frame_to_dict
+from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
 from service.mapconfig import MapConfig, slam_config, slam_config_dict
 from service.settings import StoreSettings
 from service.store import MapRecord, MapStore, StoredFrame
@@ -39,13 +42,19 @@ MAX_REPLAY_ATTEMPTS = 2
 """Reloads that may retry an unfinished log frame before it is dropped as a poison pill."""
 
 
-def canonical_frame(body: dict[str, Any]) -> tuple[Any, str]:
-    """Parse a frame object; (FrameInput, canonical JSON text used for idempotency)."""
+def canonical_frame(body: dict[str, Any], image: bytes | None = None) -> tuple[Any, str]:
+    """Parse a frame object; (FrameInput, canonical JSON text used for idempotency).
+
+    An image frame's text records the image's digest (``"image"``), so a retry must
+    repeat the image too."""
     try:
         frame = frame_from_dict(body)
     except InvalidFrame as exc:
         raise invalid_frame(exc.field, exc.detail) from exc
-    text = json.dumps(frame_to_dict(frame), sort_keys=True, separators=(",", ":"))
+    doc = frame_to_dict(frame)
+    if image is not None:
+        doc["image"] = image_digest(image)
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
     return frame, text
 
 
@@ -92,6 +101,8 @@ class MapSession:
         self.replay_errors = 0
         self.loaded_from_snapshot = 0
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
+        self.vision = MapVision.for_config(self.record.config)
+        """The front end of a map with a camera (image frames); None without one."""
         self.slam, self._last_log_id, self._since_snapshot = self._load()
 
     # ------------------------------------------------------------ lifecycle
@@ -106,6 +117,8 @@ class MapSession:
         return cls(path, settings)
 
     def close(self) -> None:
+        if self.vision is not None:
+            self.vision.close()
         self.store.close()
 
     def _fresh(self) -> BearingSlam:
@@ -118,14 +131,24 @@ class MapSession:
         t0 = time.perf_counter()
         snap = self.store.latest_snapshot()
         slam, upto = self._fresh(), 0
+        frontend = None if self.vision is None else self.store.latest_frontend_state()
+        if snap is not None and self.vision is not None and frontend is None:
+            log.warning(
+                "map %s: snapshot without front-end state, replaying the whole log", self.path
+            )
+            snap = None
         if snap is not None:
             try:
                 slam = restore(snap[1], removal_sink=self._removals)
                 slam.config = slam_config(self.record.config, self.record.mode)
                 upto = snap[0]
-            except SnapshotError:
+                if self.vision is not None:
+                    self.vision.attach(slam, frontend)
+            except (SnapshotError, ValueError, pickle.UnpicklingError):
                 log.exception("map %s: unreadable snapshot, replaying the whole log", self.path)
                 slam, upto = self._fresh(), 0
+        if self.vision is not None and upto == 0:
+            self.vision.attach(slam)
         tail = self.store.frames_after(upto)
         self.loaded_from_snapshot = upto
         last = upto
@@ -160,10 +183,14 @@ class MapSession:
                 self.store.delete_frame(stored.id)
                 return
             self.store.count_attempt(stored.id)
-        frame = frame_from_dict(json.loads(stored.body))
+        doc = json.loads(stored.body)
+        frame = frame_from_dict(doc)
         try:
-            outcome = slam.process(frame, with_covariance=stored.result is None)
-        except (InvalidFrame, EstimationError):
+            if "image" in doc:
+                outcome = self._replay_image(stored.id, frame, stored.result is None)
+            else:
+                outcome = slam.process(frame, with_covariance=stored.result is None)
+        except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
             if stored.result is None:  # never acknowledged: drop it
@@ -178,6 +205,12 @@ class MapSession:
         if stored.result is None:  # appended but not completed before a crash
             result = self._result_doc(slam, outcome, stored.id, {})
             self._complete(slam, stored.id, json.dumps(result), outcome, removals)
+
+    def _replay_image(self, log_id: int, frame: Any, with_covariance: bool) -> FrameOutcome:
+        image = self.store.frame_image(log_id)
+        if self.vision is None or image is None:
+            raise InvalidFrame("image", f"log frame {log_id}: image or camera missing")
+        return self.vision.process(frame, image, with_covariance=with_covariance)[0].outcome
 
     @property
     def snapshot_due(self) -> bool:
@@ -195,7 +228,10 @@ class MapSession:
 
     def snapshot(self) -> None:
         self.store.save_snapshot(
-            self._last_log_id, capture(self.slam), keep=self._settings.snapshots_kept
+            self._last_log_id,
+            capture(self.slam),
+            keep=self._settings.snapshots_kept,
+            frontend=None if self.vision is None else self.vision.state(),
         )
         self.store.prune_events(self._settings.events_kept)
         self._since_snapshot = 0
@@ -208,15 +244,18 @@ class MapSession:
         self.slam.config = slam_config(self.record.config, mode)
 
     # ------------------------------------------------------------ the frame use case
-    def submit(self, body: dict[str, Any]) -> dict[str, Any]:
-        """Take one frame object.
+    def submit(self, body: dict[str, Any], image: bytes | None = None) -> dict[str, Any]:
+        """Take one frame object (with `image`: the meta of an image frame and its bytes).
 
         Returns {"result_json" (the frame result as JSON text, exactly as stored),
         "replayed" (True for an idempotent retry answered from the log), "timing_ms",
         "store_ms", "event_ids", "live", "marginalised"}.
         """
         t0 = time.perf_counter()
-        frame, text = canonical_frame(body)
+        prefetched = None if self.vision is None or image is None else self.vision.take(image)
+        frame, text = canonical_frame(body, image)
+        if image is not None:
+            self._check_image_frame(frame)
         stored = self.store.find_frame(frame.robot, frame.seq)
         if stored is not None:
             if stored.body == text and stored.result is not None:
@@ -229,6 +268,9 @@ class MapSession:
                 f"{frame.seq}; a retry must repeat the frame exactly",
                 field="seq",
             )
+        pending = None
+        if self.vision is not None and image is not None:
+            pending = prefetched or self.vision.extract(image)
         last = last_accepted(self.slam).get(frame.robot)
         try:
             validate_frame(
@@ -240,10 +282,17 @@ class MapSession:
             raise out_of_order(exc.field, exc.detail) from exc
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
-        log_id = self.store.append_frame(frame.robot, frame.seq, text)
+        log_id = self.store.append_frame(frame.robot, frame.seq, text, image)
         t1 = time.perf_counter()
+        vision_ms: dict[str, float] = {}
         try:
-            outcome = self.slam.process(frame, with_covariance=True)
+            if pending is None:
+                outcome = self.slam.process(frame, with_covariance=True)
+            else:
+                outcome, vision_ms = self._process_image(frame, pending)
+        except ImageError as exc:
+            self.store.delete_frame(log_id)
+            raise image_refused(exc) from exc
         except InvalidFrame as exc:
             self.store.delete_frame(log_id)
             self._removals.take()
@@ -259,7 +308,7 @@ class MapSession:
                 f"the estimator could not take this frame ({exc}); the map is as before",
             ) from exc
         removals = self._removals.take()
-        result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0)})
+        result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
         event_ids = self._complete(self.slam, log_id, text, outcome, removals)
@@ -276,6 +325,19 @@ class MapSession:
             "marginalised": len(outcome.marginalised),
             "store_ms": store_ms,
         }
+
+    def _check_image_frame(self, frame: Any) -> None:
+        if self.vision is None:
+            raise no_camera(self.record.id)
+        try:
+            self.vision.check(frame)
+        except InvalidFrame as exc:
+            raise invalid_frame(exc.field, exc.detail) from exc
+
+    def _process_image(self, frame: Any, pending: Pending) -> tuple[FrameOutcome, dict[str, float]]:
+        assert self.vision is not None
+        result, timing = self.vision.process(frame, pending, with_covariance=True)
+        return result.outcome, timing
 
     def _result_doc(
         self, slam: BearingSlam, outcome: FrameOutcome, log_id: int, timing: dict[str, float]
@@ -400,6 +462,15 @@ class MapSession:
                     "invalid-import",
                     "Invalid map document",
                     f"frames[{i}].frame: must be a frame object",
+                    field=f"frames[{i}].frame",
+                )
+            if "image" in item["frame"]:
+                raise ServiceError(
+                    422,
+                    "invalid-import",
+                    "Invalid map document",
+                    f"frames[{i}].frame: an image frame; export documents carry no image "
+                    "bytes, so maps fed with images cannot be imported (yet)",
                     field=f"frames[{i}].frame",
                 )
             try:

@@ -46,6 +46,13 @@ class WorkerSettings(BaseModel):
         60.0, gt=0, description="longest wait for a worker's answer before a 503"
     )
     retry_after_s: int = Field(1, ge=1, description="Retry-After seconds sent with a 503")
+    read_ahead: int = Field(
+        4,
+        ge=0,
+        le=64,
+        description="requests a worker takes from its pipe ahead of the current one, so "
+        "that their images' features are extracted meanwhile (0 = off)",
+    )
     nice: int = Field(
         5,
         ge=0,
@@ -63,6 +70,12 @@ class ApiSettings(BaseModel):
     )
     max_import_bytes: int = Field(
         256 << 20, ge=1024, description="largest body of POST /v1/maps/import, bytes"
+    )
+    max_image_bytes: int = Field(
+        16 << 20,
+        ge=1024,
+        description="largest image part of a multipart image frame, bytes (413 above); "
+        "the whole multipart body may be 1 MiB more",
     )
 
 

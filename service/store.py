@@ -12,7 +12,10 @@ file only by the worker process that owns the map; anyone may read.
 
 The frame log: a frame is appended (and committed) before it is processed; its
 result, its events and the removals it caused are written together in one
-transaction afterwards. ``UNIQUE(robot, seq)`` backs idempotent retries.
+transaction afterwards. ``UNIQUE(robot, seq)`` backs idempotent retries. An image
+frame's encoded image is appended in the same transaction as its log row (table
+``images``), so replaying the log reproduces the map; a snapshot of a camera map
+carries the front end's state (``frontend_states``, same transaction).
 """
 
 from __future__ import annotations
@@ -47,6 +50,14 @@ CREATE TABLE IF NOT EXISTS frames (
     attempts INTEGER NOT NULL DEFAULT 0,
     received REAL NOT NULL,
     UNIQUE (robot, seq)
+);
+CREATE TABLE IF NOT EXISTS images (
+    frame_id INTEGER PRIMARY KEY,
+    data BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS frontend_states (
+    snapshot_id INTEGER PRIMARY KEY,
+    state BLOB NOT NULL
 );
 CREATE TABLE IF NOT EXISTS snapshots (
     id INTEGER PRIMARY KEY,
@@ -201,15 +212,26 @@ class MapStore:
         ).fetchone()
         return None if row is None else StoredFrame(*row)
 
-    def append_frame(self, robot: str, seq: int, body: str) -> int:
-        """Append an accepted frame to the log and commit; its log id."""
+    def append_frame(self, robot: str, seq: int, body: str, image: bytes | None = None) -> int:
+        """Append an accepted frame (and its encoded image) to the log and commit; its log id."""
         with transaction(self._conn):
             cur = self._conn.execute(
                 "INSERT INTO frames (robot, seq, body, received) VALUES (?, ?, ?, ?)",
                 (robot, seq, body, time.time()),
             )
-        assert cur.lastrowid is not None
+            assert cur.lastrowid is not None
+            if image is not None:
+                self._conn.execute(
+                    "INSERT INTO images (frame_id, data) VALUES (?, ?)", (cur.lastrowid, image)
+                )
         return cur.lastrowid
+
+    def frame_image(self, frame_id: int) -> bytes | None:
+        """The encoded image of a logged image frame (None for a frame without one)."""
+        row = self._conn.execute(
+            "SELECT data FROM images WHERE frame_id = ?", (frame_id,)
+        ).fetchone()
+        return None if row is None else bytes(row[0])
 
     def count_attempt(self, frame_id: int) -> None:
         """Note (durably) that an unfinished frame is about to be processed again."""
@@ -221,6 +243,7 @@ class MapStore:
     def delete_frame(self, frame_id: int) -> None:
         with transaction(self._conn):
             self._conn.execute("DELETE FROM frames WHERE id = ?", (frame_id,))
+            self._conn.execute("DELETE FROM images WHERE frame_id = ?", (frame_id,))
 
     def complete_frame(
         self,
@@ -266,16 +289,27 @@ class MapStore:
         return int(self._conn.execute("SELECT count(*) FROM frames").fetchone()[0])
 
     # snapshots
-    def save_snapshot(self, upto: int, state: bytes, *, keep: int) -> None:
+    def save_snapshot(
+        self, upto: int, state: bytes, *, keep: int, frontend: bytes | None = None
+    ) -> None:
+        """Store a snapshot (and the front end's state with it); keep the newest `keep`."""
         with transaction(self._conn):
-            self._conn.execute(
+            cur = self._conn.execute(
                 "INSERT INTO snapshots (upto, created, state) VALUES (?, ?, ?)",
                 (upto, time.time(), state),
             )
+            if frontend is not None:
+                self._conn.execute(
+                    "INSERT INTO frontend_states (snapshot_id, state) VALUES (?, ?)",
+                    (cur.lastrowid, frontend),
+                )
             self._conn.execute(
                 "DELETE FROM snapshots WHERE id NOT IN "
                 "(SELECT id FROM snapshots ORDER BY id DESC LIMIT ?)",
                 (keep,),
+            )
+            self._conn.execute(
+                "DELETE FROM frontend_states WHERE snapshot_id NOT IN (SELECT id FROM snapshots)"
             )
 
     def latest_snapshot(self) -> tuple[int, bytes] | None:
@@ -283,6 +317,14 @@ class MapStore:
             "SELECT upto, state FROM snapshots ORDER BY id DESC LIMIT 1"
         ).fetchone()
         return None if row is None else (int(row[0]), bytes(row[1]))
+
+    def latest_frontend_state(self) -> bytes | None:
+        """The front end's state stored with the latest snapshot (None if it has none)."""
+        row = self._conn.execute(
+            "SELECT f.state FROM snapshots s JOIN frontend_states f ON f.snapshot_id = s.id "
+            "WHERE s.id = (SELECT max(id) FROM snapshots)"
+        ).fetchone()
+        return None if row is None else bytes(row[0])
 
     # removals and events
     def removals(self, limit: int | None = None) -> list[dict[str, Any]]:

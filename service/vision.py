@@ -20,11 +20,13 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from frontend.association import Association
+from frontend.features import Features
 from frontend.pipeline import FrontEnd
 from graph.factors import odometry_sigmas
 from graph.slam import BearingSlam, FrameOutcome
@@ -64,6 +66,21 @@ class ImagePipeline:
         self.landmark_covariances = landmark_covariances
         self._last: dict[str, tuple[FloatArray, FloatArray]] = {}
 
+    @property
+    def robots(self) -> frozenset[str]:
+        """Robots whose last pose the pipeline knows (they sent an image frame)."""
+        return frozenset(self._last)
+
+    def state(self) -> dict[str, Any]:
+        """What the pipeline carries from frame to frame besides the estimator: the
+        associator (landmark views, candidate tracks) and each robot's last pose and
+        covariance. Picklable; `set_state` puts it back (a snapshot of a camera map)."""
+        return {"associator": self.front_end.associator, "last": self._last}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        self.front_end.associator = state["associator"]
+        self._last = dict(state["last"])
+
     def predict(self, frame: FrameInput) -> tuple[FloatArray, FloatArray]:
         """Predicted (pose (3,), covariance (3, 3), map frame) of the frame's robot."""
         cfg = self.slam.config
@@ -83,10 +100,20 @@ class ImagePipeline:
         q = _rotate_cov(np.diag(np.square(odometry_sigmas(odo, cfg))), pose[2])
         return new, jac @ cov @ jac.T + q
 
-    def submit(self, frame: FrameInput, image: bytes | NDArray[np.uint8]) -> ImageFrameResult:
-        """Process one frame whose observations come from `image` (its own are ignored)."""
+    def submit(
+        self,
+        frame: FrameInput,
+        image: bytes | NDArray[np.uint8] | Features,
+        *,
+        with_covariance: bool = True,
+    ) -> ImageFrameResult:
+        """Process one frame whose observations come from `image` (its own are ignored).
+
+        `image` may be the image's features already extracted (`front_end.features`,
+        e.g. in another thread while the frame was being logged).
+        """
         t0 = time.perf_counter()
-        feats = self.front_end.features(image)
+        feats = image if isinstance(image, Features) else self.front_end.features(image)
         t1 = time.perf_counter()
         predicted, cov = self.predict(frame)
         slam = self.slam
@@ -104,7 +131,9 @@ class ImagePipeline:
             landmarks={lb: (p, c) for lb, p, c in zip(labels, xy, covs, strict=True)},
         )
         t2 = time.perf_counter()
-        outcome = slam.process(replace(frame, observations=association.observations))
+        outcome = slam.process(
+            replace(frame, observations=association.observations), with_covariance=with_covariance
+        )
         t3 = time.perf_counter()
         pose = np.array([outcome.pose.x, outcome.pose.y, outcome.pose.theta])
         pose_cov = (

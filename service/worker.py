@@ -14,7 +14,9 @@ import json
 import logging
 import os
 import pickle
+import queue
 import signal
+import threading
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -133,7 +135,7 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "delete": _delete,
     "import": _import,
     "set_mode": _set_mode,
-    "frame": lambda m, p: _session(m).submit(p["frame"]),
+    "frame": lambda m, p: _session(m).submit(p["frame"], p.get("image")),
     "summary": lambda m, p: _session(m).summary(),
     "pose": lambda m, p: _session(m).pose(),
     "trajectory": lambda m, p: _session(m).trajectory(p.get("robot")),
@@ -143,27 +145,69 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
 }
 
 
+Request = tuple[Any, str, str, dict[str, Any]]
+"""(request id, op, map id, payload) as the API process sends it."""
+
+
 def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
-    """Main loop of a worker process; returns when the API process goes away."""
+    """Main loop of a worker process; returns when the API process goes away.
+
+    Requests are handled strictly in arrival order. A reader thread takes them from
+    the pipe as they arrive (at most `workers.read_ahead` waiting; 0 = one at a time,
+    no prefetch) and starts extracting the features of an image frame's image
+    right away (OpenCV, without the GIL), while the current request computes.
+    """
     init_worker(settings, index)
+    limit = _cfg().workers.read_ahead
+    inbox: queue.Queue[Request | None] = queue.Queue(maxsize=max(1, limit))
+    reader = threading.Thread(
+        target=_reader, args=(conn, inbox, limit > 0), name="covslam-reader", daemon=True
+    )
+    reader.start()
     while True:
-        try:
-            message = conn.recv_bytes()
-        except (EOFError, OSError):
+        request = inbox.get()
+        if request is None:  # end of the connection
             return
-        request_id, op, map_id, payload = pickle.loads(message)
+        request_id, op, map_id, payload = request
         reply = call(op, map_id, payload)
         try:
             conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
         except (BrokenPipeError, OSError):
             return
-        _idle_work(conn)
+        if inbox.empty():
+            _idle_work(inbox)
 
 
-def _idle_work(conn: Connection) -> None:
+def _reader(conn: Connection, inbox: queue.Queue[Request | None], prefetch: bool) -> None:
+    """Thread: requests from the pipe into `inbox`, in order; None at end of file."""
+    while True:
+        try:
+            request: Request = pickle.loads(conn.recv_bytes())
+        except (EOFError, OSError):
+            inbox.put(None)
+            return
+        if prefetch:
+            _prefetch(request)
+        inbox.put(request)
+
+
+def _prefetch(request: Request) -> None:
+    """Start extracting the features of an image frame for an open camera map."""
+    _, op, map_id, payload = request
+    image = payload.get("image") if op == "frame" else None
+    session = _sessions.get(map_id)
+    if image is None or session is None or session.vision is None:
+        return
+    try:
+        session.vision.prefetch(image)
+    except RuntimeError:  # the map was closed meanwhile: its frame will say so
+        log.debug("no prefetch for map %s (closed)", map_id)
+
+
+def _idle_work(inbox: queue.Queue[Request | None]) -> None:
     """Snapshots that are due, one map at a time, while no request is waiting."""
     for session in list(_sessions.values()):
-        if conn.poll(0):
+        if not inbox.empty():
             return
         if session.snapshot_due:
             try:

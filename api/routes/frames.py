@@ -1,4 +1,4 @@
-"""Frames: POST one frame (JSON; the multipart image form answers 501 for now)."""
+"""Frames: POST one frame, JSON (bearing observations) or multipart (meta + image)."""
 
 from __future__ import annotations
 
@@ -6,31 +6,40 @@ import time
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
 
 from api.deps import MapId, MetricsDep, ServiceDep
-from api.errors import problem
 from api.models import FrameResult, Problem
 from service.errors import ServiceError
 from service.jsonio import loads_object
+
+META_MAX_BYTES = 64 << 10
+"""Largest `meta` part of an image frame, bytes."""
 
 router = APIRouter(prefix="/v1/maps/{map_id}/frames", tags=["frames"])
 
 _BODY = {
     "requestBody": {
         "required": True,
-        "description": "a frame: JSON (see FrameIn), or multipart `meta` (the frame JSON "
-        "without observations) + `image` (PNG/JPEG; not implemented yet: 501)",
+        "description": "a frame: JSON (see FrameIn), or multipart/form-data with `meta` (the "
+        "frame JSON without observations) and `image` (a PNG or JPEG file part, in the "
+        "size of the map's camera; its features become the frame's observations)",
         "content": {
             "application/json": {"schema": {"$ref": "#/components/schemas/FrameIn"}},
             "multipart/form-data": {
                 "schema": {
                     "type": "object",
                     "properties": {
-                        "meta": {"type": "string", "description": "frame JSON, no observations"},
+                        "meta": {
+                            "type": "string",
+                            "description": "the frame JSON (FrameIn) without observations",
+                        },
                         "image": {
                             "type": "string",
                             "format": "binary",
-                            "description": "panorama or omni image, PNG or JPEG",
+                            "description": "panorama or omni image, PNG or JPEG (8-bit, "
+                            "grey or colour), width x height as the map's camera",
                         },
                     },
                     "required": ["meta", "image"],
@@ -53,9 +62,12 @@ _BODY = {
             "description": "seq or stamp out of order, or a different "
             "frame with an already used (robot, seq)",
         },
-        413: {"model": Problem, "description": "body too large"},
-        422: {"model": Problem, "description": "a field is missing or wrong (see `field`)"},
-        501: {"model": Problem, "description": "image frames are not implemented yet"},
+        413: {"model": Problem, "description": "body or image too large"},
+        422: {
+            "model": Problem,
+            "description": "a field is missing or wrong (see `field`); an image that does "
+            "not decode or does not fit the map's camera; a map without a camera",
+        },
         503: {"model": Problem, "description": "the map's worker is restarting; retry"},
     },
 )
@@ -66,23 +78,19 @@ async def post_frame(
 
     `(robot, seq)` makes a submission idempotent: repeating a frame returns the stored
     result (header `Idempotent-Replayed: true`); a lower seq than the robot's last is a 409.
+    An image frame's retry must repeat the image too.
     """
     t0 = time.perf_counter()
     service.record(map_id)
     ctype = request.headers.get("content-type", "")
-    if ctype.startswith("multipart/"):
-        metrics.rejected.labels("501").inc()
-        return problem(
-            501,
-            "not-implemented",
-            "Image frames not implemented",
-            "content-type: multipart image frames (meta + image) arrive with the image "
-            "frontend; post the JSON form with bearing observations for now",
-            instance=request.url.path,
-        )
     try:
-        body = loads_object(await request.body(), "a frame")
-        reply = await service.submit(map_id, body)
+        if ctype.lower().startswith(("multipart/", "application/x-www-form-urlencoded")):
+            limit = request.app.state.settings.api.max_image_bytes
+            meta, image = await read_image_frame(request, max_image_bytes=limit)
+            reply = await service.submit(map_id, meta, image)
+        else:
+            body = loads_object(await request.body(), "a frame")
+            reply = await service.submit(map_id, body)
     except ServiceError as exc:
         metrics.rejected.labels(str(exc.status)).inc()
         raise
@@ -90,3 +98,60 @@ async def post_frame(
     # The worker's JSON text goes out as stored: the same bytes for a retry.
     headers = {"Idempotent-Replayed": "true"} if reply["replayed"] else None
     return Response(reply["result_json"], media_type="application/json", headers=headers)
+
+
+def _form_error(detail: str, field: str | None = None) -> ServiceError:
+    return ServiceError(422, "invalid-image-frame", "Invalid image frame", detail, field=field)
+
+
+async def read_image_frame(
+    request: Request, *, max_image_bytes: int
+) -> tuple[dict[str, Any], bytes]:
+    """The `meta` object and the `image` bytes of a multipart image frame.
+
+    Raises ServiceError: 422 for a malformed form, a missing part, meta that is not a
+    JSON object; 413 for an image over `max_image_bytes`.
+    """
+    if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
+        raise _form_error(
+            f"content-type: {request.headers.get('content-type')!r}; an image frame is "
+            "multipart/form-data (a meta part and an image file part)"
+        )
+    try:
+        async with request.form(max_files=1, max_fields=2, max_part_size=META_MAX_BYTES) as form:
+            meta_part = form.get("meta")
+            image_part = form.get("image")
+            if meta_part is None:
+                raise _form_error("meta: part is required (the frame JSON)", "meta")
+            if image_part is None:
+                raise _form_error("image: part is required (a PNG or JPEG file)", "image")
+            if not isinstance(image_part, UploadFile):
+                raise _form_error(
+                    "image: must be a file part (a filename in its Content-Disposition, as "
+                    "curl -F image=@pano.png sends it)",
+                    "image",
+                )
+            if image_part.size is not None and image_part.size > max_image_bytes:
+                raise ServiceError(
+                    413,
+                    "image-too-large",
+                    "Image too large",
+                    f"image: {image_part.size} bytes exceed the limit of {max_image_bytes} bytes",
+                )
+            image = await image_part.read()
+            raw = await meta_part.read() if isinstance(meta_part, UploadFile) else meta_part
+    except HTTPException as exc:  # Starlette's answer to a malformed multipart body
+        raise _form_error(f"multipart body: {exc.detail}") from exc
+    if len(image) > max_image_bytes:
+        raise ServiceError(
+            413,
+            "image-too-large",
+            "Image too large",
+            f"image: {len(image)} bytes exceed the limit of {max_image_bytes} bytes",
+        )
+    try:
+        meta = loads_object(raw.encode() if isinstance(raw, str) else raw, "the frame's meta")
+    except ServiceError as exc:
+        detail = exc.detail.removeprefix("body: ")
+        raise _form_error(f"meta: {detail}", "meta") from exc
+    return meta, image

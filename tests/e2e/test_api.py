@@ -201,7 +201,7 @@ def test_unknown_map_and_bad_config(client: httpx.Client) -> None:
     _problem(raw, 400)
 
 
-def test_image_frames_and_places_answer_501_but_are_documented(
+def test_places_answer_501_and_image_frames_are_documented(
     client: httpx.Client, mapped: tuple[str, list[dict]]
 ) -> None:
     map_id, _ = mapped
@@ -210,7 +210,7 @@ def test_image_frames_and_places_answer_501_but_are_documented(
         files={"image": ("p.png", b"\x89PNG", "image/png")},
         data={"meta": json.dumps({"robot": "r1", "seq": 10**6, "stamp": 1e12})},
     )
-    _problem(r, 501)
+    assert _problem(r, 422)["type"].endswith(":no-camera")  # tests/e2e/test_images.py
     _problem(client.get(f"/v1/maps/{map_id}/places"), 501)
     _problem(client.post(f"/v1/maps/{map_id}/places"), 501)
     schema = client.get("/openapi.json").json()

@@ -1,0 +1,186 @@
+"""Image frames of one camera map, inside its session (worker process).
+
+`MapVision` holds the map's front end (camera, features, association) and the
+`ImagePipeline` that ties it to the map's estimator. The session uses it in
+three steps per image frame:
+
+1. `extract(image)` starts decoding, validation and feature extraction in a
+   helper thread (OpenCV releases the GIL), while the session checks the frame
+   and appends it, image included, to the durable log;
+2. `process(frame, pending)` waits for the features, associates them with the
+   live landmarks and runs the estimator;
+3. a refused image (frontend.errors.ImageError) becomes `image_refused(exc)`,
+   a 422 or 413 problem.
+
+When a frame arrives while another is processed, the worker's reader thread calls
+`prefetch(image)` for it: its features are extracted while the current frame is
+associated and estimated (Python and GTSAM, holding the GIL), and `take(image)`
+hands them to its own `submit`.
+
+Its state between frames (the associator's landmark views and candidate tracks,
+each robot's last pose) travels with the estimator's snapshots (`state`,
+`attach`), so a map reopened from a snapshot and the log's tail goes on as if it
+had never stopped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
+
+from frontend.association import Associator
+from frontend.errors import ImageError
+from frontend.features import Features
+from frontend.pipeline import FrontEnd
+from graph.errors import InvalidFrame
+from graph.slam import BearingSlam
+from graph.types import FrameInput
+from service.errors import ServiceError
+from service.mapconfig import camera_model
+from service.vision import ImageFrameResult, ImagePipeline
+
+__all__ = ["MapVision", "image_digest", "image_refused"]
+
+PREFETCH_LIMIT = 8
+"""Most images whose features are extracted ahead of their frame."""
+
+Pending = Future[tuple[Features, float]]
+"""Features of one image being extracted, with the extraction's milliseconds."""
+
+
+def image_digest(image: bytes) -> dict[str, Any]:
+    """What a frame's log entry records of its image (idempotency compares it)."""
+    return {"sha256": hashlib.sha256(image).hexdigest(), "bytes": len(image)}
+
+
+def image_refused(exc: ImageError) -> ServiceError:
+    """The API's answer to a refused image: 413 (too large) or 422, naming the part."""
+    if exc.status == 413:
+        return ServiceError(413, "image-too-large", "Image too large", f"image: {exc.detail}")
+    return ServiceError(
+        422, "invalid-image", "Invalid image", f"image: {exc.detail}", field="image"
+    )
+
+
+def no_camera(map_id: str) -> ServiceError:
+    return ServiceError(
+        422,
+        "no-camera",
+        "Map has no camera",
+        f"image: map {map_id!r} was created without a camera (config.camera is null), so it "
+        "takes bearing observations only; create the map with e.g. "
+        '"camera": {"model": "panorama", "width": 2048, "height": 512}',
+        field="image",
+    )
+
+
+class MapVision:
+    """One camera map's front end next to its estimator."""
+
+    def __init__(self, front_end: FrontEnd) -> None:
+        self.front_end = front_end
+        self._threads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="covslam-features")
+        self._pipeline: ImagePipeline | None = None
+        self._prefetched: dict[bytes, Pending] = {}
+        self._lock = threading.Lock()
+        """Guards `_prefetched`: the worker's reader thread prefetches, its main thread takes."""
+
+    @classmethod
+    def for_config(cls, config: dict[str, Any]) -> MapVision | None:
+        """The front end of a stored map config; None for a map without a camera."""
+        camera = camera_model(config)
+        return None if camera is None else cls(FrontEnd(camera))
+
+    def close(self) -> None:
+        self._threads.shutdown(wait=True)
+        self.front_end.close()
+
+    @property
+    def pipeline(self) -> ImagePipeline:
+        if self._pipeline is None:
+            raise RuntimeError("MapVision used before attach()")
+        return self._pipeline
+
+    def attach(self, slam: BearingSlam, state: bytes | None = None) -> None:
+        """Work with `slam` from now on: the front end's state from a snapshot, or fresh.
+
+        Raises ValueError (or an unpickling error) when `state` cannot be read.
+        """
+        pipeline = ImagePipeline(slam, self.front_end)
+        if state is None:
+            self.front_end.associator = Associator(self.front_end.associator.config)
+        else:
+            doc = pickle.loads(state)
+            if not isinstance(doc, dict) or not isinstance(doc.get("associator"), Associator):
+                raise ValueError("not a front-end state")
+            pipeline.set_state(doc)
+        self._pipeline = pipeline
+
+    def state(self) -> bytes:
+        """The front end's state as bytes (for the snapshot taken now)."""
+        return pickle.dumps(self.pipeline.state(), protocol=5)
+
+    def check(self, frame: FrameInput) -> None:
+        """Refuse what the front end cannot predict from (before anything is logged)."""
+        if frame.observations:
+            raise InvalidFrame(
+                "meta.observations",
+                "must be absent in an image frame: the image's features are the observations",
+            )
+        if frame.initial_pose is None and frame.robot not in self.pipeline.robots:
+            raise InvalidFrame(
+                "meta.initial_pose",
+                f"robot {frame.robot!r} has sent no image frame to this map yet; its first "
+                "image frame needs initial_pose",
+            )
+
+    def extract(self, image: bytes) -> Pending:
+        """Decode, validate and describe `image` in the helper thread."""
+
+        def run() -> tuple[Features, float]:
+            t0 = time.perf_counter()
+            features = self.front_end.features(image)
+            return features, 1e3 * (time.perf_counter() - t0)
+
+        return self._threads.submit(run)
+
+    def prefetch(self, image: bytes) -> None:
+        """Start extracting the features of a frame that waits behind the current one."""
+        with self._lock:
+            if image in self._prefetched:
+                return
+            while len(self._prefetched) >= PREFETCH_LIMIT:
+                self._prefetched.pop(next(iter(self._prefetched)))
+            self._prefetched[image] = self.extract(image)
+
+    def take(self, image: bytes) -> Pending | None:
+        """The prefetched extraction of `image`, if `prefetch` started one."""
+        with self._lock:
+            return self._prefetched.pop(image, None)
+
+    def process(
+        self, frame: FrameInput, image: Pending | bytes, *, with_covariance: bool
+    ) -> tuple[ImageFrameResult, dict[str, float]]:
+        """Associate the image's features and run the estimator; (result, timings ms).
+
+        Raises ImageError for a refused image (nothing changed), and whatever the
+        estimator raises (InvalidFrame, EstimationError; the front end unchanged).
+        """
+        t0 = time.perf_counter()
+        if isinstance(image, bytes):
+            features = self.front_end.features(image)
+            extract_ms = 1e3 * (time.perf_counter() - t0)
+        else:
+            features, extract_ms = image.result()
+        waited_ms = 1e3 * (time.perf_counter() - t0)
+        result = self.pipeline.submit(frame, features, with_covariance=with_covariance)
+        timing = {
+            "features": extract_ms,
+            "features_wait": waited_ms,
+            "association": result.timing_ms["association"],
+        }
+        return result, timing

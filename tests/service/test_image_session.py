@@ -1,0 +1,206 @@
+"""MapSession with a camera: image frames logged durably, replayed, refused cleanly."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import queue
+import time
+from multiprocessing import Pipe
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from frontend.cameras import PanoramaCamera
+from service.datasets.render_run import write_rendered_run
+from service.errors import ServiceError
+from service.session import MapSession
+from service.settings import StoreSettings
+from service.store import MapRecord
+
+CAMERA = PanoramaCamera(1024, 256)
+CONFIG = {
+    "landmark_cap": None,
+    "pose_window": 30,
+    "camera": {"model": "panorama", "width": 1024, "height": 256},
+}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[dict[str, Any], bytes]]:
+    """(meta, PNG bytes) of a short rendered run."""
+    out = tmp_path_factory.mktemp("rendered")
+    rendered = write_rendered_run(
+        out, frames=36, rng=np.random.default_rng(5), camera=CAMERA, rooms=(1, 2)
+    )
+    frames = []
+    for line in rendered.frames_path.read_text().splitlines():
+        doc = json.loads(line)
+        frames.append((doc, (out / doc.pop("image")).read_bytes()))
+    return frames
+
+
+def _new(path: Path, config: dict[str, Any] = CONFIG, every: int = 20) -> MapSession:
+    record = MapRecord("cam", "test", "mapping", config, time.time())
+    return MapSession.create(path, record, StoreSettings(snapshot_every=every))
+
+
+def _refused(session: MapSession, meta: dict[str, Any], image: bytes, status: int) -> str:
+    frames, logged = session.slam.frame_count, session.store.frame_count()
+    with pytest.raises(ServiceError) as info:
+        session.submit(meta, image)
+    assert info.value.status == status, info.value.detail
+    assert session.slam.frame_count == frames and session.store.frame_count() == logged
+    return info.value.detail
+
+
+def test_image_frames_are_logged_with_their_image_and_reload_identically(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    path = tmp_path / "cam.sqlite"
+    session = _new(path)
+    results = []
+    for meta, image in run[:30]:
+        reply = session.submit(meta, image)
+        results.append(json.loads(reply["result_json"]))
+        if session.snapshot_due:
+            session.snapshot()
+    assert session.vision is not None
+    assert len(session.slam.landmarks) > 10, "tracks became landmarks"
+    assert sum(len(r["landmarks"]["observed"]) for r in results) > 100
+    assert {"features", "features_wait", "association"} <= set(results[-1]["timing_ms"])
+    stored = session.store.frames_after(0)
+    assert session.store.frame_image(stored[0].id) == run[0][1]
+    assert json.loads(stored[0].body)["image"]["bytes"] == len(run[0][1])
+    before = session.trajectory()["r1"]
+    live_before = sorted(session.slam.landmarks)
+    session.close()
+
+    # Reopen: snapshot at frame 20 (with the front end's state) + 10 image frames replayed.
+    reopened = MapSession(path, StoreSettings(snapshot_every=20))
+    assert reopened.loaded_from_snapshot == 20
+    after = reopened.trajectory()["r1"]
+    assert [p["seq"] for p in after] == [p["seq"] for p in before]
+    moved = max(
+        abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, before, strict=True)
+    )
+    assert moved < 0.02
+    assert sorted(reopened.slam.landmarks) == live_before
+    # ... and goes on matching the landmarks it knew.
+    nxt = json.loads(reopened.submit(*run[30])["result_json"])
+    assert len(nxt["landmarks"]["observed"]) > 5
+    reopened.close()
+
+
+def test_whole_log_replay_without_snapshot_reproduces_the_map(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    path = tmp_path / "cam.sqlite"
+    session = _new(path, every=10**6)
+    for meta, image in run[:15]:
+        session.submit(meta, image)
+    before = session.trajectory()["r1"]
+    landmarks = sorted(session.slam.landmarks)
+    session.close()
+    reopened = MapSession(path, StoreSettings(snapshot_every=10**6))
+    assert reopened.loaded_from_snapshot == 0
+    assert sorted(reopened.slam.landmarks) == landmarks
+    after = reopened.trajectory()["r1"]
+    assert max(abs(a["x"] - b["x"]) for a, b in zip(after, before, strict=True)) < 1e-6
+    reopened.close()
+
+
+def test_retry_needs_the_same_image(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "cam.sqlite")
+    for meta, image in run[:3]:
+        session.submit(meta, image)
+    again = session.submit(*run[2])
+    assert again["replayed"]
+    detail = _refused(session, run[2][0], run[3][1], 409)
+    assert "seq" in detail
+    session.close()
+
+
+def test_bad_image_frames_leave_the_map_unchanged(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "cam.sqlite")
+    session.submit(*run[0])
+    meta = run[1][0]
+    assert "neither PNG nor JPEG" in _refused(session, meta, b"GIF89a....", 422)
+    assert "empty" in _refused(session, meta, b"", 422)
+    assert "could not be decoded" in _refused(session, meta, run[1][1][:500], 422)
+    import cv2
+
+    ok, small = cv2.imencode(".png", np.zeros((100, 400), np.uint8))
+    assert ok
+    assert "expects 1024x256" in _refused(session, meta, small.tobytes(), 422)
+    with_obs = {**meta, "observations": [{"bearing": 0.1, "label": "a"}]}
+    assert "meta.observations" in _refused(session, with_obs, run[1][1], 422)
+    new_robot = {**meta, "robot": "r2", "seq": 0}
+    new_robot.pop("initial_pose", None)
+    assert "initial_pose" in _refused(session, new_robot, run[1][1], 422)
+    # The map goes on as if nothing happened.
+    assert not session.submit(*run[1])["replayed"]
+    assert session.slam.frame_count == 2
+    session.close()
+
+
+def test_map_without_camera_refuses_image_frames(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "plain.sqlite", config={"landmark_cap": 10})
+    assert "without a camera" in _refused(session, run[0][0], run[0][1], 422)
+    session.close()
+
+
+def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waiting_frames(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    from service import worker
+
+    session = _new(tmp_path / "cam.sqlite")
+    assert session.vision is not None
+    worker._sessions["cam"] = session
+    api_end, worker_end = Pipe()
+    try:
+        for k in range(3):
+            request = (k, "frame", "cam", {"frame": run[k][0], "image": run[k][1]})
+            api_end.send_bytes(pickle.dumps(request))
+        api_end.close()  # end of file after the three requests
+        inbox: queue.Queue[Any] = queue.Queue()
+        worker._reader(worker_end, inbox, True)
+        queued = [inbox.get_nowait() for _ in range(4)]
+        assert queued[3] is None, "end of the connection comes last"
+        assert [q[0] for q in queued[:3]] == [0, 1, 2], "read in arrival order"
+        assert len(session.vision._prefetched) == 3
+        replies = [worker.call(op, m, payload) for _, op, m, payload in queued[:3]]
+        assert all(r["ok"] for r in replies), replies
+        assert not session.vision._prefetched, "each frame took its own prefetched features"
+        assert [json.loads(r["value"]["result_json"])["seq"] for r in replies] == [
+            run[k][0]["seq"] for k in range(3)
+        ]
+    finally:
+        worker._sessions.pop("cam")
+        session.close()
+        worker_end.close()
+
+
+def test_export_of_an_image_map_is_refused_on_import(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "cam.sqlite")
+    session.submit(*run[0])
+    doc = session.export()
+    assert doc["frames"][0]["frame"]["image"]["bytes"] == len(run[0][1])
+    session.close()
+    target = _new(tmp_path / "imported.sqlite")
+    with pytest.raises(ServiceError) as info:
+        target.import_frames(doc["frames"])
+    assert info.value.status == 422 and "image frame" in info.value.detail
+    assert target.slam.frame_count == 0
+    target.close()
