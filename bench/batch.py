@@ -67,9 +67,11 @@ def batch_solve(
     frames: Sequence[FrameInput],
     config: SlamConfig,
     *,
-    online: Trajectory | None = None,
+    online: Trajectory | dict[str, Trajectory] | None = None,
 ) -> BatchResult:
-    """Optimise all frames of one robot at once."""
+    """Optimise all frames of one robot at once, from dead reckoning and from each
+    online estimate given; the solution with the lowest graph error wins (LM finds a
+    local minimum, and a bearing-only graph has bad ones)."""
     dr = dead_reckoning(frames)
     # Every ray of a label: (frame index, bearing, sigma); origins come from the start.
     rays: dict[str, list[tuple[int, float, float]]] = {}
@@ -79,8 +81,10 @@ def batch_solve(
                 (k, o.bearing_rad, o.sigma_rad or config.bearing_sigma_rad)
             )
     starts: dict[str, Trajectory] = {"dead_reckoning": dr}
-    if online is not None:
+    if isinstance(online, Trajectory):
         starts["online"] = online
+    elif online is not None:
+        starts.update({f"online_{name}": t for name, t in online.items()})
     labels: dict[str, int] = {}
     best: BatchResult | None = None
     for name, start in starts.items():

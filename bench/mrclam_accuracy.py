@@ -53,7 +53,8 @@ def run_robot(robot: int, seeds: int, directory: Path) -> dict[str, Any]:
     row["uncapped_nowindow_ms"] = float(np.median(full.frame_ms))
     row["landmarks_uncapped"] = len(full.slam.landmarks)
 
-    batch = batch_solve(frames, SlamConfig(**noise), online=full.trajectory(name))
+    online = {"nowindow": full.trajectory(name), "bounded": uncapped.trajectory(name)}
+    batch = batch_solve(frames, SlamConfig(**noise), online=online)
     row["batch_lm"] = ate_rmse(batch.trajectory, gt)
     row["batch_start"] = batch.start
 
