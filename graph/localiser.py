@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -181,12 +181,16 @@ class Localiser:
         quality: Sequence[float] | None = None,
         frame: int = -1,
         stamp: float = 0.0,
+        covariances: Callable[[], Mapping[str, FloatArray]] | None = None,
+        ids: Mapping[str, int] | None = None,
     ) -> StepResult:
         """One frame of one robot.
 
         `landmarks` maps label -> map position (2,) of the landmarks the filter may use;
-        `graph_pose` is (pose (3,), covariance (3, 3)) of the graph's estimate for this
-        frame, or None while the graph does not track the robot (initialising, lost).
+        `graph_pose` is (pose (3,), covariance (3, 3), map frame) of the graph's estimate
+        for this frame, or None while the graph does not track the robot (initialising,
+        lost). `ids` maps labels to landmark ids; `covariances` gives the landmarks'
+        (2, 2) covariances when a place is learnt (computed only then).
         """
         cfg = self.config
         known = [i for i, label in enumerate(labels) if label in landmarks]
@@ -260,7 +264,15 @@ class Localiser:
             if cfg.learn_places and self.places.should_learn(
                 est.pose_xytheta[:2], recognition.best_score
             ):
-                learnt = self.learn(robot, est.pose_xytheta, landmarks, frame=frame, stamp=stamp)
+                learnt = self.learn(
+                    robot,
+                    est.pose_xytheta,
+                    landmarks,
+                    frame=frame,
+                    stamp=stamp,
+                    covariances=None if covariances is None else covariances(),
+                    ids=ids,
+                )
                 if learnt is not None:
                     place = learnt.id
         if track.status in (INITIALISING, LOST):

@@ -126,17 +126,23 @@ def bearing_log_likelihood(
     # (theta + z), so d = -atan2 of the rotated ray, which is already in (-pi, pi].
     dx = lm[None, :, 0] - p[:, 0:1]
     dy = lm[None, :, 1] - p[:, 1:2]
-    phi_c = np.cos(p[:, 2:3]) * np.cos(z)[None, :] - np.sin(p[:, 2:3]) * np.sin(z)[None, :]
-    phi_s = np.sin(p[:, 2:3]) * np.cos(z)[None, :] + np.cos(p[:, 2:3]) * np.sin(z)[None, :]
+    ct, st = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
+    cz, sz = np.cos(z)[None, :], np.sin(z)[None, :]
+    phi_c = ct * cz - st * sz
+    phi_s = st * cz + ct * sz
     along = dx * phi_c + dy * phi_s
     across = dy * phi_c - dx * phi_s
     d = np.arctan2(across, along)  # = wrap(bearing(x, l) - z); the sign is squared away
-    eps = np.float32(outlier_fraction)
+    eps = float(outlier_fraction)
     gauss = (1.0 - eps) / (math.sqrt(2.0 * math.pi) * sigma_rad)
-    dens = eps / np.float32(TWO_PI) + np.float32(gauss) * np.exp(
-        np.float32(-0.5 / sigma_rad**2) * d * d
-    )
-    return (np.log(dens) @ np.asarray(quality, dtype=np.float32)).astype(np.float64)
+    d *= d
+    d *= np.float32(-0.5 / sigma_rad**2)
+    dens = np.exp(d, out=d)
+    dens *= np.float32(gauss)
+    dens += np.float32(eps / TWO_PI)
+    logd = np.log(dens, out=dens)
+    # A plain weighted row sum (no BLAS call: its threads cost more than they save here).
+    return (logd * np.asarray(quality, dtype=np.float32)[None, :]).sum(axis=1, dtype=np.float64)
 
 
 # --------------------------------------------------------------------------- the filter

@@ -20,12 +20,13 @@ from typing import Any
 import numpy as np
 
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
-from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
-from graph.snapshot import SnapshotError, capture, last_accepted, restore
+from graph.slam import BearingSlam, RemovalRecord
+from graph.snapshot import SnapshotError, capture, restore_with_extra
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.frames_io import frame_from_dict, frame_to_dict
+from service.localisation import Localised, MapLocalisation
 from service.mapconfig import MapConfig, slam_config, slam_config_dict
 from service.settings import StoreSettings
 from service.store import MapRecord, MapStore, StoredFrame
@@ -92,7 +93,7 @@ class MapSession:
         self.replay_errors = 0
         self.loaded_from_snapshot = 0
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
-        self.slam, self._last_log_id, self._since_snapshot = self._load()
+        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
@@ -113,15 +114,18 @@ class MapSession:
         seed = MapConfig.model_validate(self.record.config).seed
         return BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=self._removals)
 
-    def _load(self) -> tuple[BearingSlam, int, int]:
-        """Latest snapshot + the log's tail: (estimator, last log id, frames since snapshot)."""
+    def _load(self) -> tuple[BearingSlam, MapLocalisation, int, int]:
+        """Latest snapshot + the log's tail: (estimator, place localiser, last log id,
+        frames since snapshot)."""
         t0 = time.perf_counter()
         snap = self.store.latest_snapshot()
-        slam, upto = self._fresh(), 0
+        slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
         if snap is not None:
             try:
-                slam = restore(snap[1], removal_sink=self._removals)
+                slam, extra = restore_with_extra(snap[1], removal_sink=self._removals)
                 slam.config = slam_config(self.record.config, self.record.mode)
+                if isinstance(extra, MapLocalisation):
+                    loc = extra
                 upto = snap[0]
             except SnapshotError:
                 log.exception("map %s: unreadable snapshot, replaying the whole log", self.path)
@@ -130,7 +134,7 @@ class MapSession:
         self.loaded_from_snapshot = upto
         last = upto
         for stored in tail:
-            self._replay(slam, stored)
+            self._replay(slam, loc, stored)
             last = stored.id
         log.info(
             "map %s: loaded snapshot up to frame %d + %d log frames in %.0f ms",
@@ -139,9 +143,9 @@ class MapSession:
             len(tail),
             1e3 * (time.perf_counter() - t0),
         )
-        return slam, last, len(tail)
+        return slam, loc, last, len(tail)
 
-    def _replay(self, slam: BearingSlam, stored: StoredFrame) -> None:
+    def _replay(self, slam: BearingSlam, loc: MapLocalisation, stored: StoredFrame) -> None:
         if stored.result is None:
             # Logged but never finished: the process died while handling it. If that
             # happened on every reload as well, the frame itself kills the worker
@@ -162,7 +166,7 @@ class MapSession:
             self.store.count_attempt(stored.id)
         frame = frame_from_dict(json.loads(stored.body))
         try:
-            outcome = slam.process(frame, with_covariance=stored.result is None)
+            localised = loc.process(slam, frame)
         except (InvalidFrame, EstimationError):
             self.replay_errors += 1
             self._removals.take()
@@ -176,8 +180,8 @@ class MapSession:
             return
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
-            result = self._result_doc(slam, outcome, stored.id, {})
-            self._complete(slam, stored.id, json.dumps(result), outcome, removals)
+            result = self._result_doc(slam, localised, stored.id, {})
+            self._complete(slam, stored.id, json.dumps(result), localised, removals)
 
     @property
     def snapshot_due(self) -> bool:
@@ -195,7 +199,9 @@ class MapSession:
 
     def snapshot(self) -> None:
         self.store.save_snapshot(
-            self._last_log_id, capture(self.slam), keep=self._settings.snapshots_kept
+            self._last_log_id,
+            capture(self.slam, extra=self.loc),
+            keep=self._settings.snapshots_kept,
         )
         self.store.prune_events(self._settings.events_kept)
         self._since_snapshot = 0
@@ -229,12 +235,13 @@ class MapSession:
                 f"{frame.seq}; a retry must repeat the frame exactly",
                 field="seq",
             )
-        last = last_accepted(self.slam).get(frame.robot)
+        last = self.loc.last_accepted(self.slam).get(frame.robot)
         try:
             validate_frame(
                 frame,
                 last_seq=None if last is None else last[0],
                 last_stamp=None if last is None else last[1],
+                require_initial_pose=False,
             )
         except OutOfOrderFrame as exc:
             raise out_of_order(exc.field, exc.detail) from exc
@@ -243,7 +250,7 @@ class MapSession:
         log_id = self.store.append_frame(frame.robot, frame.seq, text)
         t1 = time.perf_counter()
         try:
-            outcome = self.slam.process(frame, with_covariance=True)
+            localised = self.loc.process(self.slam, frame)
         except InvalidFrame as exc:
             self.store.delete_frame(log_id)
             self._removals.take()
@@ -251,7 +258,7 @@ class MapSession:
         except EstimationError as exc:
             self.store.delete_frame(log_id)
             self._removals.take()
-            self.slam, self._last_log_id, self._since_snapshot = self._load()
+            self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
             raise ServiceError(
                 422,
                 "estimation-failed",
@@ -259,10 +266,11 @@ class MapSession:
                 f"the estimator could not take this frame ({exc}); the map is as before",
             ) from exc
         removals = self._removals.take()
-        result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0)})
+        outcome = localised.outcome
+        result = self._result_doc(self.slam, localised, log_id, {"log": 1e3 * (t1 - t0)})
         t2 = time.perf_counter()
         text = json.dumps(result)
-        event_ids = self._complete(self.slam, log_id, text, outcome, removals)
+        event_ids = self._complete(self.slam, log_id, text, localised, removals)
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
@@ -272,30 +280,39 @@ class MapSession:
             "timing_ms": result["timing_ms"],
             "replayed": False,
             "event_ids": event_ids,
-            "live": outcome.live,
-            "marginalised": len(outcome.marginalised),
+            "live": len(self.slam.landmarks),
+            "marginalised": 0 if outcome is None else len(outcome.marginalised),
             "store_ms": store_ms,
         }
 
     def _result_doc(
-        self, slam: BearingSlam, outcome: FrameOutcome, log_id: int, timing: dict[str, float]
+        self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]
     ) -> dict[str, Any]:
-        cov = outcome.covariance
+        outcome = localised.outcome
+        pose = localised.pose
         return {
             "frame_id": log_id,
-            "robot": outcome.robot,
-            "seq": outcome.seq,
-            "stamp": outcome.stamp,
-            "pose": {"x": outcome.pose.x, "y": outcome.pose.y, "theta": outcome.pose.theta},
-            "covariance": None if cov is None else np.asarray(cov).tolist(),
-            "localisation": {"status": "tracking", "place": None, "confidence": None},
-            "landmarks": {
-                "observed": list(outcome.observed),
-                "added": list(outcome.added),
-                "marginalised": list(outcome.marginalised),
-                "live": outcome.live,
+            "robot": localised.robot,
+            "seq": localised.seq,
+            "stamp": localised.stamp,
+            "pose": {"x": pose.x, "y": pose.y, "theta": pose.theta},
+            "covariance": np.asarray(localised.covariance).tolist(),
+            "localisation": {
+                "status": localised.status,
+                "place": localised.place,
+                "confidence": localised.confidence,
             },
-            "timing_ms": {**outcome.timing_ms, **timing},
+            "landmarks": {
+                "observed": [] if outcome is None else list(outcome.observed),
+                "added": [] if outcome is None else list(outcome.added),
+                "marginalised": [] if outcome is None else list(outcome.marginalised),
+                "live": len(slam.landmarks),
+            },
+            "timing_ms": {
+                **({} if outcome is None else outcome.timing_ms),
+                "localise": localised.ms,
+                **timing,
+            },
         }
 
     def _complete(
@@ -303,11 +320,15 @@ class MapSession:
         slam: BearingSlam,
         log_id: int,
         result_json: str,
-        outcome: FrameOutcome,
+        localised: Localised,
         removals: list[RemovalRecord],
     ) -> list[int]:
         events: list[tuple[str, str]] = [("frame", result_json)]
-        for lid in outcome.added:
+        added = () if localised.outcome is None else localised.outcome.added
+        if localised.learnt is not None:
+            doc = {"id": localised.learnt.id, "robot": localised.learnt.robot}
+            events.append(("place_learnt", json.dumps({**doc, "frame_id": log_id})))
+        for lid in added:
             if lid in slam.landmarks:
                 x, y = (float(v) for v in slam.landmark_position(lid))
                 doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
@@ -350,7 +371,56 @@ class MapSession:
         return MapConfig.model_validate(self.record.config).seed
 
     def pose(self) -> dict[str, Any]:
-        return pose_doc(self.slam, self.record.id)
+        doc = pose_doc(self.slam, self.record.id)
+        for name, robot in doc["robots"].items():
+            robot["localisation"]["status"] = self.loc.status(name)
+        return doc
+
+    def places(self) -> dict[str, Any]:
+        """Learnt places and the transitions between them."""
+        return {"map_id": self.record.id, **self.loc.places_doc()}
+
+    def learn_place(self, robot: str | None) -> dict[str, Any]:
+        """Learn a place at a robot's current pose now (default: the last robot that sent a
+        frame); the snapshot taken after it keeps it across restarts."""
+        known = self.loc.last_accepted(self.slam)
+        if robot is None:
+            if not known:
+                raise ServiceError(
+                    409, "no-robot", "No robot yet", "robot: the map has no robot to learn at"
+                )
+            robot = max(known, key=lambda r: known[r][1])
+        if robot not in known:
+            raise ServiceError(
+                404,
+                "unknown-robot",
+                "Unknown robot",
+                f"robot: map {self.record.id!r} has no robot {robot!r}",
+                field="robot",
+            )
+        if self.loc.status(robot) != "tracking":
+            raise ServiceError(
+                409,
+                "not-localised",
+                "Robot not localised",
+                f"robot: {robot!r} is {self.loc.status(robot)}; a place is learnt at a "
+                "tracked pose",
+                field="robot",
+            )
+        place = self.loc.learn(self.slam, robot, stamp=known[robot][1])
+        if place is None:
+            raise ServiceError(
+                409,
+                "too-few-landmarks",
+                "Too few landmarks",
+                f"robot: fewer than {self.loc.localiser.config.places.min_landmarks} mapped "
+                f"landmarks lie within {self.loc.localiser.config.places.max_depth_m} m of "
+                f"{robot!r}",
+                field="robot",
+            )
+        self.snapshot()
+        doc = self.loc.places_doc()
+        return {"map_id": self.record.id, "place": doc["places"][place.id], **doc}
 
     def trajectory(self, robot: str | None = None) -> dict[str, list[dict[str, float]]]:
         return trajectory_doc(self.slam, self.record.id, robot)
