@@ -13,8 +13,10 @@ graph's live landmarks), recognises places, and runs the status machine:
   the next frame is ``tracking``;
 - while ``tracking``, the graph's pose and the filter's estimate are compared by
   the Mahalanobis distance under the sum of their covariances; beyond the gate
-  for ``lost_frames`` consecutive frames the robot is ``lost``: the caller stops
-  feeding the graph's chain and the filter re-localises as above.
+  for ``lost_frames`` consecutive frames the robot is ``lost`` -- and so it is when
+  the filter's fast likelihood average stays far below its slow one (the
+  observations stopped fitting the map): the caller stops feeding the graph's
+  chain and the filter re-localises as above.
 
 Augmented MCL injects particles from the same proposal when the filter's
 likelihood drops (see graph.particles). Pure: no service, no settings; the caller
@@ -63,6 +65,10 @@ class LocaliserConfig:
     """Squared Mahalanobis gate of graph vs filter (chi^2, 3 dof, 99.9 %)."""
     lost_frames: int = 5
     """Consecutive frames beyond the gate before a tracking robot is lost."""
+    lost_likelihood_ratio: float = 0.3
+    """Also lost: the filter's fast likelihood average below this share of the slow one
+    for lost_frames consecutive frames with observations (the observations no longer fit
+    the map around the believed pose -- also when no graph pose is given)."""
     reliability_frames: int = 30
     """Recent frames over which a landmark's dynamic reliability is counted."""
     reliability_floor: float = 0.1
@@ -89,6 +95,7 @@ class RobotTrack:
     status: str
     converged_frames: int = 0
     disagree_frames: int = 0
+    weak_frames: int = 0
     seen: deque[frozenset[str]] = field(default_factory=deque)
 
 
@@ -233,7 +240,18 @@ class Localiser:
         anchor = False
         if track.status == RELOCALISED:
             track.status = TRACKING
-        if track.status == TRACKING and graph_pose is not None:
+        if track.status == TRACKING and len(z):
+            weak = track.pf.w_fast < cfg.lost_likelihood_ratio * track.pf.w_slow
+            track.weak_frames = track.weak_frames + 1 if weak else 0
+        if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
+            # The belief no longer explains what the robot sees: search afresh.
+            track.status = LOST
+            track.converged_frames = track.disagree_frames = track.weak_frames = 0
+            track.pf = ParticleFilter.from_poses(
+                injector(cfg.filter.max_particles, rng), cfg.filter
+            )
+            est = track.pf.estimate()
+        elif track.status == TRACKING and graph_pose is not None:
             e = np.asarray(graph_pose[0], dtype=np.float64) - est.pose_xytheta
             e[2] = float(wrap_angles(e[2]))
             s = (
