@@ -115,7 +115,13 @@ def learn_places(
     loc.places.last_visited.clear()
 
 
-def global_localisation(directory: Path, starts: int, max_frames: int, seed: int) -> dict[str, Any]:
+def global_localisation(
+    directory: Path,
+    starts: int,
+    max_frames: int,
+    seed: int,
+    config: LocaliserConfig | None = None,
+) -> dict[str, Any]:
     data = {r: load_mrclam(directory, r) for r in range(1, 6)}
     lm_table = data[1].landmarks
     assert lm_table is not None
@@ -130,7 +136,8 @@ def global_localisation(directory: Path, starts: int, max_frames: int, seed: int
         robot = 1 + i % 5
         frames, gt = runs[robot]
         k0 = int(rng.integers(0, len(frames) - max_frames - 1))
-        loc = Localiser(LocaliserConfig(learn_places=False), places=places_blob)
+        cfg = config or LocaliserConfig()
+        loc = Localiser(dataclasses.replace(cfg, learn_places=False), places=places_blob)
         loc.places.last_visited.clear()
         prng = np.random.default_rng([seed, i])
         converged_at = None

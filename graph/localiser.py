@@ -65,6 +65,10 @@ class LocaliserConfig:
     """Squared Mahalanobis gate of graph vs filter (chi^2, 3 dof, 99.9 %)."""
     lost_frames: int = 5
     """Consecutive frames beyond the gate before a tracking robot is lost."""
+    lost_sigma_floor: tuple[float, float, float] = (0.3, 0.3, math.radians(10.0))
+    """Sigmas (m, m, rad) added in quadrature to both covariances in the gate: a map
+    a few decimetres off is not a lost robot (graph and filter are both confident and
+    each a little wrong); with the default gate, ~1.2 m or ~40 deg of disagreement."""
     lost_likelihood_ratio: float = 0.3
     """Also lost: the filter's fast likelihood average below this share of the slow one
     for lost_frames consecutive frames with observations (the observations no longer fit
@@ -96,6 +100,8 @@ class RobotTrack:
     converged_frames: int = 0
     disagree_frames: int = 0
     weak_frames: int = 0
+    lost_reason: str | None = None
+    lost_count: int = 0
     seen: deque[frozenset[str]] = field(default_factory=deque)
 
 
@@ -246,7 +252,9 @@ class Localiser:
         if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
             # The belief no longer explains what the robot sees: search afresh.
             track.status = LOST
+            track.lost_reason = "observations no longer fit the map"
             track.converged_frames = track.disagree_frames = track.weak_frames = 0
+            track.lost_count += 1
             track.pf = ParticleFilter.from_poses(
                 injector(cfg.filter.max_particles, rng), cfg.filter
             )
@@ -257,16 +265,22 @@ class Localiser:
             s = (
                 np.asarray(graph_pose[1], dtype=np.float64)
                 + est.covariance
-                + np.diag([1e-4, 1e-4, 1e-4])
+                + np.diag(np.square(cfg.lost_sigma_floor))
             )
             d2 = float(e @ np.linalg.solve(s, e))
             track.disagree_frames = track.disagree_frames + 1 if d2 > cfg.lost_gate else 0
             if track.disagree_frames >= cfg.lost_frames:
                 track.status = LOST
+                track.lost_reason = "graph and filter disagree"
+                track.lost_count += 1
                 track.converged_frames = 0
                 track.disagree_frames = 0
         elif track.status in (INITIALISING, LOST):
-            track.converged_frames = track.converged_frames + 1 if est.converged else 0
+            # Only frames with observations confirm: without, the belief just drifts.
+            if not est.converged:
+                track.converged_frames = 0
+            elif len(z):
+                track.converged_frames += 1
             if track.converged_frames >= cfg.confirm_frames:
                 track.status = RELOCALISED
                 track.converged_frames = 0

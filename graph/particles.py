@@ -17,9 +17,10 @@ the recovery their filter lacked:
   falls below ``resample_ess_fraction * N``; the new count is KLD-adaptive (Fox
   2003) within ``[min_particles, max_particles]``;
 - augmented MCL (Thrun et al.): slow and fast running averages of the mean
-  per-landmark likelihood; when the fast one drops below the slow one, a fraction
-  ``1 - w_fast / w_slow`` of the particles is replaced by draws from an injection
-  proposal (the caller passes one drawing around the best-ranked places).
+  per-landmark likelihood; when the fast one drops below ``injection_ratio`` times
+  the slow one, a fraction ``1 - w_fast / (injection_ratio * w_slow)`` of the
+  particles is replaced by draws from an injection proposal (the caller passes one
+  drawing around the best-ranked places).
 
 Every stochastic step takes the ``rng`` given to the filter. No Python loop runs
 per particle or per landmark.
@@ -166,6 +167,10 @@ class FilterConfig:
     alpha_slow: float = 0.02
     alpha_fast: float = 0.3
     max_injection_fraction: float = 0.5
+    injection_ratio: float = 0.6
+    """Inject only while w_fast < injection_ratio * w_slow (a fraction 1 - w_fast /
+    (injection_ratio * w_slow)); 1.0 is Thrun's rule, which on MRCLAM's uneven
+    observations kept injecting during normal tracking."""
     kld_epsilon: float = 0.05
     kld_z_quantile: float = 2.326
     """Upper standard-normal quantile of the KLD bound (2.326: 99 %)."""
@@ -306,7 +311,8 @@ class ParticleFilter:
         self.log_weights = normalise_log_weights(self.log_weights + loglik)
         inject = 0.0
         if injector is not None and self.w_slow > 0:
-            inject = min(cfg.max_injection_fraction, max(0.0, 1.0 - self.w_fast / self.w_slow))
+            ratio = self.w_fast / (cfg.injection_ratio * self.w_slow)
+            inject = min(cfg.max_injection_fraction, max(0.0, 1.0 - ratio))
         if inject > 0.0 or effective_sample_size(self.log_weights) < (
             cfg.resample_ess_fraction * self.size
         ):

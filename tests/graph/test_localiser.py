@@ -28,7 +28,7 @@ def test_initialising_relocalised_tracking_lost_and_back() -> None:
     kidnap = 60
     errors = []
     for k in range(140):
-        truth = _circle_pose(k) if k < kidnap else _circle_pose(k, centre=(3.0, 4.2))
+        truth = _circle_pose(k) if k < kidnap else _circle_pose(k, centre=(4.2, 4.6))
         odo = None
         if previous is not None:
             nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
