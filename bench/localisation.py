@@ -241,6 +241,9 @@ def kidnap(
         "cut_s": cut_s,
         "jump_m": _jump(gt, pre[-1].stamp, first.stamp),
         "ate_before_m": ate(results[:cut]),
+        "lost_events_before_cut": sum(
+            1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
+        ),
         "frames_to_lost": None if lost is None else lost - cut,
         "frames_to_relocalised": None if reloc is None else reloc - cut,
         "seconds_to_relocalised": None

@@ -92,6 +92,10 @@ def kld_particle_count(
 
 
 # --------------------------------------------------------------------------- sensor model
+_CHUNK = 1024
+"""Particles per block of the sensor model (see bearing_log_likelihood)."""
+
+
 def predicted_bearings(particles: FloatArray, landmarks_xy: FloatArray) -> NDArray[np.float32]:
     """``(N, M)`` bearings (robot frame, CCW from +x, wrapped) from each particle
     ``(N, 3)`` to each landmark ``(M, 2)``; float32 (the filter's hot path)."""
@@ -120,6 +124,22 @@ def bearing_log_likelihood(
     n = particles.shape[0]
     if len(bearings_rad) == 0:
         return np.zeros(n)
+    if n > _CHUNK:
+        # Blocks of particles keep the (block, M) temporaries in cache (5000 x 32 in one
+        # go ran ~15x slower than 1000 x 32, not 5x).
+        return np.concatenate(
+            [
+                bearing_log_likelihood(
+                    particles[i : i + _CHUNK],
+                    landmarks_xy,
+                    bearings_rad,
+                    quality,
+                    sigma_rad=sigma_rad,
+                    outlier_fraction=outlier_fraction,
+                )
+                for i in range(0, n, _CHUNK)
+            ]
+        )
     p = particles.astype(np.float32)
     lm = np.asarray(landmarks_xy, dtype=np.float32)
     z = np.asarray(bearings_rad, dtype=np.float32)
@@ -156,8 +176,9 @@ class FilterConfig:
     bearing_sigma_rad: float = math.radians(1.5)
     """Gaussian part of the sensor model. On MRCLAM-6 (20 starts), 1 deg converged sooner
     but more often to wrong poses, 2-3 deg more slowly and less often in 150 frames."""
-    outlier_fraction: float = 0.1
-    """Weight of the uniform part of the sensor model."""
+    outlier_fraction: float = 0.25
+    """Weight of the uniform part of the sensor model (MRCLAM-6, 50 starts: 0.25 localised
+    88 % against 82 % with 0.1 -- its bursts of wrong bearings need a heavy tail)."""
     motion_sigma_floor: tuple[float, float, float] = (0.01, 0.01, math.radians(1.0))
     motion_sigma_per_metre: tuple[float, float, float] = (0.1, 0.1, math.radians(5.0))
     motion_sigma_per_radian: float = 0.1
