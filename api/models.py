@@ -148,7 +148,9 @@ class FrameIn(BaseModel):
         None, description="required on every frame after the robot's first"
     )
     initial_pose: PoseXYTheta | None = Field(
-        None, description="required on a robot's first frame (until the place localiser lands)"
+        None,
+        description="optional, only read on a robot's first frame; without it the robot is "
+        "'initialising' until the place localiser finds it",
     )
     observations: list[ObservationIn] = Field(
         default_factory=list, description="bearings seen in this frame (absent = none)"
@@ -157,7 +159,9 @@ class FrameIn(BaseModel):
 
 class Localisation(BaseModel):
     status: Literal["initialising", "tracking", "lost", "relocalised"] = Field(
-        description="localisation status (always 'tracking' until the place localiser lands)"
+        description="initialising (no pose yet: the filter searches), tracking (the graph "
+        "tracks the robot), lost (graph and filter disagree: the filter re-localises), "
+        "relocalised (this frame anchored the robot's pose chain at the filter's estimate)"
     )
     place: int | None = Field(None, description="id of the current place, if any")
     confidence: float | None = Field(None, description="confidence in [0, 1], if known")
@@ -295,3 +299,54 @@ class CoverageOut(BaseModel):
         description="the latest removals with reasons: frame, stamp, landmark_id, label, "
         "x, y (m), observed_from, policy, reason, details"
     )
+
+
+# --------------------------------------------------------------------------- places
+
+
+class PlaceLandmarkOut(BaseModel):
+    label: str = Field(description="the landmark's label (its appearance signature)")
+    landmark_id: int = Field(description="live landmark id when learnt (-1: unknown)")
+    bearing: float = Field(description="bearing from the reference pose, radians, robot frame")
+    depth: float = Field(description="distance from the reference pose, metres")
+    depth_variance: float = Field(description="variance of the depth along the ray, m²")
+    uniqueness: float = Field(description="static uniqueness in [0, 1]")
+    reliability: float = Field(description="dynamic reliability in [0, 1] (recent matches)")
+
+
+class PlaceOut(BaseModel):
+    id: int = Field(description="place id, stable")
+    pose: PoseXYTheta = Field(description="reference pose, map frame")
+    robot: str = Field(description="robot that was at the reference pose")
+    frame: int = Field(description="map frame count when it was learnt")
+    stamp: float = Field(description="stamp of that frame, seconds")
+    landmarks: list[PlaceLandmarkOut] = Field(description="the place's landmarks")
+
+
+class TransitionOut(BaseModel):
+    source: int = Field(description="place left")
+    target: int = Field(description="place reached next")
+    heading: float = Field(description="direction source -> target, radians, map frame")
+    distance: float = Field(description="distance between reference positions, metres")
+    count: int = Field(description="times this transition was made")
+
+
+class PlacesOut(BaseModel):
+    map_id: str = Field(description="the map's id")
+    places: list[PlaceOut] = Field(description="learnt places")
+    transitions: list[TransitionOut] = Field(description="the topological map's edges")
+
+
+class PlaceLearnIn(BaseModel):
+    model_config = _STRICT
+
+    robot: str | None = Field(
+        None,
+        min_length=1,
+        description="robot whose current pose is learnt (default: the last "
+        "robot that sent a frame)",
+    )
+
+
+class PlaceLearnt(PlacesOut):
+    place: PlaceOut = Field(description="the place just learnt")

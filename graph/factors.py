@@ -89,3 +89,31 @@ def landmark_prior_factor(
 ) -> gtsam.PriorFactorPoint2:
     noise = gtsam.noiseModel.Isotropic.Sigma(2, sigma_m)
     return gtsam.PriorFactorPoint2(key, np.asarray(position_xy, dtype=float), noise)
+
+
+VAGUE_LINK_SIGMAS = (100.0, 100.0, math.pi)
+"""Sigmas (m, m, rad) of the link that keeps a re-anchored chain connected to its past."""
+
+
+def vague_link(motion: gtsam.Pose2) -> Odometry:
+    """An odometry measurement that says next to nothing (a gap the robot was carried
+    over): it keeps the chain connected without pulling either side."""
+    return Odometry(
+        float(motion.x()),
+        float(motion.y()),
+        float(motion.theta()),
+        *VAGUE_LINK_SIGMAS,
+    )
+
+
+def anchor_prior_factor(
+    key: int, pose: Pose2D, covariance_map: np.ndarray, config: SlamConfig
+) -> gtsam.PriorFactorPose2:
+    """A prior from the place localiser: `covariance_map` is (3, 3) over the map-frame
+    (x, y, theta); GTSAM wants it in the pose's own frame. Never tighter than the
+    initial-pose prior."""
+    c, s = math.cos(pose.theta), math.sin(pose.theta)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    local = rot.T @ np.asarray(covariance_map, dtype=np.float64) @ rot
+    local = 0.5 * (local + local.T) + np.diag(np.square(config.initial_pose_sigma))
+    return gtsam.PriorFactorPose2(key, to_pose2(pose), gtsam.noiseModel.Gaussian.Covariance(local))

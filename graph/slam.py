@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from graph.angles import wrap_angle, wrap_angles
 from graph.config import SlamConfig
 from graph.factors import (
+    anchor_prior_factor,
     bearing_factor,
     from_pose2,
     landmark_key,
@@ -32,6 +33,7 @@ from graph.factors import (
     pose_key,
     pose_prior_factor,
     to_pose2,
+    vague_link,
 )
 from graph.isam import IncrementalGraph
 from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
@@ -221,23 +223,36 @@ class BearingSlam:
         return out
 
     # ---------------------------------------------------------------- the pipeline
-    def process(self, frame: FrameInput, *, with_covariance: bool = True) -> FrameOutcome:
-        """Add one frame. Raises InvalidFrame (map unchanged) or EstimationError."""
+    def process(
+        self,
+        frame: FrameInput,
+        *,
+        with_covariance: bool = True,
+        anchor: tuple[Pose2D, NDArray[np.float64]] | None = None,
+    ) -> FrameOutcome:
+        """Add one frame. Raises InvalidFrame (map unchanged) or EstimationError.
+
+        `anchor` = (pose, (3, 3) map-frame covariance of x, y, theta) from the place
+        localiser: the frame's pose gets a prior there instead of the initial pose (a
+        new robot) or of the odometry (a robot that was lost: its chain is re-anchored;
+        the odometry across the gap is kept only as a vague link).
+        """
         t0 = time.perf_counter()
         robot = self._robots.get(frame.robot)
         validate_frame(
             frame,
             last_seq=robot.last_seq if robot else None,
             last_stamp=robot.last_stamp if robot else None,
+            require_initial_pose=anchor is None,
         )
-        plan = self._plan(frame, robot)
+        plan = self._plan(frame, robot, anchor)
         t1 = time.perf_counter()
         # Estimates before the update: what a marginalised pose keeps.
         before = {k: self._graph.pose(k) for k, _ in plan.leaving}
         if robot is not None and robot.keyframes and plan.exiting and not plan.promoted:
             # The anchor of the exiting non-keyframe pose (see _commit).
-            anchor = robot.keyframes[-1][0]
-            before.setdefault(anchor, self._graph.pose(anchor))
+            anchor_key = robot.keyframes[-1][0]
+            before.setdefault(anchor_key, self._graph.pose(anchor_key))
         self._graph.update(
             plan.factors,
             plan.values,
@@ -278,7 +293,12 @@ class BearingSlam:
             },
         )
 
-    def _plan(self, frame: FrameInput, robot: _Robot | None) -> _Plan:
+    def _plan(
+        self,
+        frame: FrameInput,
+        robot: _Robot | None,
+        anchor: tuple[Pose2D, NDArray[np.float64]] | None = None,
+    ) -> _Plan:
         cfg = self.config
         frame_index = self._frames
         factors: list[gtsam.NonlinearFactor] = []
@@ -286,9 +306,13 @@ class BearingSlam:
         if robot is None:
             slot = len(self._robots)
             key = pose_key(slot, 0)
-            assert frame.initial_pose is not None  # validated
-            predicted = to_pose2(frame.initial_pose)
-            factors.append(pose_prior_factor(key, frame.initial_pose, cfg))
+            if anchor is not None:
+                predicted = to_pose2(anchor[0])
+                factors.append(anchor_prior_factor(key, anchor[0], anchor[1], cfg))
+            else:
+                assert frame.initial_pose is not None  # validated
+                predicted = to_pose2(frame.initial_pose)
+                factors.append(pose_prior_factor(key, frame.initial_pose, cfg))
             exiting: tuple[int, int] | None = None
             promoted = False
             leaving: tuple[tuple[int, int], ...] = ()
@@ -296,12 +320,24 @@ class BearingSlam:
             key = pose_key(robot.slot, robot.next_index)
             assert frame.odometry is not None  # validated
             previous = robot.window[-1][0]
-            predicted = self._graph.pose(previous).compose(
-                gtsam.Pose2(frame.odometry.dx, frame.odometry.dy, frame.odometry.dtheta)
-            )
-            factors.append(
-                odometry_factor(previous, key, frame.odometry, cfg, frame.stamp - robot.last_stamp)
-            )
+            if anchor is not None:
+                predicted = to_pose2(anchor[0])
+                factors.append(anchor_prior_factor(key, anchor[0], anchor[1], cfg))
+                gap = self._graph.pose(previous).between(predicted)
+                factors.append(
+                    odometry_factor(
+                        previous, key, vague_link(gap), cfg, frame.stamp - robot.last_stamp
+                    )
+                )
+            else:
+                predicted = self._graph.pose(previous).compose(
+                    gtsam.Pose2(frame.odometry.dx, frame.odometry.dy, frame.odometry.dtheta)
+                )
+                factors.append(
+                    odometry_factor(
+                        previous, key, frame.odometry, cfg, frame.stamp - robot.last_stamp
+                    )
+                )
             full = cfg.pose_window is not None and len(robot.window) >= cfg.pose_window
             exiting = robot.window[0] if full else None
             promoted, leaving = self._window_exit(robot, exiting)

@@ -42,8 +42,9 @@ class SnapshotError(ValueError):
     """A snapshot could not be taken or read (unpicklable state, wrong version, corrupt)."""
 
 
-def capture(slam: BearingSlam) -> bytes:
-    """The estimator's whole state as bytes (see the module docstring).
+def capture(slam: BearingSlam, *, extra: Any = None) -> bytes:
+    """The estimator's whole state as bytes (see the module docstring); `extra` is any
+    picklable state kept beside it (e.g. the place localiser's), see `restore_with_extra`.
 
     Every attribute of the estimator and of its graph that is not rebuilt on restore
     is pickled as it is (plain Python and numpy bookkeeping), so state added to
@@ -67,6 +68,7 @@ def capture(slam: BearingSlam) -> bytes:
         "linpoint": linpoint.serialize(),
         "slam": {k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
         "graph": {k: v for k, v in vars(inner).items() if k not in _GRAPH_SPECIAL},
+        "extra": extra,
     }
     try:
         return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
@@ -78,6 +80,13 @@ def restore(
     blob: bytes, *, removal_sink: Callable[[RemovalRecord], None] | None = None
 ) -> BearingSlam:
     """A working `BearingSlam` from `capture`'s bytes; iSAM2 is rebuilt from the factors."""
+    return restore_with_extra(blob, removal_sink=removal_sink)[0]
+
+
+def restore_with_extra(
+    blob: bytes, *, removal_sink: Callable[[RemovalRecord], None] | None = None
+) -> tuple[BearingSlam, Any]:
+    """`restore`, and the `extra` state given to `capture` (None if none)."""
     try:
         state = pickle.loads(blob)
     except Exception as exc:  # pickle raises many types on corrupt input
@@ -106,7 +115,7 @@ def restore(
         setattr(slam.graph, name, value)
     for name, value in plain.items():
         setattr(slam, name, value)
-    return slam
+    return slam, state.get("extra")
 
 
 def latest_pose_keys(slam: BearingSlam) -> dict[str, int]:

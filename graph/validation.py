@@ -21,11 +21,18 @@ def _positive(value: object, field: str) -> None:
         raise InvalidFrame(field, f"must be > 0, got {value!r}")
 
 
-def validate_frame(frame: FrameInput, *, last_seq: int | None, last_stamp: float | None) -> None:
+def validate_frame(
+    frame: FrameInput,
+    *,
+    last_seq: int | None,
+    last_stamp: float | None,
+    require_initial_pose: bool = True,
+) -> None:
     """Refuse a frame that the map cannot take, naming the field and the reason.
 
     `last_seq`/`last_stamp` describe the robot's last accepted frame (None for a
-    robot the map has not seen).
+    robot the map has not seen). With `require_initial_pose` False a new robot may
+    come without one (the place localiser will find it).
     """
     if not isinstance(frame.robot, str) or not frame.robot:
         raise InvalidFrame("robot", "must be a non-empty string")
@@ -41,13 +48,14 @@ def validate_frame(frame: FrameInput, *, last_seq: int | None, last_stamp: float
             "stamp", f"{stamp} s is before robot {frame.robot!r}'s last stamp {last_stamp} s"
         )
     if last_seq is None:
-        if frame.initial_pose is None:
+        if frame.initial_pose is None and require_initial_pose:
             raise UnknownRobot(
                 "initial_pose",
                 f"robot {frame.robot!r} is new to this map and its frame has no initial_pose",
             )
-        for name in ("x", "y", "theta"):
-            _finite(getattr(frame.initial_pose, name), f"initial_pose.{name}")
+        if frame.initial_pose is not None:
+            for name in ("x", "y", "theta"):
+                _finite(getattr(frame.initial_pose, name), f"initial_pose.{name}")
     else:
         odo = frame.odometry
         if odo is None:

@@ -23,12 +23,13 @@ import numpy as np
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
-from graph.snapshot import SnapshotError, capture, last_accepted, restore
+from graph.snapshot import SnapshotError, capture, restore_with_extra
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
+from service.localisation import Localised, MapLocalisation
 from service.mapconfig import MapConfig, slam_config, slam_config_dict
 from service.settings import StoreSettings
 from service.store import MapRecord, MapStore, StoredFrame
@@ -103,7 +104,7 @@ class MapSession:
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
         self.vision = MapVision.for_config(self.record.config)
         """The front end of a map with a camera (image frames); None without one."""
-        self.slam, self._last_log_id, self._since_snapshot = self._load()
+        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
@@ -126,11 +127,12 @@ class MapSession:
         seed = MapConfig.model_validate(self.record.config).seed
         return BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=self._removals)
 
-    def _load(self) -> tuple[BearingSlam, int, int]:
-        """Latest snapshot + the log's tail: (estimator, last log id, frames since snapshot)."""
+    def _load(self) -> tuple[BearingSlam, MapLocalisation, int, int]:
+        """Latest snapshot + the log's tail: (estimator, place localiser, last log id,
+        frames since snapshot)."""
         t0 = time.perf_counter()
         snap = self.store.latest_snapshot()
-        slam, upto = self._fresh(), 0
+        slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
         frontend = None if self.vision is None else self.store.latest_frontend_state()
         if snap is not None and self.vision is not None and frontend is None:
             log.warning(
@@ -139,21 +141,23 @@ class MapSession:
             snap = None
         if snap is not None:
             try:
-                slam = restore(snap[1], removal_sink=self._removals)
+                slam, extra = restore_with_extra(snap[1], removal_sink=self._removals)
                 slam.config = slam_config(self.record.config, self.record.mode)
+                if isinstance(extra, MapLocalisation):
+                    loc = extra
                 upto = snap[0]
                 if self.vision is not None:
                     self.vision.attach(slam, frontend)
             except (SnapshotError, ValueError, pickle.UnpicklingError):
                 log.exception("map %s: unreadable snapshot, replaying the whole log", self.path)
-                slam, upto = self._fresh(), 0
+                slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
         if self.vision is not None and upto == 0:
             self.vision.attach(slam)
         tail = self.store.frames_after(upto)
         self.loaded_from_snapshot = upto
         last = upto
         for stored in tail:
-            self._replay(slam, stored)
+            self._replay(slam, loc, stored)
             last = stored.id
         log.info(
             "map %s: loaded snapshot up to frame %d + %d log frames in %.0f ms",
@@ -162,9 +166,9 @@ class MapSession:
             len(tail),
             1e3 * (time.perf_counter() - t0),
         )
-        return slam, last, len(tail)
+        return slam, loc, last, len(tail)
 
-    def _replay(self, slam: BearingSlam, stored: StoredFrame) -> None:
+    def _replay(self, slam: BearingSlam, loc: MapLocalisation, stored: StoredFrame) -> None:
         if stored.result is None:
             # Logged but never finished: the process died while handling it. If that
             # happened on every reload as well, the frame itself kills the worker
@@ -187,9 +191,10 @@ class MapSession:
         frame = frame_from_dict(doc)
         try:
             if "image" in doc:
-                outcome = self._replay_image(stored.id, frame, stored.result is None)
+                outcome = self._replay_image(stored.id, frame, True)
+                localised = loc.graph_only(frame, outcome)
             else:
-                outcome = slam.process(frame, with_covariance=stored.result is None)
+                localised = loc.process(slam, frame)
         except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
@@ -203,8 +208,8 @@ class MapSession:
             return
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
-            result = self._result_doc(slam, outcome, stored.id, {})
-            self._complete(slam, stored.id, json.dumps(result), outcome, removals)
+            result = self._result_doc(slam, localised, stored.id, {})
+            self._complete(slam, stored.id, json.dumps(result), localised, removals)
 
     def _replay_image(self, log_id: int, frame: Any, with_covariance: bool) -> FrameOutcome:
         image = self.store.frame_image(log_id)
@@ -229,7 +234,7 @@ class MapSession:
     def snapshot(self) -> None:
         self.store.save_snapshot(
             self._last_log_id,
-            capture(self.slam),
+            capture(self.slam, extra=self.loc),
             keep=self._settings.snapshots_kept,
             frontend=None if self.vision is None else self.vision.state(),
         )
@@ -271,12 +276,13 @@ class MapSession:
         pending = None
         if self.vision is not None and image is not None:
             pending = prefetched or self.vision.extract(image)
-        last = last_accepted(self.slam).get(frame.robot)
+        last = self.loc.last_accepted(self.slam).get(frame.robot)
         try:
             validate_frame(
                 frame,
                 last_seq=None if last is None else last[0],
                 last_stamp=None if last is None else last[1],
+                require_initial_pose=False,
             )
         except OutOfOrderFrame as exc:
             raise out_of_order(exc.field, exc.detail) from exc
@@ -287,9 +293,10 @@ class MapSession:
         vision_ms: dict[str, float] = {}
         try:
             if pending is None:
-                outcome = self.slam.process(frame, with_covariance=True)
+                localised = self.loc.process(self.slam, frame)
             else:
                 outcome, vision_ms = self._process_image(frame, pending)
+                localised = self.loc.graph_only(frame, outcome)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -300,7 +307,7 @@ class MapSession:
         except EstimationError as exc:
             self.store.delete_frame(log_id)
             self._removals.take()
-            self.slam, self._last_log_id, self._since_snapshot = self._load()
+            self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
             raise ServiceError(
                 422,
                 "estimation-failed",
@@ -308,10 +315,13 @@ class MapSession:
                 f"the estimator could not take this frame ({exc}); the map is as before",
             ) from exc
         removals = self._removals.take()
-        result = self._result_doc(self.slam, outcome, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
+        final = localised.outcome
+        result = self._result_doc(
+            self.slam, localised, log_id, {"log": 1e3 * (t1 - t0), **vision_ms}
+        )
         t2 = time.perf_counter()
         text = json.dumps(result)
-        event_ids = self._complete(self.slam, log_id, text, outcome, removals)
+        event_ids = self._complete(self.slam, log_id, text, localised, removals)
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
@@ -321,8 +331,8 @@ class MapSession:
             "timing_ms": result["timing_ms"],
             "replayed": False,
             "event_ids": event_ids,
-            "live": outcome.live,
-            "marginalised": len(outcome.marginalised),
+            "live": len(self.slam.landmarks),
+            "marginalised": 0 if final is None else len(final.marginalised),
             "store_ms": store_ms,
         }
 
@@ -340,24 +350,33 @@ class MapSession:
         return result.outcome, timing
 
     def _result_doc(
-        self, slam: BearingSlam, outcome: FrameOutcome, log_id: int, timing: dict[str, float]
+        self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]
     ) -> dict[str, Any]:
-        cov = outcome.covariance
+        outcome = localised.outcome
+        pose = localised.pose
         return {
             "frame_id": log_id,
-            "robot": outcome.robot,
-            "seq": outcome.seq,
-            "stamp": outcome.stamp,
-            "pose": {"x": outcome.pose.x, "y": outcome.pose.y, "theta": outcome.pose.theta},
-            "covariance": None if cov is None else np.asarray(cov).tolist(),
-            "localisation": {"status": "tracking", "place": None, "confidence": None},
-            "landmarks": {
-                "observed": list(outcome.observed),
-                "added": list(outcome.added),
-                "marginalised": list(outcome.marginalised),
-                "live": outcome.live,
+            "robot": localised.robot,
+            "seq": localised.seq,
+            "stamp": localised.stamp,
+            "pose": {"x": pose.x, "y": pose.y, "theta": pose.theta},
+            "covariance": np.asarray(localised.covariance).tolist(),
+            "localisation": {
+                "status": localised.status,
+                "place": localised.place,
+                "confidence": localised.confidence,
             },
-            "timing_ms": {**outcome.timing_ms, **timing},
+            "landmarks": {
+                "observed": [] if outcome is None else list(outcome.observed),
+                "added": [] if outcome is None else list(outcome.added),
+                "marginalised": [] if outcome is None else list(outcome.marginalised),
+                "live": len(slam.landmarks),
+            },
+            "timing_ms": {
+                **({} if outcome is None else outcome.timing_ms),
+                "localise": localised.ms,
+                **timing,
+            },
         }
 
     def _complete(
@@ -365,11 +384,15 @@ class MapSession:
         slam: BearingSlam,
         log_id: int,
         result_json: str,
-        outcome: FrameOutcome,
+        localised: Localised,
         removals: list[RemovalRecord],
     ) -> list[int]:
         events: list[tuple[str, str]] = [("frame", result_json)]
-        for lid in outcome.added:
+        added = () if localised.outcome is None else localised.outcome.added
+        if localised.learnt is not None:
+            doc = {"id": localised.learnt.id, "robot": localised.learnt.robot}
+            events.append(("place_learnt", json.dumps({**doc, "frame_id": log_id})))
+        for lid in added:
             if lid in slam.landmarks:
                 x, y = (float(v) for v in slam.landmark_position(lid))
                 doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
@@ -412,7 +435,56 @@ class MapSession:
         return MapConfig.model_validate(self.record.config).seed
 
     def pose(self) -> dict[str, Any]:
-        return pose_doc(self.slam, self.record.id)
+        doc = pose_doc(self.slam, self.record.id)
+        for name, robot in doc["robots"].items():
+            robot["localisation"]["status"] = self.loc.status(name)
+        return doc
+
+    def places(self) -> dict[str, Any]:
+        """Learnt places and the transitions between them."""
+        return {"map_id": self.record.id, **self.loc.places_doc()}
+
+    def learn_place(self, robot: str | None) -> dict[str, Any]:
+        """Learn a place at a robot's current pose now (default: the last robot that sent a
+        frame); the snapshot taken after it keeps it across restarts."""
+        known = self.loc.last_accepted(self.slam)
+        if robot is None:
+            if not known:
+                raise ServiceError(
+                    409, "no-robot", "No robot yet", "robot: the map has no robot to learn at"
+                )
+            robot = max(known, key=lambda r: known[r][1])
+        if robot not in known:
+            raise ServiceError(
+                404,
+                "unknown-robot",
+                "Unknown robot",
+                f"robot: map {self.record.id!r} has no robot {robot!r}",
+                field="robot",
+            )
+        if self.loc.status(robot) != "tracking":
+            raise ServiceError(
+                409,
+                "not-localised",
+                "Robot not localised",
+                f"robot: {robot!r} is {self.loc.status(robot)}; a place is learnt at a "
+                "tracked pose",
+                field="robot",
+            )
+        place = self.loc.learn(self.slam, robot, stamp=known[robot][1])
+        if place is None:
+            raise ServiceError(
+                409,
+                "too-few-landmarks",
+                "Too few landmarks",
+                f"robot: fewer than {self.loc.localiser.config.places.min_landmarks} mapped "
+                f"landmarks lie within {self.loc.localiser.config.places.max_depth_m} m of "
+                f"{robot!r}",
+                field="robot",
+            )
+        self.snapshot()
+        doc = self.loc.places_doc()
+        return {"map_id": self.record.id, "place": doc["places"][place.id], **doc}
 
     def trajectory(self, robot: str | None = None) -> dict[str, list[dict[str, float]]]:
         return trajectory_doc(self.slam, self.record.id, robot)

@@ -141,6 +141,8 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "trajectory": lambda m, p: _session(m).trajectory(p.get("robot")),
     "landmarks": lambda m, p: _session(m).landmarks(),
     "coverage": lambda m, p: _session(m).coverage(**p),
+    "places": lambda m, p: _session(m).places(),
+    "learn_place": lambda m, p: _session(m).learn_place(p.get("robot")),
     "export": _export,
 }
 

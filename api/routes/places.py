@@ -1,43 +1,39 @@
-"""Places (the particle-filter place localiser): not implemented yet, 501."""
+"""Places of the particle-filter place localiser: list them, learn one now."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter
 
 from api.deps import MapId, ServiceDep
-from api.errors import problem
-from api.models import Problem
+from api.models import PlaceLearnIn, PlaceLearnt, PlacesOut, Problem
 
 router = APIRouter(prefix="/v1/maps/{map_id}/places", tags=["places"])
 
-_501: dict[int | str, dict[str, Any]] = {
-    501: {"model": Problem, "description": "the place localiser arrives with its issue"}
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    404: {"model": Problem, "description": "unknown map or robot"},
+    503: {"model": Problem, "description": "the map's worker is restarting; see Retry-After"},
 }
 
 
-def _not_yet(request: Request) -> JSONResponse:
-    return problem(
-        501,
-        "not-implemented",
-        "Places not implemented",
-        "places: the place localiser (learnt places, transitions, global localisation) "
-        "is not implemented yet",
-        instance=request.url.path,
-    )
+@router.get("", response_model=PlacesOut, responses=_ERRORS)
+async def list_places(map_id: MapId, service: ServiceDep) -> Any:
+    """Learnt places (reference pose, landmarks with bearing, depth and its variance) and
+    the transitions between consecutively visited places."""
+    return await service.query(map_id, "places")
 
 
-@router.get("", responses=_501)
-async def list_places(map_id: MapId, request: Request, service: ServiceDep) -> JSONResponse:
-    """Learnt places and the transitions between them (501 for now)."""
-    service.record(map_id)
-    return _not_yet(request)
-
-
-@router.post("", responses=_501)
-async def learn_place(map_id: MapId, request: Request, service: ServiceDep) -> JSONResponse:
-    """Learn a place at the robot's current pose now (501 for now)."""
-    service.record(map_id)
-    return _not_yet(request)
+@router.post(
+    "",
+    response_model=PlaceLearnt,
+    status_code=201,
+    responses={
+        **_ERRORS,
+        409: {"model": Problem, "description": "robot not localised, or too few landmarks"},
+        422: {"model": Problem, "description": "invalid body"},
+    },
+)
+async def learn_place(map_id: MapId, service: ServiceDep, body: PlaceLearnIn | None = None) -> Any:
+    """Learn a place at a robot's current pose now."""
+    return await service.query(map_id, "learn_place", robot=None if body is None else body.robot)

@@ -162,7 +162,12 @@ def test_idempotent_retry_and_out_of_order(
             422,
             "odometry.dx",
         ),
-        (b'{"robot": "new", "seq": 0, "stamp": 1}', 422, "initial_pose"),
+        (
+            b'{"robot": "new", "seq": 0, "stamp": 1, "initial_pose": {"x": 0, "y": "a", '
+            b'"theta": 0}}',
+            422,
+            "initial_pose.y",
+        ),
         (b'{"robot": "r1", "seq": 999, "stamp": 1e12}', 422, "odometry: is required"),
     ],
 )
@@ -201,7 +206,7 @@ def test_unknown_map_and_bad_config(client: httpx.Client) -> None:
     _problem(raw, 400)
 
 
-def test_places_answer_501_and_image_frames_are_documented(
+def test_image_frames_need_a_camera_and_places_are_documented(
     client: httpx.Client, mapped: tuple[str, list[dict]]
 ) -> None:
     map_id, _ = mapped
@@ -211,8 +216,6 @@ def test_places_answer_501_and_image_frames_are_documented(
         data={"meta": json.dumps({"robot": "r1", "seq": 10**6, "stamp": 1e12})},
     )
     assert _problem(r, 422)["type"].endswith(":no-camera")  # tests/e2e/test_images.py
-    _problem(client.get(f"/v1/maps/{map_id}/places"), 501)
-    _problem(client.post(f"/v1/maps/{map_id}/places"), 501)
     schema = client.get("/openapi.json").json()
     frames_body = schema["paths"]["/v1/maps/{map_id}/frames"]["post"]["requestBody"]["content"]
     assert {"application/json", "multipart/form-data"} <= set(frames_body)

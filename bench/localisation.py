@@ -1,0 +1,404 @@
+"""The place localiser: particle-filter speed, MRCLAM-6 global localisation, kidnapping.
+
+1. PF update time (weighting by 32 bearings, no resampling) and a full step
+   (motion + weighting + resampling when due) for 1000 and 5000 particles.
+2. MRCLAM dataset 6, global localisation without initial pose: from random start
+   frames spread over robots 1-5, the localiser runs on the robot's frames alone.
+   Its map is the surveyed landmark map (Landmark_Groundtruth: 15 landmarks) and
+   places learnt along robot 1's first 300 s at ground-truth poses. Success: the
+   status becomes `relocalised` within `--max-frames` frames and the estimate then
+   lies within 0.5 m and 15 deg of ground truth.
+3. Kidnapping: the whole service pipeline (MapSession: graph + localiser) maps with
+   robot N from its initial pose; 60 s of its frames are cut out (the robot jumps,
+   without odometry for the gap). Frames from the cut until `relocalised`, and the
+   ATE of the reported poses afterwards.
+
+    python -m bench.localisation [--starts 50] [--out bench/results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as dt
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from graph.angles import wrap_angle
+from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
+from graph.particles import FilterConfig, ParticleFilter
+from graph.types import FrameInput, Odometry
+from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.evaluation import Trajectory, interpolate
+from service.frames_io import frame_to_dict
+from service.session import MapSession
+from service.settings import StoreSettings
+from service.store import MapRecord
+
+
+# --------------------------------------------------------------------------- 1. speed
+def pf_timing(n_particles: int, n_landmarks: int = 32, repeats: int = 300) -> dict[str, float]:
+    rng = np.random.default_rng(0)
+    cfg = FilterConfig(max_particles=max(5000, n_particles), resample_ess_fraction=0.0)
+    poses = np.column_stack(
+        [rng.uniform(0, 10, n_particles), rng.uniform(0, 10, n_particles),
+         rng.uniform(-math.pi, math.pi, n_particles)]
+    )  # fmt: skip
+    landmarks = rng.uniform(-5, 15, (n_landmarks, 2))
+    bearings = rng.uniform(-math.pi, math.pi, n_landmarks)
+    pf = ParticleFilter.from_poses(poses, cfg)
+    update = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        pf.update(landmarks, bearings, rng=rng)
+        update.append(time.perf_counter() - t0)
+    full_cfg = FilterConfig(max_particles=n_particles, min_particles=n_particles)
+    pf = ParticleFilter.from_poses(poses, full_cfg)
+    step = []
+    for _ in range(repeats // 3):
+        t0 = time.perf_counter()
+        pf.predict(np.array([0.05, 0.0, 0.01]), dt_s=0.1, rng=rng)
+        pf.update(landmarks, bearings, rng=rng)
+        pf.resample(rng=rng)
+        step.append(time.perf_counter() - t0)
+    return {
+        "particles": n_particles,
+        "landmarks": n_landmarks,
+        "update_ms_median": 1e3 * float(np.median(update)),
+        "update_ms_p90": 1e3 * float(np.percentile(update, 90)),
+        "step_with_resampling_ms_median": 1e3 * float(np.median(step)),
+    }
+
+
+# --------------------------------------------------------------------------- 2. global
+def _truth_at(gt: Trajectory, stamp: float) -> np.ndarray | None:
+    ok, t = interpolate(gt, [stamp], max_gap_s=1.0)
+    if not ok[0]:
+        return None
+    return np.array([t.xy[0, 0], t.xy[0, 1], t.theta[0]])
+
+
+def _errors(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    return float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(float(est[2] - truth[2])))
+
+
+def learn_places(
+    loc: Localiser, frames: list[FrameInput], gt: Trajectory, landmarks: dict, span_s: float
+) -> None:
+    """Places along one robot's run at ground-truth poses (the map-building pass)."""
+    t_end = frames[0].stamp + span_s
+    for f in frames:
+        if f.stamp > t_end:
+            break
+        truth = _truth_at(gt, f.stamp)
+        if truth is None:
+            continue
+        track = loc.robots.get("mapper")
+        if track is not None:
+            track.seen.append(frozenset(o.label for o in f.observations))
+            while len(track.seen) > loc.config.reliability_frames:
+                track.seen.popleft()
+        else:
+            pf = ParticleFilter.from_poses(truth[None, :], loc.config.filter)
+            loc.robots["mapper"] = RobotTrack(pf, TRACKING)
+        if loc.places.should_learn(truth[:2], 1.0):
+            loc.learn("mapper", truth, landmarks, frame=f.seq, stamp=f.stamp)
+    loc.robots.pop("mapper", None)
+    loc.places.last_visited.clear()
+
+
+def global_localisation(
+    directory: Path,
+    starts: int,
+    max_frames: int,
+    seed: int,
+    config: LocaliserConfig | None = None,
+) -> dict[str, Any]:
+    data = {r: load_mrclam(directory, r) for r in range(1, 6)}
+    lm_table = data[1].landmarks
+    assert lm_table is not None
+    landmarks = {str(int(s)): np.array([x, y]) for s, x, y in lm_table}
+    runs = {r: mrclam_frames(data[r]) for r in data}
+    base = Localiser(LocaliserConfig(learn_places=False))
+    learn_places(base, runs[1][0], runs[1][1], landmarks, span_s=300.0)
+    places_blob = base.places
+    rng = np.random.default_rng(seed)
+    rows: list[dict[str, Any]] = []
+    for i in range(starts):
+        robot = 1 + i % 5
+        frames, gt = runs[robot]
+        k0 = int(rng.integers(0, len(frames) - max_frames - 1))
+        cfg = config or LocaliserConfig()
+        loc = Localiser(dataclasses.replace(cfg, learn_places=False), places=places_blob)
+        loc.places.last_visited.clear()
+        prng = np.random.default_rng([seed, i])
+        converged_at = None
+        err = (math.inf, math.inf)
+        t0 = time.perf_counter()
+        for k in range(max_frames):
+            f = frames[k0 + k]
+            odo = None if k == 0 or f.odometry is None else (
+                f.odometry.dx, f.odometry.dy, f.odometry.dtheta
+            )  # fmt: skip
+            res = loc.step(
+                "r",
+                odometry=odo,
+                dt_s=0.0 if k == 0 else f.stamp - frames[k0 + k - 1].stamp,
+                labels=[o.label for o in f.observations],
+                bearings_rad=[o.bearing_rad for o in f.observations],
+                landmarks=landmarks,
+                graph_pose=None,
+                rng=prng,
+            )
+            if res.status == RELOCALISED:
+                truth = _truth_at(gt, f.stamp)
+                if truth is not None:
+                    err = _errors(res.estimate.pose_xytheta, truth)
+                converged_at = k
+                break
+        ok = converged_at is not None and err[0] <= 0.5 and err[1] <= math.radians(15)
+        rows.append(
+            {
+                "robot": robot,
+                "start_frame": k0,
+                "start_stamp": frames[k0].stamp,
+                "frames_to_relocalise": converged_at,
+                "observations_seen": sum(
+                    len(frames[k0 + j].observations)
+                    for j in range((converged_at or max_frames - 1) + 1)
+                ),
+                "error_m": err[0],
+                "error_deg": math.degrees(err[1]),
+                "success": ok,
+                "ms": 1e3 * (time.perf_counter() - t0),
+            }
+        )
+    frames_ok = [r["frames_to_relocalise"] for r in rows if r["success"]]
+    return {
+        "map": "surveyed landmark map (15 landmarks) + places learnt from robot 1, 0-300 s",
+        "places": len(places_blob),
+        "starts": starts,
+        "max_frames": max_frames,
+        "success_rate": float(np.mean([r["success"] for r in rows])),
+        "median_frames_to_relocalise": float(np.median(frames_ok)) if frames_ok else None,
+        "median_error_m": float(np.median([r["error_m"] for r in rows if r["success"]]))
+        if frames_ok
+        else None,
+        "runs": rows,
+    }
+
+
+# --------------------------------------------------------------------------- 3. kidnap
+def _jump(gt: Trajectory, t_from: float, t_to: float) -> float | None:
+    a, b = _truth_at(gt, t_from), _truth_at(gt, t_to)
+    return None if a is None or b is None else float(np.hypot(*(b[:2] - a[:2])))
+
+
+def kidnap(
+    directory: Path, robot: int, before_s: float, cut_s: float, after_s: float
+) -> dict[str, Any]:
+    frames, gt = mrclam_frames(load_mrclam(directory, robot))
+    t0 = frames[0].stamp
+    pre = [f for f in frames if f.stamp < t0 + before_s]
+    post = [f for f in frames if t0 + before_s + cut_s <= f.stamp < t0 + before_s + cut_s + after_s]
+    first = post[0]
+    jump = dataclasses.replace(first, odometry=Odometry(0.0, 0.0, 0.0))  # no odometry for the gap
+    stream = [*pre, jump, *post[1:]]
+    stream = [dataclasses.replace(f, seq=i) for i, f in enumerate(stream)]
+    config = {"landmark_cap": None, "seed": robot}
+    with tempfile.TemporaryDirectory() as tmp:
+        record = MapRecord("k", "kidnap", "mapping", config, time.time())
+        session = MapSession.create(
+            Path(tmp) / "k.sqlite", record, StoreSettings(snapshot_every=10_000)
+        )
+        results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+        session.close()
+    cut = len(pre)
+    statuses = [r["localisation"]["status"] for r in results]
+    lost = next((k for k in range(cut, len(statuses)) if statuses[k] == "lost"), None)
+    reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
+
+    def ate(rows: list[dict]) -> float | None:
+        errs = []
+        for r in rows:
+            truth = _truth_at(gt, r["stamp"])
+            if truth is not None:
+                errs.append(np.hypot(r["pose"]["x"] - truth[0], r["pose"]["y"] - truth[1]))
+        return float(np.sqrt(np.mean(np.square(errs)))) if errs else None
+
+    return {
+        "robot": robot,
+        "frames_before": cut,
+        "frames_after": len(stream) - cut,
+        "cut_s": cut_s,
+        "jump_m": _jump(gt, pre[-1].stamp, first.stamp),
+        "ate_before_m": ate(results[:cut]),
+        "lost_events_before_cut": sum(
+            1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
+        ),
+        "frames_to_lost": None if lost is None else lost - cut,
+        "frames_to_relocalised": None if reloc is None else reloc - cut,
+        "seconds_to_relocalised": None
+        if reloc is None
+        else results[reloc]["stamp"] - results[cut]["stamp"],
+        "ate_after_relocalised_m": None if reloc is None else ate(results[reloc:]),
+        "status_counts_after_cut": {s: statuses[cut:].count(s) for s in set(statuses[cut:])},
+    }
+
+
+def kidnap_localiser(
+    directory: Path, robot: int, before_s: float, cut_s: float, after_s: float, seed: int
+) -> dict[str, Any]:
+    """The localiser alone on the surveyed map: tracking from the true first pose, then
+    the cut. Frames until the filter is converged within 0.5 m and 15 deg of the truth
+    again ("recovered": augmented MCL may recover without the status ever leaving
+    `tracking`), until `lost` and `relocalised` if it got there; ATE afterwards."""
+    data = load_mrclam(directory, robot)
+    assert data.landmarks is not None
+    landmarks = {str(int(s)): np.array([x, y]) for s, x, y in data.landmarks}
+    frames, gt = mrclam_frames(data)
+    t0 = frames[0].stamp
+    pre = [f for f in frames if f.stamp < t0 + before_s]
+    post = [f for f in frames if t0 + before_s + cut_s <= f.stamp < t0 + before_s + cut_s + after_s]
+    loc = Localiser(LocaliserConfig(learn_places=False))
+    rng = np.random.default_rng([seed, robot])
+    statuses: list[str] = []
+    converged: list[bool] = []
+    errors: list[tuple[float, float]] = []
+    stream = [*pre, *post]
+    for k, f in enumerate(stream):
+        odo = None
+        if 0 < k != len(pre) and f.odometry is not None:
+            odo = (f.odometry.dx, f.odometry.dy, f.odometry.dtheta)
+        truth = _truth_at(gt, f.stamp)
+        start = None
+        if k == 0:
+            assert truth is not None
+            start = (truth, np.diag([1e-4, 1e-4, 1e-4]))
+        res = loc.step(
+            "r",
+            odometry=odo,
+            dt_s=0.0 if k == 0 else max(f.stamp - stream[k - 1].stamp, 0.0),
+            labels=[o.label for o in f.observations],
+            bearings_rad=[o.bearing_rad for o in f.observations],
+            landmarks=landmarks,
+            graph_pose=start,
+            rng=rng,
+        )
+        statuses.append(res.status)
+        converged.append(res.estimate.converged)
+        errors.append(
+            _errors(res.estimate.pose_xytheta, truth) if truth is not None else (math.nan,) * 2
+        )
+    cut = len(pre)
+    lost = next((k for k in range(cut, len(stream)) if statuses[k] == "lost"), None)
+    reloc = next((k for k in range(cut, len(stream)) if statuses[k] == RELOCALISED), None)
+    recovered = next(
+        (
+            k
+            for k in range(cut, len(stream))
+            if converged[k] and errors[k][0] <= 0.5 and errors[k][1] <= math.radians(15)
+        ),
+        None,
+    )
+    after = np.array([e[0] for e in errors[reloc:] if not math.isnan(e[0])]) if reloc else None
+    since = (
+        np.array([e[0] for e in errors[recovered:] if not math.isnan(e[0])]) if recovered else None
+    )
+    return {
+        "robot": robot,
+        "frames_before": cut,
+        "jump_m": _jump(gt, pre[-1].stamp, post[0].stamp),
+        "lost_events_before_cut": sum(
+            1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
+        ),
+        "ate_before_cut_m": float(np.sqrt(np.nanmean(np.square([e[0] for e in errors[:cut]])))),
+        "error_after_cut_m": errors[cut][0],
+        "frames_to_recovered": None if recovered is None else recovered - cut,
+        "seconds_to_recovered": None
+        if recovered is None
+        else stream[recovered].stamp - post[0].stamp,
+        "ate_after_recovered_m": None
+        if since is None or not len(since)
+        else float(np.sqrt(np.mean(since**2))),
+        "frames_to_lost": None if lost is None else lost - cut,
+        "frames_to_relocalised": None if reloc is None else reloc - cut,
+        "seconds_to_relocalised": None if reloc is None else stream[reloc].stamp - post[0].stamp,
+        "error_at_relocalised_m": None if reloc is None else errors[reloc][0],
+        "error_at_relocalised_deg": None if reloc is None else math.degrees(errors[reloc][1]),
+        "ate_after_relocalised_m": None
+        if after is None or not len(after)
+        else float(np.sqrt(np.mean(after**2))),
+    }
+
+
+# --------------------------------------------------------------------------- main
+def plot(doc: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    t = doc["pf_timing"]
+    axes[0].bar([str(r["particles"]) for r in t], [r["update_ms_median"] for r in t])
+    axes[0].axhline(0.5, color="r", ls="--", label="goal 0.5 ms (1000 x 32)")
+    axes[0].set_xlabel("particles (32 landmarks)")
+    axes[0].set_ylabel("PF update, median ms")
+    axes[0].legend()
+    g = doc["global"]
+    frames = [r["frames_to_relocalise"] for r in g["runs"] if r["success"]]
+    axes[1].hist(frames, bins=20)
+    axes[1].set_xlabel("frames to relocalised (successful starts)")
+    axes[1].set_title(
+        f"MRCLAM-6 global localisation: {100 * g['success_rate']:.0f} % of {g['starts']}"
+    )
+    errs = [r["error_m"] for r in g["runs"] if r["frames_to_relocalise"] is not None]
+    axes[2].hist(np.minimum(errs, 3.0), bins=30)
+    axes[2].axvline(0.5, color="r", ls="--")
+    axes[2].set_xlabel("position error at relocalisation, m (clipped at 3)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--starts", type=int, default=50)
+    parser.add_argument("--max-frames", type=int, default=150)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--kidnap-robots", type=int, nargs="*", default=[1, 2, 3, 4, 5])
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--data", type=Path, default=None)
+    args = parser.parse_args()
+    directory = args.data or default_mrclam_dir()
+    doc: dict[str, Any] = {
+        "when": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "pf_timing": [pf_timing(1000), pf_timing(5000)],
+    }
+    print(json.dumps(doc["pf_timing"], indent=1))
+    doc["global"] = global_localisation(directory, args.starts, args.max_frames, args.seed)
+    print({k: v for k, v in doc["global"].items() if k != "runs"})
+    doc["kidnap_localiser"] = [
+        kidnap_localiser(directory, r, 120.0, 60.0, 120.0, args.seed) for r in args.kidnap_robots
+    ]
+    for row in doc["kidnap_localiser"]:
+        print(row)
+    doc["kidnap_service"] = [kidnap(directory, r, 120.0, 60.0, 120.0) for r in args.kidnap_robots]
+    for row in doc["kidnap_service"]:
+        print(row)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "localisation.json").write_text(json.dumps(doc, indent=1))
+    plot(doc, args.out / "localisation.png")
+
+
+if __name__ == "__main__":
+    main()

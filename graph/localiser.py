@@ -1,0 +1,354 @@
+"""The place localiser: one particle filter per robot, the map's places, the status.
+
+Per frame and robot, `Localiser.step` moves the robot's filter by the odometry,
+weights it by the labelled bearings to landmarks whose map position is known (the
+graph's live landmarks), recognises places, and runs the status machine:
+
+- a robot that arrives without an initial pose is ``initialising``: its filter
+  starts from a proposal (positions around the best-recognised places and over the
+  map's extent, each heading drawn so that one observed landmark lies at its
+  observed bearing); once the filter has been converged for ``confirm_frames``
+  frames the status is ``relocalised`` and the step asks the caller to anchor the
+  robot's pose chain at the filter's estimate (with its covariance as the prior);
+  the next frame is ``tracking``;
+- while ``tracking``, the graph's pose and the filter's estimate are compared by
+  the Mahalanobis distance under the sum of their covariances; beyond the gate
+  for ``lost_frames`` consecutive frames the robot is ``lost`` -- and so it is when
+  the filter's fast likelihood average stays far below its slow one (the
+  observations stopped fitting the map): the caller stops feeding the graph's
+  chain and the filter re-localises as above.
+
+Augmented MCL injects particles from the same proposal when the filter's
+likelihood drops (see graph.particles). Pure: no service, no settings; the caller
+passes an ``rng``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.angles import wrap_angles
+from graph.particles import FilterConfig, FilterEstimate, Injector, ParticleFilter
+from graph.places import LandmarkCandidate, Place, PlaceConfig, PlaceMap, Recognition
+from graph.types import Pose2D
+
+FloatArray = NDArray[np.float64]
+
+INITIALISING = "initialising"
+TRACKING = "tracking"
+LOST = "lost"
+RELOCALISED = "relocalised"
+
+
+@dataclass(frozen=True, slots=True)
+class LocaliserConfig:
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    places: PlaceConfig = field(default_factory=PlaceConfig)
+    top_places: int = 3
+    """Places the injection proposal draws around (by recognition score)."""
+    place_sigma_m: float = 0.75
+    """Position spread of proposals around a place's reference position."""
+    uniform_share: float = 0.3
+    """Share of proposals drawn over the whole map extent even when places are known."""
+    heading_sigma_rad: float = math.radians(3.0)
+    map_margin_m: float = 1.0
+    """The map extent is the landmarks' bounding box grown by this margin."""
+    confirm_frames: int = 3
+    """Consecutive converged frames before a robot is relocalised."""
+    lost_gate: float = 16.27
+    """Squared Mahalanobis gate of graph vs filter (chi^2, 3 dof, 99.9 %)."""
+    lost_frames: int = 5
+    """Consecutive frames beyond the gate before a tracking robot is lost."""
+    lost_sigma_floor: tuple[float, float, float] = (0.3, 0.3, math.radians(10.0))
+    """Sigmas (m, m, rad) added in quadrature to both covariances in the gate: a map
+    a few decimetres off is not a lost robot (graph and filter are both confident and
+    each a little wrong); with the default gate, ~1.2 m or ~40 deg of disagreement."""
+    lost_likelihood_ratio: float = 0.3
+    """Also lost: the filter's fast likelihood average below this share of the slow one
+    for lost_frames consecutive frames with observations (the observations no longer fit
+    the map around the believed pose -- also when no graph pose is given)."""
+    reliability_frames: int = 30
+    """Recent frames over which a landmark's dynamic reliability is counted."""
+    reliability_floor: float = 0.1
+    """Reliability of a mapped landmark not seen lately (a narrow-FOV camera sees few
+    directions at a time; the floor keeps places spread over all directions)."""
+    learn_places: bool = True
+    """Learn a place automatically when far from every place or recognition is weak."""
+
+
+@dataclass(frozen=True, slots=True)
+class StepResult:
+    status: str
+    estimate: FilterEstimate
+    place: int | None
+    confidence: float
+    anchor: bool
+    """True on the frame the robot is relocalised: anchor its chain at the estimate."""
+    learnt: Place | None = None
+
+
+@dataclass
+class RobotTrack:
+    pf: ParticleFilter
+    status: str
+    converged_frames: int = 0
+    disagree_frames: int = 0
+    weak_frames: int = 0
+    lost_reason: str | None = None
+    lost_count: int = 0
+    seen: deque[frozenset[str]] = field(default_factory=deque)
+
+
+def _bounds(landmarks: Mapping[str, FloatArray], margin: float) -> tuple[float, ...]:
+    xy = np.array(list(landmarks.values()), dtype=np.float64).reshape(-1, 2)
+    if len(xy) == 0:
+        return (-margin, -margin, margin, margin)
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+@dataclass
+class Localiser:
+    """Filters per robot and the map's places (see the module docstring)."""
+
+    config: LocaliserConfig = field(default_factory=LocaliserConfig)
+    places: PlaceMap = field(default_factory=PlaceMap)
+    robots: dict[str, RobotTrack] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.places.places:
+            self.places = PlaceMap(self.config.places)
+
+    # ------------------------------------------------------------ proposals
+    def proposal(
+        self,
+        recognition: Recognition,
+        landmarks_xy: FloatArray,
+        bearings_rad: FloatArray,
+        bounds: Sequence[float],
+    ) -> Injector:
+        """Poses around the top-ranked places (and over the map extent), each heading
+        such that one observed landmark lies at its observed bearing."""
+        cfg = self.config
+        ranked = [
+            (int(p), float(s), float(d))
+            for p, s, d in zip(
+                recognition.place_ids[: cfg.top_places],
+                recognition.scores[: cfg.top_places],
+                recognition.yaw_offsets_rad[: cfg.top_places],
+                strict=True,
+            )
+            if s > 0
+        ]
+        lo = np.array(bounds[:2], dtype=np.float64)
+        hi = np.array(bounds[2:], dtype=np.float64)
+        places = self.places.places
+
+        def draw(n: int, rng: np.random.Generator) -> FloatArray:
+            out = np.empty((n, 3))
+            n_place = round(n * (1.0 - cfg.uniform_share)) if ranked else 0
+            out[n_place:, :2] = lo + rng.random((n - n_place, 2)) * (hi - lo)
+            out[n_place:, 2] = rng.uniform(-math.pi, math.pi, n - n_place)
+            if n_place:
+                scores = np.array([s for _, s, _ in ranked])
+                pick = rng.choice(len(ranked), size=n_place, p=scores / scores.sum())
+                ref = np.array(
+                    [
+                        [places[p].pose.x, places[p].pose.y, places[p].pose.theta - d]
+                        for p, _, d in ranked
+                    ]
+                )[pick]
+                out[:n_place, :2] = ref[:, :2] + rng.normal(0, cfg.place_sigma_m, (n_place, 2))
+                out[:n_place, 2] = ref[:, 2] + rng.normal(0, 0.3, n_place)
+            if len(bearings_rad):
+                j = rng.integers(0, len(bearings_rad), n)
+                d = landmarks_xy[j] - out[:, :2]
+                out[:, 2] = (
+                    np.arctan2(d[:, 1], d[:, 0])
+                    - bearings_rad[j]
+                    + rng.normal(0, cfg.heading_sigma_rad, n)
+                )
+            out[:, 2] = wrap_angles(out[:, 2])
+            return out
+
+        return draw
+
+    # ------------------------------------------------------------ the step
+    def step(
+        self,
+        robot: str,
+        *,
+        odometry: Sequence[float] | None,
+        dt_s: float,
+        labels: Sequence[str],
+        bearings_rad: Sequence[float],
+        landmarks: Mapping[str, FloatArray],
+        graph_pose: tuple[FloatArray, FloatArray] | None,
+        rng: np.random.Generator,
+        quality: Sequence[float] | None = None,
+        frame: int = -1,
+        stamp: float = 0.0,
+        covariances: Callable[[], Mapping[str, FloatArray]] | None = None,
+        ids: Mapping[str, int] | None = None,
+    ) -> StepResult:
+        """One frame of one robot.
+
+        `landmarks` maps label -> map position (2,) of the landmarks the filter may use;
+        `graph_pose` is (pose (3,), covariance (3, 3), map frame) of the graph's estimate
+        for this frame, or None while the graph does not track the robot (initialising,
+        lost). `ids` maps labels to landmark ids; `covariances` gives the landmarks'
+        (2, 2) covariances when a place is learnt (computed only then).
+        """
+        cfg = self.config
+        known = [i for i, label in enumerate(labels) if label in landmarks]
+        lm_xy = np.array([landmarks[labels[i]] for i in known], dtype=np.float64).reshape(-1, 2)
+        z = np.array([bearings_rad[i] for i in known], dtype=np.float64)
+        q = None if quality is None else np.array([quality[i] for i in known])
+        track = self.robots.get(robot)
+        current = self.places.last_visited.get(robot)
+        if track is not None and track.status != TRACKING:
+            current = None  # lost or initialising: no prior from the last place
+        recognition = self.places.recognise(
+            [labels[i] for i in known], z.tolist(), None if q is None else q.tolist(),
+            current=current,
+        )  # fmt: skip
+        bounds = _bounds(landmarks, cfg.map_margin_m)
+        injector = self.proposal(recognition, lm_xy, z, bounds)
+        if track is None:
+            if graph_pose is not None:
+                pf = ParticleFilter.around(
+                    graph_pose[0],
+                    (0.05, 0.05, math.radians(2.0)),
+                    cfg.filter,
+                    rng=rng,
+                    n=cfg.filter.min_particles,
+                )
+                track = RobotTrack(pf, TRACKING)
+            else:
+                pf = ParticleFilter.from_poses(injector(cfg.filter.max_particles, rng), cfg.filter)
+                track = RobotTrack(pf, INITIALISING)
+            self.robots[robot] = track
+        elif odometry is not None:
+            track.pf.predict(np.asarray(odometry, dtype=np.float64), dt_s=dt_s, rng=rng)
+        if len(z):
+            track.pf.update(lm_xy, z, q, rng=rng, injector=injector)
+        est = track.pf.estimate()
+        track.seen.append(frozenset(labels))
+        while len(track.seen) > cfg.reliability_frames:
+            track.seen.popleft()
+
+        anchor = False
+        if track.status == RELOCALISED:
+            track.status = TRACKING
+        if track.status == TRACKING and len(z):
+            weak = track.pf.w_fast < cfg.lost_likelihood_ratio * track.pf.w_slow
+            track.weak_frames = track.weak_frames + 1 if weak else 0
+        if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
+            # The belief no longer explains what the robot sees: search afresh.
+            track.status = LOST
+            track.lost_reason = "observations no longer fit the map"
+            track.converged_frames = track.disagree_frames = track.weak_frames = 0
+            track.lost_count += 1
+            track.pf = ParticleFilter.from_poses(
+                injector(cfg.filter.max_particles, rng), cfg.filter
+            )
+            est = track.pf.estimate()
+        elif track.status == TRACKING and graph_pose is not None:
+            e = np.asarray(graph_pose[0], dtype=np.float64) - est.pose_xytheta
+            e[2] = float(wrap_angles(e[2]))
+            s = (
+                np.asarray(graph_pose[1], dtype=np.float64)
+                + est.covariance
+                + np.diag(np.square(cfg.lost_sigma_floor))
+            )
+            d2 = float(e @ np.linalg.solve(s, e))
+            track.disagree_frames = track.disagree_frames + 1 if d2 > cfg.lost_gate else 0
+            if track.disagree_frames >= cfg.lost_frames:
+                track.status = LOST
+                track.lost_reason = "graph and filter disagree"
+                track.lost_count += 1
+                track.converged_frames = 0
+                track.disagree_frames = 0
+        elif track.status in (INITIALISING, LOST):
+            # Only frames with observations confirm: without, the belief just drifts.
+            if not est.converged:
+                track.converged_frames = 0
+            elif len(z):
+                track.converged_frames += 1
+            if track.converged_frames >= cfg.confirm_frames:
+                track.status = RELOCALISED
+                track.converged_frames = 0
+                anchor = True
+
+        place, confidence = recognition.best, recognition.best_score
+        learnt = None
+        if track.status in (TRACKING, RELOCALISED):
+            near, dist = self.places.nearest(est.pose_xytheta[:2])
+            if near is not None and dist <= cfg.places.learn_distance_m:
+                place = near
+                self.places.visit(robot, near)
+            if cfg.learn_places and self.places.should_learn(
+                est.pose_xytheta[:2], recognition.best_score
+            ):
+                learnt = self.learn(
+                    robot,
+                    est.pose_xytheta,
+                    landmarks,
+                    frame=frame,
+                    stamp=stamp,
+                    covariances=None if covariances is None else covariances(),
+                    ids=ids,
+                )
+                if learnt is not None:
+                    place = learnt.id
+        if track.status in (INITIALISING, LOST):
+            confidence = min(confidence, float(est.converged))
+        return StepResult(track.status, est, place, confidence, anchor, learnt)
+
+    def learn(
+        self,
+        robot: str,
+        pose_xytheta: FloatArray,
+        landmarks: Mapping[str, FloatArray],
+        *,
+        frame: int,
+        stamp: float,
+        covariances: Mapping[str, FloatArray] | None = None,
+        ids: Mapping[str, int] | None = None,
+    ) -> Place | None:
+        """Learn a place at `pose_xytheta` from the mapped landmarks; reliability from the
+        robot's recent frames (floored, see LocaliserConfig.reliability_floor)."""
+        cfg = self.config
+        track = self.robots.get(robot)
+        recent = list(track.seen) if track is not None else []
+        candidates = []
+        for label, xy in landmarks.items():
+            share = sum(label in s for s in recent) / len(recent) if recent else 0.0
+            cov = (
+                covariances[label]
+                if covariances is not None and label in covariances
+                else np.eye(2) * 0.01
+            )
+            candidates.append(
+                LandmarkCandidate(
+                    label,
+                    -1 if ids is None else ids.get(label, -1),
+                    (float(xy[0]), float(xy[1])),
+                    np.asarray(cov, dtype=np.float64),
+                    max(cfg.reliability_floor, share),
+                )
+            )
+        pose = Pose2D(*(float(v) for v in pose_xytheta))
+        place = self.places.learn(pose, candidates, robot=robot, frame=frame, stamp=stamp)
+        if place is not None:
+            self.places.visit(robot, place.id)
+        return place
+
+    def forget_robot(self, robot: str) -> None:
+        self.robots.pop(robot, None)

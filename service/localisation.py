@@ -1,0 +1,233 @@
+"""The place localiser wired to one map's estimator (DESIGN.md, frame step 6).
+
+`MapLocalisation.process(slam, frame)` decides per frame whether the graph takes
+it: a robot with an initial pose, or one that is tracking, goes through the graph
+first and then through its particle filter (which watches for disagreement); a
+robot that is initialising or lost only moves its filter, until the filter is
+converged and the graph's chain is anchored at its estimate (``relocalised``).
+The whole object pickles; the session keeps it in its snapshots.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.localiser import LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
+from graph.places import Place
+from graph.slam import BearingSlam, FrameOutcome
+from graph.snapshot import last_accepted, latest_pose_keys
+from graph.types import FrameInput, Pose2D
+
+FloatArray = NDArray[np.float64]
+
+
+def _rotation(theta: float) -> FloatArray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def to_map_frame(cov_robot: FloatArray, theta: float) -> FloatArray:
+    """(3, 3) covariance of (x, y, theta) in the robot frame -> in the map frame."""
+    r = _rotation(theta)
+    return np.asarray(r @ np.asarray(cov_robot) @ r.T)
+
+
+def to_robot_frame(cov_map: FloatArray, theta: float) -> FloatArray:
+    r = _rotation(theta)
+    return np.asarray(r.T @ np.asarray(cov_map) @ r)
+
+
+@dataclass(frozen=True, slots=True)
+class Localised:
+    """One frame through the localiser: the graph's outcome (None when the graph did
+    not take the frame) and what the frame result reports."""
+
+    robot: str
+    seq: int
+    stamp: float
+    outcome: FrameOutcome | None
+    status: str
+    place: int | None
+    confidence: float | None
+    pose: Pose2D
+    covariance: FloatArray
+    """(3, 3) covariance of (x, y, theta) in the robot frame (as the graph reports it)."""
+    learnt: Place | None
+    ms: float
+
+
+class MapLocalisation:
+    """The map's place localiser, its rng, and each robot's last accepted frame."""
+
+    def __init__(self, seed: int, config: LocaliserConfig | None = None) -> None:
+        self.localiser = Localiser(config or LocaliserConfig())
+        self.rng = np.random.default_rng([seed, 5])
+        self.last: dict[str, tuple[int, float]] = {}
+
+    def last_accepted(self, slam: BearingSlam) -> dict[str, tuple[int, float]]:
+        """(seq, stamp) of each robot's last accepted frame, graph or filter only."""
+        out = last_accepted(slam)
+        out.update(self.last)
+        return out
+
+    def status(self, robot: str) -> str:
+        track = self.localiser.robots.get(robot)
+        return TRACKING if track is None else track.status
+
+    @staticmethod
+    def landmark_map(slam: BearingSlam) -> dict[str, FloatArray]:
+        return {rec.label: slam.landmark_position(lid) for lid, rec in slam.landmarks.items()}
+
+    def process(self, slam: BearingSlam, frame: FrameInput) -> Localised:
+        """One frame of one robot (validated by the caller against `last_accepted`)."""
+        track = self.localiser.robots.get(frame.robot)
+        feeds_graph = (track is None or track.status in (TRACKING, RELOCALISED)) and (
+            frame.robot in slam.robots or frame.initial_pose is not None
+        )
+        outcome = None
+        graph_pose = None
+        if feeds_graph:
+            outcome = slam.process(frame, with_covariance=True)
+            assert outcome.covariance is not None
+            p = outcome.pose
+            graph_pose = (
+                np.array([p.x, p.y, p.theta]),
+                to_map_frame(outcome.covariance, p.theta),
+            )
+        t0 = time.perf_counter()
+        prev = self.last.get(frame.robot)
+        odo = frame.odometry
+        odometry = None if odo is None or prev is None else (odo.dx, odo.dy, odo.dtheta)
+        result = self.localiser.step(
+            frame.robot,
+            odometry=odometry,
+            dt_s=0.0 if prev is None else frame.stamp - prev[1],
+            labels=[o.label for o in frame.observations],
+            bearings_rad=[o.bearing_rad for o in frame.observations],
+            landmarks=self.landmark_map(slam),
+            graph_pose=graph_pose,
+            rng=self.rng,
+            frame=slam.frame_count,
+            stamp=frame.stamp,
+            covariances=lambda: self._landmark_covariances(slam),
+            ids={rec.label: lid for lid, rec in slam.landmarks.items()},
+        )
+        ms = 1e3 * (time.perf_counter() - t0)
+        est = result.estimate
+        if result.anchor:
+            anchor = (Pose2D(*(float(v) for v in est.pose_xytheta)), est.covariance)
+            outcome = slam.process(frame, with_covariance=True, anchor=anchor)
+        self.last[frame.robot] = (frame.seq, frame.stamp)
+        if outcome is not None and result.status != LOST:
+            assert outcome.covariance is not None
+            pose, cov = outcome.pose, np.asarray(outcome.covariance)
+        else:
+            pose = Pose2D(*(float(v) for v in est.pose_xytheta))
+            cov = to_robot_frame(est.covariance, pose.theta)
+        return Localised(
+            frame.robot,
+            frame.seq,
+            frame.stamp,
+            outcome,
+            result.status,
+            result.place,
+            result.confidence,
+            pose,
+            cov,
+            result.learnt,
+            ms,
+        )
+
+    def graph_only(self, frame: FrameInput, outcome: FrameOutcome) -> Localised:
+        """A frame the graph took by another route (an image frame, whose observations
+        come from the front end's association): the filter is not stepped and the
+        robot is reported as tracking. The place localiser runs on labelled frames."""
+        self.last[frame.robot] = (frame.seq, frame.stamp)
+        assert outcome.covariance is not None
+        return Localised(
+            frame.robot,
+            frame.seq,
+            frame.stamp,
+            outcome,
+            TRACKING,
+            None,
+            None,
+            outcome.pose,
+            np.asarray(outcome.covariance),
+            None,
+            0.0,
+        )
+
+    @staticmethod
+    def _landmark_covariances(slam: BearingSlam) -> dict[str, FloatArray]:
+        ids = sorted(slam.landmarks)
+        if not ids:
+            return {}
+        covs = slam.landmark_covariances(ids)
+        return {slam.landmarks[i].label: covs[k] for k, i in enumerate(ids)}
+
+    # ------------------------------------------------------------ places
+    def learn(self, slam: BearingSlam, robot: str, *, stamp: float) -> Place | None:
+        """Learn a place at `robot`'s current pose (the graph's, or the filter's when the
+        graph does not track it); None when too few landmarks qualify."""
+        landmarks = self.landmark_map(slam)
+        track = self.localiser.robots.get(robot)
+        if robot in slam.robots and (track is None or track.status == TRACKING):
+            p = slam.graph.pose(latest_pose_keys(slam)[robot])
+            pose = np.array([p.x(), p.y(), p.theta()])
+        else:
+            assert track is not None
+            pose = track.pf.estimate().pose_xytheta
+        ids = {rec.label: lid for lid, rec in slam.landmarks.items()}
+        return self.localiser.learn(
+            robot,
+            pose,
+            landmarks,
+            frame=slam.frame_count,
+            stamp=stamp,
+            covariances=self._landmark_covariances(slam),
+            ids=ids,
+        )
+
+    def places_doc(self) -> dict[str, Any]:
+        places = self.localiser.places
+        return {
+            "places": [
+                {
+                    "id": p.id,
+                    "pose": {"x": p.pose.x, "y": p.pose.y, "theta": p.pose.theta},
+                    "robot": p.robot,
+                    "frame": p.frame,
+                    "stamp": p.stamp,
+                    "landmarks": [
+                        {
+                            "label": lm.label,
+                            "landmark_id": lm.landmark_id,
+                            "bearing": lm.bearing_rad,
+                            "depth": lm.depth_m,
+                            "depth_variance": lm.depth_var_m2,
+                            "uniqueness": lm.uniqueness,
+                            "reliability": lm.reliability,
+                        }
+                        for lm in p.landmarks
+                    ],
+                }
+                for p in places.places
+            ],
+            "transitions": [
+                {
+                    "source": t.source,
+                    "target": t.target,
+                    "heading": t.heading_rad,
+                    "distance": t.distance_m,
+                    "count": t.count,
+                }
+                for t in places.transitions.values()
+            ],
+        }

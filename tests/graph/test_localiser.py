@@ -1,0 +1,74 @@
+"""The localiser's status machine on a small synthetic world (forward-looking sensor)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from graph.angles import wrap_angle
+from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser
+from tests.graph.test_particles import LANDMARKS, _circle_pose, _observe, _odometry
+
+WORLD = {str(i): xy for i, xy in enumerate(LANDMARKS)}
+LABEL_OF = {tuple(xy): str(i) for i, xy in enumerate(LANDMARKS)}
+
+
+def _frame(pose: np.ndarray, rng: np.random.Generator) -> tuple[list[str], list[float]]:
+    lm, z = _observe(pose, rng)
+    return [LABEL_OF[tuple(xy)] for xy in lm], z.tolist()
+
+
+def test_initialising_relocalised_tracking_lost_and_back() -> None:
+    rng, world = np.random.default_rng(0), np.random.default_rng(1)
+    loc = Localiser()
+    statuses: list[str] = []
+    previous = None
+    graph = None  # the graph's pose: dead reckoning from the anchor (it never sees the kidnap)
+    kidnap = 60
+    errors = []
+    for k in range(140):
+        truth = _circle_pose(k) if k < kidnap else _circle_pose(k, centre=(4.2, 4.6))
+        odo = None
+        if previous is not None:
+            nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
+            odo = _odometry(previous, nominal)
+            if graph is not None:
+                c, s = math.cos(graph[2]), math.sin(graph[2])
+                graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+        labels, z = _frame(truth, world)
+        result = loc.step(
+            "r1",
+            odometry=odo,
+            dt_s=0.2,
+            labels=labels,
+            bearings_rad=z,
+            landmarks=WORLD,
+            graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
+            rng=rng,
+            frame=k,
+            stamp=0.2 * k,
+        )
+        statuses.append(result.status)
+        if result.anchor:
+            graph = result.estimate.pose_xytheta.copy()
+            est = result.estimate.pose_xytheta
+            errors.append(
+                (k, float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(est[2] - truth[2])))
+            )
+        if result.status == LOST:
+            graph = None
+        previous = truth
+    assert statuses[0] == INITIALISING
+    first = statuses.index(RELOCALISED)
+    assert first <= 20
+    assert statuses[first + 1] == TRACKING
+    assert statuses[kidnap - 1] == TRACKING
+    lost = statuses.index(LOST, kidnap)
+    assert lost - kidnap <= 15
+    again = statuses.index(RELOCALISED, lost)
+    assert statuses[-1] == TRACKING
+    assert len(errors) == 2 and errors[1][0] == again
+    for _, dist, yaw in errors:
+        assert dist < 0.3 and yaw < math.radians(8)
+    assert len(loc.places) >= 1  # learnt automatically while tracking
