@@ -265,6 +265,25 @@ class MapStore:
     def frame_count(self) -> int:
         return int(self._conn.execute("SELECT count(*) FROM frames").fetchone()[0])
 
+    def frame_stats(self) -> list[tuple[int, str, int, int, int, float | None, str | None]]:
+        """Figures of every processed frame from its stored result, in log order.
+
+        Rows ``(frame_id, robot, seq, live, marginalised, total_ms, covariance_json)``:
+        live landmarks after the frame, how many the budget marginalised after it, the
+        estimator's time (``timing_ms.total``, milliseconds) and the pose covariance as
+        JSON text (null when the result had none). Read by SQLite, not parsed here.
+        """
+        rows = self._conn.execute(
+            "SELECT id, robot, seq, json_extract(result, '$.landmarks.live'), "
+            "json_array_length(result, '$.landmarks.marginalised'), "
+            "json_extract(result, '$.timing_ms.total'), json_extract(result, '$.covariance') "
+            "FROM frames WHERE result IS NOT NULL ORDER BY id"
+        ).fetchall()
+        return [
+            (int(i), str(r), int(q), int(live or 0), int(m or 0), t, c)
+            for i, r, q, live, m, t, c in rows
+        ]
+
     # snapshots
     def save_snapshot(self, upto: int, state: bytes, *, keep: int) -> None:
         with transaction(self._conn):

@@ -1,4 +1,5 @@
-"""Read-only views of a map for the API: poses, trajectories, landmarks, coverage.
+"""Read-only views of a map for the API: poses, trajectories (with frame figures),
+landmarks, coverage.
 
 Functions of the estimator (and the store, for the removal log); units metres,
 radians, seconds; covariances as nested lists, row-major.
@@ -7,6 +8,7 @@ radians, seconds; covariances as nested lists, row-major.
 from __future__ import annotations
 
 import io
+import json
 from typing import Any
 
 import numpy as np
@@ -58,6 +60,38 @@ def trajectory_doc(
             for r in rows.tolist()
         ]
     return out
+
+
+def attach_frame_stats(
+    robots: dict[str, list[dict[str, Any]]],
+    stats: list[tuple[int, str, int, int, int, float | None, str | None]],
+    *,
+    every: int,
+) -> None:
+    """Add frame figures to every `every`-th pose of each robot and to its latest, in place.
+
+    `stats` are `MapStore.frame_stats` rows in log order. Each chosen trajectory row
+    gains ``frame_id``, ``covariance`` (3x3, as the frame's result reported it when the
+    frame was processed), ``live``, ``uncapped`` (live + landmarks the budget had
+    marginalised up to and including that frame: the count without the cap) and ``ms``.
+    """
+    if every <= 0 or not stats:
+        return
+    marginalised = np.cumsum([row[4] for row in stats])
+    by_key = {(row[1], row[2]): (k, row) for k, row in enumerate(stats)}
+    for name, rows in robots.items():
+        for i, point in enumerate(rows):
+            if i % every and i != len(rows) - 1:
+                continue
+            hit = by_key.get((name, int(point["seq"])))
+            if hit is None:
+                continue
+            k, (frame_id, _, _, live, _, total_ms, cov) = hit
+            point["frame_id"] = frame_id
+            point["covariance"] = None if cov is None else json.loads(cov)
+            point["live"] = live
+            point["uncapped"] = live + int(marginalised[k])
+            point["ms"] = total_ms
 
 
 def landmark_table(slam: BearingSlam) -> tuple[LandmarkTable, np.ndarray]:

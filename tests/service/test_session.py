@@ -111,3 +111,33 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(tmp_path: Path) -> None:
     reopened = MapSession(path, StoreSettings(snapshot_every=10))
     assert reopened.loaded_from_snapshot == 50  # forced at 5 x snapshot_every
     assert reopened.slam.frame_count == 55
+
+
+def test_trajectory_stats_agree_with_the_frame_results(tmp_path: Path) -> None:
+    session = _new(tmp_path / "m1.sqlite")
+    results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:60]]
+    plain = session.trajectory()["r1"]
+    rows = session.trajectory(stats_every=7)["r1"]
+    assert [{k: p[k] for k in ("seq", "x", "y")} for p in rows] == [
+        {k: p[k] for k in ("seq", "x", "y")} for p in plain
+    ]
+    assert all("frame_id" not in p for p in plain)
+    picked = [i for i, p in enumerate(rows) if "frame_id" in p]
+    assert picked == [*range(0, 60, 7), 59]  # every 7th and the latest
+    assert sum(len(r["landmarks"]["marginalised"]) for r in results) > 0  # the cap bit
+    for i in picked:
+        point, result = rows[i], results[i]
+        assert point["frame_id"] == result["frame_id"]
+        assert point["covariance"] == result["covariance"]
+        assert point["live"] == result["landmarks"]["live"]
+        assert point["ms"] == result["timing_ms"]["total"]
+        removed = sum(len(r["landmarks"]["marginalised"]) for r in results[: i + 1])
+        assert point["uncapped"] == result["landmarks"]["live"] + removed
+    # uncapped = every landmark initialised so far (ids are never reused). A landmark
+    # the budget removes in the frame that initialised it is only in `marginalised`.
+    seen = {lid for r in results for k in ("added", "marginalised") for lid in r["landmarks"][k]}
+    assert (
+        rows[-1]["uncapped"]
+        == len(seen)
+        == session.store.removal_count() + len(session.slam.landmarks)
+    )
