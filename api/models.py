@@ -219,8 +219,9 @@ class TrajectoryPoint(BaseModel):
     live: int | None = Field(None, description="(stats_every) live landmarks after the frame")
     uncapped: int | None = Field(
         None,
-        description="(stats_every) landmarks there would be without the cap: live + those "
-        "the budget had marginalised up to this frame",
+        description="(stats_every) landmarks there would be without the cap: distinct labels "
+        "among the landmarks initialised up to this frame (one re-initialised after its "
+        "removal counts once)",
     )
     ms: float | None = Field(
         None, description="(stats_every) estimator time for the frame (timing_ms.total), ms"

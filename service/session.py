@@ -365,7 +365,9 @@ class MapSession:
             trajectory_doc(self.slam, self.record.id, robot)
         )
         if stats_every > 0:
-            attach_frame_stats(rows, self.store.frame_stats(), every=stats_every)
+            labels = self.store.removed_labels()
+            labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())
+            attach_frame_stats(rows, self.store.frame_stats(), labels, every=stats_every)
         return rows
 
     def landmarks(self) -> list[dict[str, Any]]:

@@ -19,7 +19,7 @@ from graph.snapshot import last_accepted, latest_pose_keys
 from service.coverage import coverage_grid
 from service.errors import ServiceError
 from service.evaluation import Trajectory, write_tum
-from service.store import MapStore
+from service.store import FrameFigures, MapStore
 
 
 def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
@@ -64,34 +64,47 @@ def trajectory_doc(
 
 def attach_frame_stats(
     robots: dict[str, list[dict[str, Any]]],
-    stats: list[tuple[int, str, int, int, int, float | None, str | None]],
+    stats: list[FrameFigures],
+    labels: dict[int, str],
     *,
     every: int,
 ) -> None:
     """Add frame figures to every `every`-th pose of each robot and to its latest, in place.
 
-    `stats` are `MapStore.frame_stats` rows in log order. Each chosen trajectory row
-    gains ``frame_id``, ``covariance`` (3x3, as the frame's result reported it when the
-    frame was processed), ``live``, ``uncapped`` (live + landmarks the budget had
-    marginalised up to and including that frame: the count without the cap) and ``ms``.
+    `stats` are `MapStore.frame_stats` rows in log order; `labels` maps every landmark
+    id the map ever had to its label. Each chosen trajectory row gains ``frame_id``,
+    ``covariance`` (3x3, as the frame's result reported it when the frame was
+    processed), ``live``, ``ms`` and ``uncapped``: the landmarks there would be without
+    the cap, i.e. the distinct labels among the landmarks initialised up to that frame
+    (one seen again after its removal is a new landmark with a new id, but counts once).
     """
     if every <= 0 or not stats:
         return
-    marginalised = np.cumsum([row[4] for row in stats])
-    by_key = {(row[1], row[2]): (k, row) for k, row in enumerate(stats)}
+    seen_ids: set[int] = set()
+    seen_labels: set[str] = set()
+    uncapped = []
+    for row in stats:
+        # a landmark removed by the frame that initialised it is only in `marginalised`
+        for lid in (*row.added, *row.marginalised):
+            if lid not in seen_ids:
+                seen_ids.add(lid)
+                seen_labels.add(labels.get(lid, f"id:{lid}"))
+        uncapped.append(len(seen_labels))
+    by_key = {(row.robot, row.seq): k for k, row in enumerate(stats)}
     for name, rows in robots.items():
         for i, point in enumerate(rows):
             if i % every and i != len(rows) - 1:
                 continue
-            hit = by_key.get((name, int(point["seq"])))
-            if hit is None:
+            k = by_key.get((name, int(point["seq"])))
+            if k is None:
                 continue
-            k, (frame_id, _, _, live, _, total_ms, cov) = hit
-            point["frame_id"] = frame_id
+            row = stats[k]
+            point["frame_id"] = row.frame_id
+            cov = row.covariance_json
             point["covariance"] = None if cov is None else json.loads(cov)
-            point["live"] = live
-            point["uncapped"] = live + int(marginalised[k])
-            point["ms"] = total_ms
+            point["live"] = row.live
+            point["uncapped"] = uncapped[k]
+            point["ms"] = row.total_ms
 
 
 def landmark_table(slam: BearingSlam) -> tuple[LandmarkTable, np.ndarray]:

@@ -29,9 +29,10 @@ function freshState(mapId) {
   return {
     mapId, generation: (state?.generation ?? 0) + 1, source: null, lastEventId: null,
     loading: true, reconnecting: false, buffer: [], retryMs: 1000, retryTimer: 0, refreshTimer: 0, refreshing: false,
-    refreshAgain: false, lastRefresh: 0, lastTrajectoryLoad: 0, statsEvery: 1, ellipseFrames: 10,
+    refreshAgain: false, lastRefresh: 0, refreshCost: 0, lastTrajectoryLoad: 0, statsEvery: 1, ellipseFrames: 10,
     landmarks: [], clusters: [], grid: null, removals: [], removalCount: 0,
-    trajectories: {}, ellipses: [], lastEllipse: {}, series: [], lastFrame: 0, marginalised: 0,
+    trajectories: {}, ellipses: [], lastEllipse: {}, series: [], lastFrame: 0, uncapped: 0,
+    knownLabels: new Set(),
     robots: [], localisation: {}, places: [], transitions: [], summary: null,
   };
 }
@@ -190,6 +191,7 @@ function reconnectLater() {
 // ------------------------------------------------------------------ events
 function handle({ kind, data }) {
   if (kind === "frame") onFrame(data);
+  else if (kind === "landmark_added") countLabel(data.label, data.frame_id);
   else if (kind === "landmark_marginalised") onRemoval(data);
   scheduleRefresh();
   render();
@@ -205,10 +207,9 @@ function onFrame(r) {
   if (!last || r.seq > last.seq) {
     rows.push({ seq: r.seq, stamp: r.stamp, x: r.pose.x, y: r.pose.y, theta: r.pose.theta });
   }
-  st.marginalised += r.landmarks.marginalised.length;
   const point = {
-    frame: r.frame_id, robot: r.robot, live: r.landmarks.live,
-    uncapped: r.landmarks.live + st.marginalised, ms: r.timing_ms?.total,
+    frame: r.frame_id, robot: r.robot, live: r.landmarks.live, uncapped: st.uncapped,
+    ms: r.timing_ms?.total,
   };
   if (r.covariance) {
     const e = ellipse2(xy(r.covariance));
@@ -226,8 +227,23 @@ function onFrame(r) {
   };
 }
 
+/**
+ * The count without the cap between two trajectory loads: a label not seen before is a
+ * new landmark (labels of the live landmarks and the fetched removals are known; the
+ * next load replaces the estimate by the server's figure).
+ */
+function countLabel(label, frameId) {
+  const st = state;
+  if (label == null || st.knownLabels.has(String(label))) return;
+  st.knownLabels.add(String(label));
+  st.uncapped += 1;
+  const last = st.series[st.series.length - 1];
+  if (last && last.frame === frameId) last.uncapped = st.uncapped;
+}
+
 function onRemoval(doc) {
   const st = state;
+  countLabel(doc.label, doc.frame_id); // initialised and removed by the same frame
   st.landmarks = st.landmarks.filter((l) => l.id !== doc.landmark_id);
   if (!st.removals.some((g) => g.landmark_id === doc.landmark_id)) {
     st.removals.push(doc);
@@ -254,7 +270,7 @@ async function loadTrajectory(st) {
   const ellipses = [];
   const lastEllipse = {};
   let lastFrame = 0;
-  let marginalised = 0;
+  let uncapped = 0;
   for (const [robot, rows] of Object.entries(robots)) {
     robotColour(robot);
     const mine = st.trajectories[robot] ?? [];
@@ -266,7 +282,7 @@ async function loadTrajectory(st) {
       series.push({ frame: p.frame_id, robot, live: p.live, uncapped: p.uncapped, ms: p.ms, l1: e?.l1, l2: e?.l2 });
       if (p.frame_id > lastFrame) {
         lastFrame = p.frame_id;
-        marginalised = p.uncapped - p.live;
+        uncapped = p.uncapped;
       }
       const prev = lastEllipse[robot];
       if (p.covariance && (prev === undefined || i - prev >= st.ellipseFrames)) {
@@ -285,7 +301,7 @@ async function loadTrajectory(st) {
   for (const e of st.ellipses) st.lastEllipse[e.robot] = Math.max(st.lastEllipse[e.robot] ?? -1, e.index);
   if (lastFrame > st.lastFrame) {
     st.lastFrame = lastFrame;
-    st.marginalised = marginalised;
+    st.uncapped = uncapped;
   }
 }
 
@@ -312,6 +328,8 @@ async function loadState(st, { trajectory }) {
   st.grid = coverage.grid;
   st.removals = coverage.removals;
   st.removalCount = coverage.removal_count;
+  for (const l of landmarks) st.knownLabels.add(String(l.label));
+  for (const r of coverage.removals) st.knownLabels.add(String(r.label));
   for (const [robot, p] of Object.entries(pose.robots)) {
     robotColour(robot);
     const known = st.localisation[robot];
@@ -324,7 +342,9 @@ async function loadState(st, { trajectory }) {
 function scheduleRefresh() {
   const st = state;
   if (st.refreshTimer) return;
-  const wait = Math.max(0, st.lastRefresh + REFRESH_MIN_MS - performance.now());
+  // At most every REFRESH_MIN_MS, and never more than a fifth of the time (a busy worker).
+  const gap = Math.max(REFRESH_MIN_MS, 4 * st.refreshCost);
+  const wait = Math.max(0, st.lastRefresh + gap - performance.now());
   st.refreshTimer = setTimeout(() => {
     st.refreshTimer = 0;
     if (st === state) refresh({ trajectory: performance.now() - st.lastTrajectoryLoad > TRAJECTORY_REFRESH_MS });
@@ -338,14 +358,22 @@ async function refresh({ trajectory = false } = {}) {
     return;
   }
   st.refreshing = true;
+  const t0 = performance.now();
   try {
     await loadState(st, { trajectory });
     render();
   } catch (err) {
     showError(err);
+    if (err.status === 404 && st === state) {
+      st.source?.close(); // the map was deleted: pick another
+      state = null;
+      start();
+      return;
+    }
   } finally {
     st.refreshing = false;
     st.lastRefresh = performance.now();
+    st.refreshCost = st.lastRefresh - t0;
     if (st.refreshAgain && st === state) {
       st.refreshAgain = false;
       scheduleRefresh();
