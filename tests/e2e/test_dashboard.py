@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
 from tests.e2e.conftest import REPO, Server, create_map, frame_dicts, post_all, sim_frames
@@ -126,6 +127,31 @@ def _wait_for(page: Any, layer: str, key: str, value: int, timeout_s: float = 20
     )
 
 
+def _check_map_conventions(page: Any, landmarks: list[dict[str, Any]]) -> None:
+    """Metres in the map frame: +y is up on screen, +x right; ellipses are 2σ."""
+    dots = {
+        int(d["id"]): (float(d["cx"]), float(d["cy"]))
+        for d in page.evaluate(
+            "() => [...document.querySelectorAll('#layer-landmarks circle')]"
+            ".map(c => ({id: c.dataset.id, cx: c.getAttribute('cx'), cy: c.getAttribute('cy')}))"
+        )
+    }
+    lo_y, hi_y = min(landmarks, key=lambda lm: lm["y"]), max(landmarks, key=lambda lm: lm["y"])
+    lo_x, hi_x = min(landmarks, key=lambda lm: lm["x"]), max(landmarks, key=lambda lm: lm["x"])
+    assert dots[hi_y["id"]][1] < dots[lo_y["id"]][1]  # north is up
+    assert dots[hi_x["id"]][0] > dots[lo_x["id"]][0]  # east is right
+    for lm in landmarks:
+        rx, ry = page.evaluate(
+            "id => { const e = document.querySelector(`#layer-landmark-ellipses "
+            "ellipse[data-id='${id}']`); return [Number(e.getAttribute('rx')), "
+            "Number(e.getAttribute('ry'))] }",
+            lm["id"],
+        )
+        eig = np.linalg.eigvalsh(np.asarray(lm["covariance"]))  # ascending, m²
+        assert rx == pytest.approx(2 * np.sqrt(eig[1]), rel=1e-6)
+        assert ry == pytest.approx(2 * np.sqrt(max(eig[0], 0.0)), rel=1e-6, abs=1e-12)
+
+
 def test_dashboard_in_chromium_shows_the_map_and_follows_it_live(
     browser: Any, server: Server, client: httpx.Client
 ) -> None:
@@ -163,6 +189,7 @@ def test_dashboard_in_chromium_shows_the_map_and_follows_it_live(
     assert int(shown["plot-timing"]["points"]) == 60
     status = rest["pose"]["r1"]["localisation"]["status"]
     assert page.locator("#localisation tr[data-robot='r1'] .status").inner_text() == status
+    _check_map_conventions(page, client.get(f"/v1/maps/{map_id}/landmarks").json())
     if rest["places"].status_code == 501:  # not implemented on this server: an empty layer
         assert shown["layer-places"] == {"count": "0", "transitions": "0", "state": "unavailable"}
     else:
