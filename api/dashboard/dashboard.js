@@ -521,7 +521,7 @@ function drawLocalisation(st) {
       cell(loc.confidence != null ? loc.confidence.toFixed(2) : "–", "num"),
       cell(`${p.pose.x.toFixed(2)}, ${p.pose.y.toFixed(2)}`, "num"),
       cell(((p.pose.theta * 180) / Math.PI).toFixed(0), "num"),
-      cell(e ? `${e.rx.toFixed(2)} × ${e.ry.toFixed(2)}` : "–", "num"),
+      cell(e ? `${e.rx.toFixed(2)}×${e.ry.toFixed(2)}` : "–", "num"),
     );
     tr.firstChild.style.color = robotColour(robot);
     return tr;
