@@ -8,9 +8,11 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 
 from api import errors
 from api.metrics import Metrics
@@ -25,8 +27,11 @@ Conventions: SI units (metres, radians, seconds). Map frame: x, y, yaw theta
 counter-clockwise from +x (REP-103). A bearing is measured in the robot frame,
 counter-clockwise from the robot's forward axis (+x), wrapped to (-pi, pi].
 Odometry is the motion since the robot's previous frame, in the previous robot frame.
-Errors are RFC 9457 problem+json.
+Errors are RFC 9457 problem+json. The dashboard is served at /dashboard/.
 """
+
+DASHBOARD_DIR = Path(__file__).resolve().parent / "dashboard"
+"""The dashboard's static files (plain HTML, CSS and JavaScript modules; package data)."""
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -60,6 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     for module in (maps, frames, queries, events, places, system):
         app.include_router(module.router)
+    app.mount("/dashboard", StaticFiles(directory=DASHBOARD_DIR, html=True), name="dashboard")
 
     default_openapi = app.openapi
 

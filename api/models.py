@@ -215,6 +215,23 @@ class TrajectoryPoint(BaseModel):
     x: float = Field(description="metres, map frame")
     y: float = Field(description="metres, map frame")
     theta: float = Field(description="yaw, radians, counter-clockwise from +x")
+    # Present only on the poses ?stats_every=N picks (every N-th of a robot, and its latest):
+    frame_id: int | None = Field(
+        None, description="(stats_every) the frame's position in the map's log (1-based)"
+    )
+    covariance: list[list[float]] | None = Field(
+        None, description=f"(stats_every) {COV3}, as the frame's result reported it then"
+    )
+    live: int | None = Field(None, description="(stats_every) live landmarks after the frame")
+    uncapped: int | None = Field(
+        None,
+        description="(stats_every) landmarks there would be without the cap: distinct labels "
+        "among the landmarks initialised up to this frame (one re-initialised after its "
+        "removal counts once)",
+    )
+    ms: float | None = Field(
+        None, description="(stats_every) estimator time for the frame (timing_ms.total), ms"
+    )
 
 
 class TrajectoryOut(BaseModel):

@@ -33,7 +33,13 @@ from service.localisation import Localised, MapLocalisation
 from service.mapconfig import MapConfig, slam_config, slam_config_dict
 from service.settings import StoreSettings
 from service.store import MapRecord, MapStore, StoredFrame
-from service.views import coverage_doc, landmarks_doc, pose_doc, trajectory_doc
+from service.views import (
+    attach_frame_stats,
+    coverage_doc,
+    landmarks_doc,
+    pose_doc,
+    trajectory_doc,
+)
 
 log = logging.getLogger(__name__)
 
@@ -486,8 +492,17 @@ class MapSession:
         doc = self.loc.places_doc()
         return {"map_id": self.record.id, "place": doc["places"][place.id], **doc}
 
-    def trajectory(self, robot: str | None = None) -> dict[str, list[dict[str, float]]]:
-        return trajectory_doc(self.slam, self.record.id, robot)
+    def trajectory(
+        self, robot: str | None = None, *, stats_every: int = 0
+    ) -> dict[str, list[dict[str, Any]]]:
+        rows: dict[str, list[dict[str, Any]]] = dict(
+            trajectory_doc(self.slam, self.record.id, robot)
+        )
+        if stats_every > 0:
+            labels = self.store.removed_labels()
+            labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())
+            attach_frame_stats(rows, self.store.frame_stats(), labels, every=stats_every)
+        return rows
 
     def landmarks(self) -> list[dict[str, Any]]:
         return landmarks_doc(self.slam, self._seed())

@@ -173,6 +173,25 @@ class Catalog:
 
 
 @dataclass(frozen=True, slots=True)
+class FrameFigures:
+    """What one frame's stored result reported (see `MapStore.frame_stats`)."""
+
+    frame_id: int
+    robot: str
+    seq: int
+    live: int
+    """live landmarks after the frame"""
+    added: tuple[int, ...]
+    """landmark ids the frame initialised that were still live after it"""
+    marginalised: tuple[int, ...]
+    """landmark ids the budget removed after the frame"""
+    total_ms: float | None
+    """the estimator's time for the frame (timing_ms.total), milliseconds"""
+    covariance_json: str | None
+    """the 3x3 pose covariance as JSON text, or None"""
+
+
+@dataclass(frozen=True, slots=True)
 class StoredFrame:
     id: int
     robot: str
@@ -288,6 +307,30 @@ class MapStore:
     def frame_count(self) -> int:
         return int(self._conn.execute("SELECT count(*) FROM frames").fetchone()[0])
 
+    def frame_stats(self) -> list[FrameFigures]:
+        """Figures of every processed frame from its stored result, in log order
+        (picked out by SQLite's json_extract; the covariance is left as JSON text)."""
+        rows = self._conn.execute(
+            "SELECT id, robot, seq, json_extract(result, '$.landmarks.live'), "
+            "json_extract(result, '$.landmarks.added'), "
+            "json_extract(result, '$.landmarks.marginalised'), "
+            "json_extract(result, '$.timing_ms.total'), json_extract(result, '$.covariance') "
+            "FROM frames WHERE result IS NOT NULL ORDER BY id"
+        ).fetchall()
+        return [
+            FrameFigures(
+                int(i),
+                str(r),
+                int(q),
+                int(live or 0),
+                tuple(json.loads(added or "[]")),
+                tuple(json.loads(marg or "[]")),
+                t,
+                c,
+            )
+            for i, r, q, live, added, marg, t, c in rows
+        ]
+
     # snapshots
     def save_snapshot(
         self, upto: int, state: bytes, *, keep: int, frontend: bytes | None = None
@@ -335,6 +378,13 @@ class MapStore:
             (-1 if limit is None else limit,),
         ).fetchall()
         return [json.loads(r[0]) for r in rows]
+
+    def removed_labels(self) -> dict[int, str]:
+        """Label of every landmark in the removal log, by landmark id."""
+        rows = self._conn.execute(
+            "SELECT landmark_id, json_extract(record, '$.label') FROM removals"
+        ).fetchall()
+        return {int(i): str(label) for i, label in rows}
 
     def removal_count(self) -> int:
         return int(self._conn.execute("SELECT count(*) FROM removals").fetchone()[0])

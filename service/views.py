@@ -1,4 +1,5 @@
-"""Read-only views of a map for the API: poses, trajectories, landmarks, coverage.
+"""Read-only views of a map for the API: poses, trajectories (with frame figures),
+landmarks, coverage.
 
 Functions of the estimator (and the store, for the removal log); units metres,
 radians, seconds; covariances as nested lists, row-major.
@@ -7,6 +8,7 @@ radians, seconds; covariances as nested lists, row-major.
 from __future__ import annotations
 
 import io
+import json
 from typing import Any
 
 import numpy as np
@@ -17,7 +19,7 @@ from graph.snapshot import last_accepted, latest_pose_keys
 from service.coverage import coverage_grid
 from service.errors import ServiceError
 from service.evaluation import Trajectory, write_tum
-from service.store import MapStore
+from service.store import FrameFigures, MapStore
 
 
 def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
@@ -58,6 +60,51 @@ def trajectory_doc(
             for r in rows.tolist()
         ]
     return out
+
+
+def attach_frame_stats(
+    robots: dict[str, list[dict[str, Any]]],
+    stats: list[FrameFigures],
+    labels: dict[int, str],
+    *,
+    every: int,
+) -> None:
+    """Add frame figures to every `every`-th pose of each robot and to its latest, in place.
+
+    `stats` are `MapStore.frame_stats` rows in log order; `labels` maps every landmark
+    id the map ever had to its label. Each chosen trajectory row gains ``frame_id``,
+    ``covariance`` (3x3, as the frame's result reported it when the frame was
+    processed), ``live``, ``ms`` and ``uncapped``: the landmarks there would be without
+    the cap, i.e. the distinct labels among the landmarks initialised up to that frame
+    (one seen again after its removal is a new landmark with a new id, but counts once).
+    """
+    if every <= 0 or not stats:
+        return
+    seen_ids: set[int] = set()
+    seen_labels: set[str] = set()
+    uncapped = []
+    for row in stats:
+        # a landmark removed by the frame that initialised it is only in `marginalised`
+        for lid in (*row.added, *row.marginalised):
+            if lid not in seen_ids:
+                seen_ids.add(lid)
+                seen_labels.add(labels.get(lid, f"id:{lid}"))
+        uncapped.append(len(seen_labels))
+    by_key = {(row.robot, row.seq): k for k, row in enumerate(stats)}
+    for name, rows in robots.items():
+        for i, point in enumerate(rows):
+            if i % every and i != len(rows) - 1:
+                continue
+            k = by_key.get((name, int(point["seq"])))
+            if k is None:
+                continue
+            row = stats[k]
+            point["frame_id"] = row.frame_id
+            cov = row.covariance_json
+            point["covariance"] = None if cov is None else json.loads(cov)
+            point["live"] = row.live
+            point["uncapped"] = uncapped[k]
+            point["ms"] = row.total_ms
 
 
 def landmark_table(slam: BearingSlam) -> tuple[LandmarkTable, np.ndarray]:

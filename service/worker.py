@@ -138,7 +138,9 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "frame": lambda m, p: _session(m).submit(p["frame"], p.get("image")),
     "summary": lambda m, p: _session(m).summary(),
     "pose": lambda m, p: _session(m).pose(),
-    "trajectory": lambda m, p: _session(m).trajectory(p.get("robot")),
+    "trajectory": lambda m, p: _session(m).trajectory(
+        p.get("robot"), stats_every=p.get("stats_every", 0)
+    ),
     "landmarks": lambda m, p: _session(m).landmarks(),
     "coverage": lambda m, p: _session(m).coverage(**p),
     "places": lambda m, p: _session(m).places(),

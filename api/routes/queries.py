@@ -28,6 +28,7 @@ async def get_pose(map_id: MapId, service: ServiceDep) -> Any:
 @router.get(
     "/trajectory",
     response_model=TrajectoryOut,
+    response_model_exclude_none=True,
     responses={
         **_ERRORS,
         200: {
@@ -43,8 +44,19 @@ async def get_trajectory(
     service: ServiceDep,
     robot: Annotated[str | None, Query(description="one robot only (required for tum)")] = None,
     format: Annotated[Literal["json", "tum"], Query(description="json or tum")] = "json",
+    stats_every: Annotated[
+        int,
+        Query(
+            ge=0,
+            le=1_000_000,
+            description="json: add frame_id, covariance, live, uncapped and ms to every "
+            "n-th pose of each robot and to its latest (0 = none)",
+        ),
+    ] = 0,
 ) -> Any:
-    """Every frame's pose per robot `[{seq, stamp, x, y, theta}]`."""
+    """Every frame's pose per robot `[{seq, stamp, x, y, theta}]`; with `stats_every`
+    also what the frame's result reported (pose covariance at the time, live and uncapped
+    landmark counts, estimator ms): the dashboard's ellipses and time plots."""
     if format == "tum" and robot is None:
         raise ServiceError(
             422,
@@ -53,7 +65,8 @@ async def get_trajectory(
             "robot: format=tum needs one robot (?robot=NAME)",
             field="robot",
         )
-    rows = await service.query(map_id, "trajectory", robot=robot)
+    stats = stats_every if format == "json" else 0
+    rows = await service.query(map_id, "trajectory", robot=robot, stats_every=stats)
     if format == "tum":
         assert robot is not None
         return Response(tum_text(rows[robot]), media_type="text/plain; charset=utf-8")

@@ -111,3 +111,42 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(tmp_path: Path) -> None:
     reopened = MapSession(path, StoreSettings(snapshot_every=10))
     assert reopened.loaded_from_snapshot == 50  # forced at 5 x snapshot_every
     assert reopened.slam.frame_count == 55
+
+
+def test_trajectory_stats_agree_with_the_frame_results(tmp_path: Path) -> None:
+    session = _new(tmp_path / "m1.sqlite")
+    results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:60]]
+    plain = session.trajectory()["r1"]
+    rows = session.trajectory(stats_every=7)["r1"]
+    assert [{k: p[k] for k in ("seq", "x", "y")} for p in rows] == [
+        {k: p[k] for k in ("seq", "x", "y")} for p in plain
+    ]
+    assert all("frame_id" not in p for p in plain)
+    picked = [i for i, p in enumerate(rows) if "frame_id" in p]
+    assert picked == [*range(0, 60, 7), 59]  # every 7th and the latest
+
+    # Labels of every landmark id, from the removal log and the live landmarks.
+    label = {r["landmark_id"]: r["label"] for r in session.store.removals()}
+    label.update({lm["id"]: lm["label"] for lm in session.landmarks()})
+    removed_labels = [r["label"] for r in session.store.removals()]
+    readded = set(removed_labels) & {lm["label"] for lm in session.landmarks()}
+    assert readded, "the run should re-initialise a removed landmark (the case counted once)"
+    ids: list[int] = []
+    for i, result in enumerate(results):
+        # a landmark the budget removes in the frame that initialised it is only in
+        # `marginalised`
+        for lid in (*result["landmarks"]["added"], *result["landmarks"]["marginalised"]):
+            if lid not in ids:
+                ids.append(lid)
+        if i not in picked:
+            continue
+        point = rows[i]
+        assert point["frame_id"] == result["frame_id"]
+        assert point["covariance"] == result["covariance"]
+        assert point["live"] == result["landmarks"]["live"]
+        assert point["ms"] == result["timing_ms"]["total"]
+        assert point["uncapped"] == len({label[lid] for lid in ids})
+        assert result["landmarks"]["live"] <= point["uncapped"] <= len(ids)
+    # every id the map ever had was counted (ids are never reused)
+    assert sorted(ids) == sorted(label)
+    assert rows[-1]["uncapped"] < len(ids)  # re-initialised landmarks counted once
