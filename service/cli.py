@@ -213,7 +213,7 @@ def _replay_http(
         "landmark_cap": args.landmark_cap,
         "policy": args.policy,
         "pose_window": args.pose_window,
-        "noise": {"huber_k": args.huber},
+        "noise": {"huber_k": args.huber, **(mrclam_noise() if args.source == "mrclam" else {})},
         "seed": args.seed,
         "camera": camera,
     }

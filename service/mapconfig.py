@@ -51,12 +51,22 @@ class NoiseConfig(BaseModel):
         ge=0,
         description="heading sigma growth per radian turned, rad/rad",
     )
+    odometry_sigma_per_sqrt_second: tuple[float, float, float] = Field(
+        _DEFAULTS.odometry_sigma_per_sqrt_second,
+        description="odometry sigma growth with the step's duration, added in quadrature: "
+        "x m/sqrt(s), y m/sqrt(s), theta rad/sqrt(s) (e.g. a gyro-less heading drift)",
+    )
     initial_pose_sigma: tuple[float, float, float] = Field(
         _DEFAULTS.initial_pose_sigma,
         description="sigma of the prior from a robot's initial_pose: x m, y m, theta rad",
     )
 
-    @field_validator("odometry_sigma_floor", "odometry_sigma_per_metre", "initial_pose_sigma")
+    @field_validator(
+        "odometry_sigma_floor",
+        "odometry_sigma_per_metre",
+        "odometry_sigma_per_sqrt_second",
+        "initial_pose_sigma",
+    )
     @classmethod
     def _non_negative(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
         if any(v < 0 or not math.isfinite(v) for v in value):
@@ -195,6 +205,7 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         odometry_sigma_floor=cfg.noise.odometry_sigma_floor,
         odometry_sigma_per_metre=cfg.noise.odometry_sigma_per_metre,
         odometry_sigma_per_radian=cfg.noise.odometry_sigma_per_radian,
+        odometry_sigma_per_sqrt_second=cfg.noise.odometry_sigma_per_sqrt_second,
         initial_pose_sigma=cfg.noise.initial_pose_sigma,
         allow_new_landmarks=mode == "mapping",
     )
