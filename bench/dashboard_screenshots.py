@@ -26,6 +26,7 @@ CHROMIUM_ARGS = [
     "--disable-gpu",
     "--disable-quic",
     "--no-first-run",
+    # The network is closed: without these Chromium stalls on refused connections.
     "--disable-background-networking",
     "--disable-component-update",
     "--disable-sync",

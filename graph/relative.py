@@ -63,35 +63,36 @@ class _Blanket:
         d = points - np.array([r.x(), r.y()])
         return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
 
-    def y(self, values: gtsam.Values) -> FloatArray:
-        out = np.empty(self.offsets[-1])
-        r = values.atPose2(self.reference)
-        out[0:3] = gtsam.Pose2.Logmap(self.r0.between(r))
-        for j, k in enumerate(self.poses):
-            o = self.offsets[1 + j]
-            out[o : o + 3] = gtsam.Pose2.Logmap(self.q0[j].between(r.between(values.atPose2(k))))
-        base = self.offsets[1 + len(self.poses)]
-        out[base:] = (self._landmark_rows(r, values) - self.l0).ravel()
-        return out
-
-    def jacobians(self, values: gtsam.Values) -> tuple[FloatArray, list[FloatArray]]:
-        """dy/dx in its sparse form: the reference pose's full column block (len(y), 3),
-        and for every other key its diagonal block (the rows of its own y)."""
+    def evaluate(
+        self, values: gtsam.Values, with_jacobians: bool
+    ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
+        """y(values) and, if asked, dy/dx in its sparse form: the reference pose's full
+        column block (len(y), 3) and, for every other key, its diagonal block (the rows
+        of its own y). One pass over the blanket serves both (the error callback wants
+        them together)."""
         n = int(self.offsets[-1])
-        r = values.atPose2(self.reference)
-        column = np.zeros((n, 3))
-        column[0:3] = gtsam.Pose2.LogmapDerivative(self.r0.between(r))
+        out = np.empty(n)
+        column = np.zeros((n, 3) if with_jacobians else (0, 3))
         diagonal: list[FloatArray] = []
+        r = values.atPose2(self.reference)
+        e = self.r0.between(r)
+        out[0:3] = gtsam.Pose2.Logmap(e)
+        if with_jacobians:
+            column[0:3] = gtsam.Pose2.LogmapDerivative(e)
         for j, k in enumerate(self.poses):
             o = self.offsets[1 + j]
             p = values.atPose2(k)
-            d = np.asarray(gtsam.Pose2.LogmapDerivative(self.q0[j].between(r.between(p))))
-            diagonal.append(d)
-            # R -> R Exp(xi): q0^-1 R^-1 P -> (q0^-1 R^-1 P) Exp(-Ad(P^-1 R) xi)
-            column[o : o + 3] = -d @ np.asarray(p.between(r).AdjointMap())
+            e = self.q0[j].between(r.between(p))
+            out[o : o + 3] = gtsam.Pose2.Logmap(e)
+            if with_jacobians:
+                d = np.asarray(gtsam.Pose2.LogmapDerivative(e))
+                diagonal.append(d)
+                # R -> R Exp(xi): q0^-1 R^-1 P -> (q0^-1 R^-1 P) Exp(-Ad(P^-1 R) xi)
+                column[o : o + 3] = -d @ np.asarray(p.between(r).AdjointMap())
         base = self.offsets[1 + len(self.poses)]
         rows = self._landmark_rows(r, values)
-        if len(rows):
+        out[base:] = (rows - self.l0).ravel()
+        if with_jacobians and len(rows):
             # R -> R Exp(xi) moves R^-1 L by (-v - omega x R^-1 L) to first order.
             column[base::2] = np.column_stack(
                 [-np.ones(len(rows)), np.zeros(len(rows)), rows[:, 1]]
@@ -101,14 +102,14 @@ class _Blanket:
             )
             rot_t = np.asarray(r.rotation().matrix()).T
             diagonal.extend(rot_t for _ in self.landmarks)
-        return column, diagonal
+        return out, column, diagonal
 
     def right_divide(self, a: FloatArray, values: gtsam.Values) -> FloatArray:
         """A T^-1 for T = dy/dx at `values`, using T's structure: the reference's
         block column plus a block diagonal. With T = [[D0, 0], [C, D]],
         (A T^-1)_i = A_i D_i^-1 for the other keys and
         (A T^-1)_0 = (A_0 - sum_i (A T^-1)_i C_i) D0^-1."""
-        column, diagonal = self.jacobians(values)
+        _, column, diagonal = self.evaluate(values, with_jacobians=True)
         out = np.empty_like(a)
         o = self.offsets
         acc = a[:, 0:3].copy()
@@ -172,9 +173,9 @@ class RelativeMarginalFactor(gtsam.CustomFactor):
         def error(
             _factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
         ) -> FloatArray:
-            residual: FloatArray = m @ blanket.y(values) - b
+            y, column, diagonal = blanket.evaluate(values, with_jacobians=jacobians is not None)
+            residual: FloatArray = m @ y - b
             if jacobians is not None:
-                column, diagonal = blanket.jacobians(values)
                 jacobians[0] = m @ column
                 for i, block in enumerate(diagonal):
                     o, e = offsets[1 + i], offsets[2 + i]

@@ -18,20 +18,10 @@ import httpx
 import numpy as np
 import pytest
 
+from bench.dashboard_screenshots import CHROMIUM_ARGS
 from tests.e2e.conftest import REPO, Server, create_map, frame_dicts, post_all, sim_frames
 
 CHROMIUM = Path(os.environ.get("COVSLAM_CHROMIUM", "/usr/bin/chromium"))
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    # The network is closed: without these Chromium stalls on refused connections.
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 ARTEFACTS = REPO / "tmp" / "artefacts"
 FRAMES = frame_dicts(sim_frames(80, seed=3))
 

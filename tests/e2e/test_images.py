@@ -5,13 +5,10 @@ leaves the map unchanged; an acknowledged image frame survives kill -9."""
 from __future__ import annotations
 
 import json
-import struct
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import cv2
 import httpx
 import numpy as np
 import pytest
@@ -22,6 +19,7 @@ from service.evaluation import ate_rmse, dead_reckoning, read_tum
 from service.http_client import fetch_tum, image_frame_parts, replay_http
 from service.replay import ImageFrame, read_replay_frames
 from tests.e2e.conftest import Server, create_map
+from tests.frontend import _synthetic as synthetic
 
 CAMERA = PanoramaCamera(1024, 256)
 MAX_IMAGE_BYTES = 1_000_000
@@ -121,8 +119,13 @@ def test_bad_image_frames_are_refused_precisely_and_change_nothing(
         (post_image(b"GIF89a not a png"), 422, "invalid-image", "neither PNG nor JPEG"),
         (post_image(b""), 422, "invalid-image", "empty"),
         (post_image(png[: len(png) // 2]), 422, "invalid-image", "could not be decoded"),
-        (post_image(_png(np.zeros((100, 400), np.uint8))), 422, "invalid-image", "1024x256"),
-        (post_image(_fake_png_header(100_000, 100_000)), 413, "image-too-large", "pixels"),
+        (
+            post_image(synthetic.png(np.zeros((100, 400), np.uint8))),
+            422,
+            "invalid-image",
+            "1024x256",
+        ),
+        (post_image(synthetic.png_header_only(100_000, 100_000)), 413, "image-too-large", "pixels"),
         (post_image(png + b"\0" * MAX_IMAGE_BYTES), 413, "image-too-large", "exceed"),
         (
             client.post(url, files={"image": ("x.png", b"\0" * (MAX_IMAGE_BYTES + 2**21))}),
@@ -231,24 +234,6 @@ def test_acknowledged_image_frames_survive_kill9(tmp_path: Path, frames: list[Im
             assert len(r.json()["landmarks"]["observed"]) > 3, "the reloaded map still matches"
     finally:
         server.stop()
-
-
-def _png(pixels: np.ndarray) -> bytes:
-    ok, data = cv2.imencode(".png", pixels)
-    assert ok
-    return data.tobytes()
-
-
-def _fake_png_header(width: int, height: int) -> bytes:
-    """A PNG whose header claims width x height (a decompression bomb's first bytes)."""
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    chunk = b"IHDR" + ihdr
-    return (
-        b"\x89PNG\r\n\x1a\n"
-        + struct.pack(">I", len(ihdr))
-        + chunk
-        + struct.pack(">I", zlib.crc32(chunk))
-    )
 
 
 def _meta_with(meta: dict[str, str], **changes: Any) -> str:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
+
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -24,3 +28,23 @@ def paint_corner(image: NDArray[np.uint8], column: int, row: int, size: int = 24
 def small_world(seed: int = 3) -> TexturedWorld:
     rng = np.random.default_rng(seed)
     return make_textured_world(make_world(rooms=(2, 1), landmarks=2, rng=rng), rng=rng)
+
+
+def png(image: NDArray[np.uint8]) -> bytes:
+    """`image` encoded as PNG."""
+    ok, buf = cv2.imencode(".png", image)
+    assert ok
+    return bytes(buf.tobytes())
+
+
+def png_header_only(width: int, height: int) -> bytes:
+    """A PNG signature and IHDR chunk claiming the given size, no pixel data (the first
+    bytes of a decompression bomb)."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + struct.pack(">I", len(ihdr))
+        + chunk
+        + struct.pack(">I", zlib.crc32(chunk) & 0xFFFFFFFF)
+    )

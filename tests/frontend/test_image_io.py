@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import struct
-import zlib
-
 import cv2
 import numpy as np
 import pytest
@@ -19,25 +16,7 @@ from frontend.errors import (
 )
 from frontend.image_io import decode_image, image_for_camera
 from frontend.pipeline import FrontEnd
-
-
-def _png(image: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", image)
-    assert ok
-    return buf.tobytes()
-
-
-def _png_header_only(width: int, height: int) -> bytes:
-    """A PNG signature and IHDR chunk claiming the given size (no pixel data)."""
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    chunk = b"IHDR" + ihdr
-    return (
-        b"\x89PNG\r\n\x1a\n"
-        + struct.pack(">I", len(ihdr))
-        + chunk
-        + struct.pack(">I", zlib.crc32(chunk) & 0xFFFFFFFF)
-    )
-
+from tests.frontend._synthetic import png, png_header_only
 
 CAM = PanoramaCamera(256, 64)
 
@@ -59,10 +38,10 @@ def test_good_png_and_jpeg_decode_to_grayscale() -> None:
         (b"", EmptyImage, 422),
         (b"hello, this is not an image at all", UndecodableImage, 422),
         (b"GIF89a" + bytes(100), UndecodableImage, 422),
-        (_png_header_only(0, 64), EmptyImage, 422),
-        (_png_header_only(256, 0), EmptyImage, 422),
-        (_png_header_only(100_000, 100_000), ImageTooLarge, 413),
-        (_png_header_only(256, 64), UndecodableImage, 422),  # header, no pixels
+        (png_header_only(0, 64), EmptyImage, 422),
+        (png_header_only(256, 0), EmptyImage, 422),
+        (png_header_only(100_000, 100_000), ImageTooLarge, 413),
+        (png_header_only(256, 64), UndecodableImage, 422),  # header, no pixels
     ],
 )
 def test_bad_bytes(data: bytes, error: type[ImageError], status: int) -> None:
@@ -73,20 +52,20 @@ def test_bad_bytes(data: bytes, error: type[ImageError], status: int) -> None:
 
 
 def test_truncated_png_is_undecodable() -> None:
-    data = _png(np.random.default_rng(1).integers(0, 255, (64, 256), dtype=np.uint8))
+    data = png(np.random.default_rng(1).integers(0, 255, (64, 256), dtype=np.uint8))
     with pytest.raises(UndecodableImage):
         decode_image(data[: len(data) // 2])
 
 
 def test_too_many_bytes_is_413() -> None:
-    data = _png(np.zeros((64, 256), dtype=np.uint8))
+    data = png(np.zeros((64, 256), dtype=np.uint8))
     with pytest.raises(ImageTooLarge) as info:
         decode_image(data, max_bytes=len(data) - 1)
     assert info.value.status == 413
 
 
 def test_too_many_pixels_is_413() -> None:
-    data = _png(np.zeros((64, 256), dtype=np.uint8))
+    data = png(np.zeros((64, 256), dtype=np.uint8))
     with pytest.raises(ImageTooLarge):
         decode_image(data, max_pixels=64 * 256 - 1)
 
@@ -109,7 +88,7 @@ def test_wrong_dimensions_for_an_omni_camera() -> None:
 def test_front_end_refuses_bad_images_and_stays_unchanged() -> None:
     fe = FrontEnd(CAM)
     before = (fe.associator.known_landmarks, fe.associator.track_count("r1"))
-    for data in (b"", b"junk", _png(np.zeros((10, 10), dtype=np.uint8))):
+    for data in (b"", b"junk", png(np.zeros((10, 10), dtype=np.uint8))):
         with pytest.raises(ImageError):
             fe.observe(data, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={})
     with pytest.raises(WrongImageSize):
