@@ -48,8 +48,11 @@ class SlamConfig:
     """Largest one-sigma position error of a triangulated landmark."""
     candidate_ttl_frames: int = 200
     """A candidate not observed for this many frames (of any robot) expires."""
-    optimizer: str = "gauss_newton"
-    """iSAM2 step: 'dogleg' (Powell) or 'gauss_newton'."""
+    optimizer: str = "dogleg"
+    """iSAM2 step: 'dogleg' (Powell's trust region) or 'gauss_newton'. Gauss-Newton has
+    no damping, and on bearing-only graphs a poor linearisation (a new landmark seen
+    from nearly one direction) can throw the estimate off for good: MRCLAM-6 robot 5 at
+    cap 8 ended at 2.57 m ATE with it, 0.46 m with dogleg."""
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
     relative_marginals: bool = True
