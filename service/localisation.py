@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.localiser import LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
+from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
 from graph.places import Place
 from graph.slam import BearingSlam, FrameOutcome
 from graph.snapshot import last_accepted, latest_pose_keys
 from graph.types import FrameInput, Pose2D
+from service.offgraph import ODOMETRY, OffGraphLog
 
 FloatArray = NDArray[np.float64]
 
@@ -69,6 +70,13 @@ class MapLocalisation:
         self.localiser = Localiser(config or LocaliserConfig())
         self.rng = np.random.default_rng([seed, 5])
         self.last: dict[str, tuple[int, float]] = {}
+        self.off_graph = OffGraphLog()
+        """Frames acknowledged while the graph did not take them (see service.offgraph)."""
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # Snapshots taken before the off-graph log existed lack it.
+        state.setdefault("off_graph", OffGraphLog())
+        self.__dict__.update(state)
 
     def last_accepted(self, slam: BearingSlam) -> dict[str, tuple[int, float]]:
         """(seq, stamp) of each robot's last accepted frame, graph or filter only."""
@@ -124,11 +132,28 @@ class MapLocalisation:
             anchor = (Pose2D(*(float(v) for v in est.pose_xytheta)), est.covariance)
             outcome = slam.process(frame, with_covariance=True, anchor=anchor)
         self.last[frame.robot] = (frame.seq, frame.stamp)
-        if outcome is not None and result.status != LOST:
+        if outcome is not None:
+            # In the graph (also the frame that found the robot lost): its graph pose is
+            # the one in the trajectory, so it is the one reported.
             assert outcome.covariance is not None
             pose, cov = outcome.pose, np.asarray(outcome.covariance)
+            if result.anchor:
+                self.off_graph.anchor(frame.robot, seq=frame.seq, odometry=odometry)
+            self.off_graph.on_graph(frame.robot, (pose.x, pose.y, pose.theta))
         else:
-            pose = Pose2D(*(float(v) for v in est.pose_xytheta))
+            kept = self.off_graph.off_graph(
+                frame.robot,
+                seq=frame.seq,
+                stamp=frame.stamp,
+                odometry=odometry,
+                filter_pose=(
+                    float(est.pose_xytheta[0]),
+                    float(est.pose_xytheta[1]),
+                    float(est.pose_xytheta[2]),
+                ),
+                converged=est.converged,
+            )
+            pose = Pose2D(*kept.pose)
             cov = to_robot_frame(est.covariance, pose.theta)
         return Localised(
             frame.robot,
@@ -150,6 +175,7 @@ class MapLocalisation:
         robot is reported as tracking. The place localiser runs on labelled frames."""
         self.last[frame.robot] = (frame.seq, frame.stamp)
         assert outcome.covariance is not None
+        self.off_graph.on_graph(frame.robot, (outcome.pose.x, outcome.pose.y, outcome.pose.theta))
         return Localised(
             frame.robot,
             frame.seq,
@@ -163,6 +189,53 @@ class MapLocalisation:
             None,
             0.0,
         )
+
+    def with_off_graph(
+        self, rows: dict[str, list[dict[str, Any]]], robot: str | None = None
+    ) -> dict[str, list[dict[str, Any]]]:
+        """The graph's trajectory rows per robot (`rows`, changed in place and returned)
+        with every off-graph frame added, ordered by seq; `robot`: that robot only."""
+        for name in self.off_graph.robots():
+            if robot is not None and name != robot:
+                continue
+            graph = rows.get(name, [])
+            by_seq = {int(r["seq"]): (r["x"], r["y"], r["theta"]) for r in graph}
+            extra = self.off_graph.rows(name, by_seq)
+            if extra:
+                rows[name] = sorted([*graph, *extra], key=lambda r: int(r["seq"]))
+        return rows
+
+    def robot_poses(self) -> dict[str, dict[str, Any]]:
+        """Pose documents of the robots the graph does not track now (initialising or
+        lost): the latest frame's best pose and the filter's covariance (robot frame);
+        pose and covariance null while the filter has not weighed any observation, or
+        when the latest frame is a graph frame (the graph's pose then stands)."""
+        out: dict[str, dict[str, Any]] = {}
+        for name, track in self.localiser.robots.items():
+            if track.status not in (INITIALISING, LOST) or name not in self.last:
+                continue
+            seq, stamp = self.last[name]
+            latest = self.off_graph.latest(name)
+            est = track.pf.estimate()
+            pose: dict[str, float] | None = None
+            cov: list[list[float]] | None = None
+            known = latest is not None and (latest.source == ODOMETRY or track.pf.w_slow > 0)
+            if latest is not None and latest.seq == seq and known:
+                x, y, theta = latest.pose
+                pose = {"x": x, "y": y, "theta": theta}
+                cov = to_robot_frame(est.covariance, theta).tolist()
+            out[name] = {
+                "seq": seq,
+                "stamp": stamp,
+                "pose": pose,
+                "covariance": cov,
+                "localisation": {
+                    "status": track.status,
+                    "place": None,
+                    "confidence": float(est.converged),
+                },
+            }
+        return out
 
     @staticmethod
     def _landmark_covariances(slam: BearingSlam) -> dict[str, FloatArray]:

@@ -441,9 +441,15 @@ class MapSession:
         return MapConfig.model_validate(self.record.config).seed
 
     def pose(self) -> dict[str, Any]:
+        """Latest pose per robot, the graph's or (initialising, lost) the best off-graph
+        one: see MapLocalisation.robot_poses."""
         doc = pose_doc(self.slam, self.record.id)
         for name, robot in doc["robots"].items():
             robot["localisation"]["status"] = self.loc.status(name)
+        for name, off in self.loc.robot_poses().items():
+            if off["pose"] is None and name in doc["robots"]:
+                continue
+            doc["robots"][name] = off
         return doc
 
     def places(self) -> dict[str, Any]:
@@ -495,9 +501,11 @@ class MapSession:
     def trajectory(
         self, robot: str | None = None, *, stats_every: int = 0
     ) -> dict[str, list[dict[str, Any]]]:
-        rows: dict[str, list[dict[str, Any]]] = dict(
-            trajectory_doc(self.slam, self.record.id, robot)
-        )
+        if robot is not None and robot not in self.slam.robots and robot in self.loc.last:
+            rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
+        else:
+            rows = dict(trajectory_doc(self.slam, self.record.id, robot))
+        self.loc.with_off_graph(rows, robot)
         if stats_every > 0:
             labels = self.store.removed_labels()
             labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())
