@@ -369,35 +369,65 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
+def _stamp() -> dict[str, Any]:
+    """When a part ran and the machine's load then (a shared machine: timings vary)."""
+    return {
+        "when": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "load_average": [round(v, 2) for v in os.getloadavg()],
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--starts", type=int, default=50)
     parser.add_argument("--max-frames", type=int, default=150)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--kidnap-robots", type=int, nargs="*", default=[1, 2, 3, 4, 5])
+    parser.add_argument(
+        "--parts",
+        nargs="*",
+        choices=["pf", "global", "kidnap"],
+        default=["pf", "global", "kidnap"],
+        help="parts to run; the others keep their figures from an existing localisation.json",
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--data", type=Path, default=None)
     args = parser.parse_args()
     directory = args.data or default_mrclam_dir()
-    doc: dict[str, Any] = {
-        "when": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
-        "pf_timing": [pf_timing(1000), pf_timing(5000)],
-    }
-    print(json.dumps(doc["pf_timing"], indent=1))
-    doc["global"] = global_localisation(directory, args.starts, args.max_frames, args.seed)
-    print({k: v for k, v in doc["global"].items() if k != "runs"})
-    doc["kidnap_localiser"] = [
-        kidnap_localiser(directory, r, 120.0, 60.0, 120.0, args.seed) for r in args.kidnap_robots
-    ]
-    for row in doc["kidnap_localiser"]:
-        print(row)
-    doc["kidnap_service"] = [kidnap(directory, r, 120.0, 60.0, 120.0) for r in args.kidnap_robots]
-    for row in doc["kidnap_service"]:
-        print(row)
+    path = args.out / "localisation.json"
+    doc: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
+    doc["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count()}
+    runs = doc.setdefault("runs_of_parts", {})
+    if "when" in doc:  # a document from before parts: all of it ran then
+        old = doc.pop("when")
+        for part in ("pf", "global", "kidnap"):
+            runs.setdefault(part, {"when": old})
+    if "pf" in args.parts:
+        doc["runs_of_parts"]["pf"] = _stamp()
+        doc["pf_timing"] = [pf_timing(1000), pf_timing(5000)]
+        doc["runs_of_parts"]["pf"]["load_average_after"] = [round(v, 2) for v in os.getloadavg()]
+        print(json.dumps(doc["pf_timing"], indent=1), doc["runs_of_parts"]["pf"])
+    if "global" in args.parts:
+        doc["runs_of_parts"]["global"] = _stamp()
+        doc["global"] = global_localisation(directory, args.starts, args.max_frames, args.seed)
+        print({k: v for k, v in doc["global"].items() if k != "runs"})
+    if "kidnap" in args.parts:
+        doc["runs_of_parts"]["kidnap"] = _stamp()
+        doc["kidnap_localiser"] = [
+            kidnap_localiser(directory, r, 120.0, 60.0, 120.0, args.seed)
+            for r in args.kidnap_robots
+        ]
+        for row in doc["kidnap_localiser"]:
+            print(row)
+        doc["kidnap_service"] = [
+            kidnap(directory, r, 120.0, 60.0, 120.0) for r in args.kidnap_robots
+        ]
+        for row in doc["kidnap_service"]:
+            print(row)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "localisation.json").write_text(json.dumps(doc, indent=1))
-    plot(doc, args.out / "localisation.png")
+    path.write_text(json.dumps(doc, indent=1))
+    if {"pf_timing", "global"} <= set(doc):
+        plot(doc, args.out / "localisation.png")
 
 
 if __name__ == "__main__":

@@ -76,6 +76,36 @@ def test_sensor_model_quality_scales_each_landmark() -> None:
     np.testing.assert_allclose(half, first + 0.5 * (both - first), rtol=1e-5)
 
 
+def _loglik_reference(particles, lm, z, q) -> np.ndarray:
+    """The sensor model written plainly in float64: wrapped differences, density, sum."""
+    rel = lm[None, :, :] - particles[:, None, :2]
+    predicted = np.arctan2(rel[..., 1], rel[..., 0]) - particles[:, 2:3]
+    d = wrap_angles(z[None, :] - predicted)
+    gauss = (1 - EPS) * np.exp(-0.5 * (d / SIGMA) ** 2) / (math.sqrt(2 * math.pi) * SIGMA)
+    return np.log(EPS / (2 * math.pi) + gauss) @ q
+
+
+@pytest.mark.parametrize("offset", [0.0, 3.0e5])
+@pytest.mark.parametrize("n", [7, 1000, 2500])
+def test_sensor_model_agrees_with_the_plain_formula(n: int, offset: float) -> None:
+    """The factored float32 path (blocks of particles) against float64, also far from the
+    origin (UTM-sized coordinates); half the bearings near their predicted values."""
+    rng = np.random.default_rng(n)
+    particles = np.column_stack(
+        [rng.uniform(0, 10, n) + offset, rng.uniform(0, 10, n) - offset, rng.uniform(-4, 4, n)]
+    )
+    shift = np.array([offset, -offset])
+    lm = rng.uniform(-5, 15, (32, 2)) + shift
+    z = rng.uniform(-math.pi, math.pi, 32)
+    first = particles[:1] - np.append(shift, 0.0)
+    z[:16] = wrap_angles(predicted_bearings(first, lm[:16] - shift)[0] + rng.normal(0, SIGMA, 16))
+    q = rng.uniform(0, 1, 32)
+    got = _loglik(particles, lm, z, q)
+    want = _loglik_reference(particles, lm, z, q)
+    assert got.shape == (n,) and got.dtype == np.float64
+    np.testing.assert_allclose(got, want, atol=1e-3, rtol=1e-5)
+
+
 weights_st = st.lists(st.floats(0.0, 1.0), min_size=1, max_size=60).filter(lambda w: sum(w) > 0)
 
 
