@@ -118,6 +118,7 @@ class MapLocalisation:
             dt_s=0.0 if prev is None else frame.stamp - prev[1],
             labels=[o.label for o in frame.observations],
             bearings_rad=[o.bearing_rad for o in frame.observations],
+            sigmas_rad=[o.sigma_rad for o in frame.observations],
             landmarks=self.landmark_map(slam),
             graph_pose=graph_pose,
             rng=self.rng,
