@@ -268,6 +268,73 @@ def kidnap(
     }
 
 
+def kidnap_shared(
+    directory: Path, robot: int, before_s: float, cut_s: float, after_s: float
+) -> dict[str, Any]:
+    """As `kidnap`, in a map the five robots build together: every robot's frames of the
+    first `before_s` seconds (interleaved by stamp, each from its initial pose), then
+    robot N alone after its 60 s cut. Robot N then lands among landmarks the others
+    mapped, which is what makes a kidnap observable at all (see the README's notes)."""
+    runs = {r: mrclam_frames(load_mrclam(directory, r)) for r in range(1, 6)}
+    frames, gt = runs[robot]
+    t0 = frames[0].stamp
+    t_cut = t0 + before_s
+    pre = [f for r, (fr, _) in runs.items() for f in fr if f.stamp < t_cut]
+    pre.sort(key=lambda f: (f.stamp, f.robot))
+    post = [f for f in frames if t_cut + cut_s <= f.stamp < t_cut + cut_s + after_s]
+    jump = dataclasses.replace(post[0], odometry=Odometry(0.0, 0.0, 0.0))
+    seq: dict[str, int] = {}
+    stream = []
+    for f in [*pre, jump, *post[1:]]:
+        seq[f.robot] = seq.get(f.robot, -1) + 1
+        stream.append(dataclasses.replace(f, seq=seq[f.robot]))
+    name = frames[0].robot
+    config = {"landmark_cap": None, "seed": robot}
+    with tempfile.TemporaryDirectory() as tmp:
+        record = MapRecord("k", "kidnap-shared", "mapping", config, time.time())
+        session = MapSession.create(
+            Path(tmp) / "k.sqlite", record, StoreSettings(snapshot_every=10_000)
+        )
+        results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+        live = len(session.slam.landmarks)
+        session.close()
+    mine = [r for r in results if r["robot"] == name]
+    cut = sum(1 for f in pre if f.robot == name)
+    statuses = [r["localisation"]["status"] for r in mine]
+    lost = next((k for k in range(cut, len(statuses)) if statuses[k] == "lost"), None)
+    reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
+    landmarks_at_cut = next((r["landmarks"]["live"] for r in reversed(results[: len(pre)])), None)
+
+    def ate(rows: list[dict]) -> float | None:
+        errs = []
+        for r in rows:
+            truth = _truth_at(gt, r["stamp"])
+            if truth is not None:
+                errs.append(np.hypot(r["pose"]["x"] - truth[0], r["pose"]["y"] - truth[1]))
+        return float(np.sqrt(np.mean(np.square(errs)))) if errs else None
+
+    return {
+        "robot": robot,
+        "frames_before": cut,
+        "frames_of_all_robots_before": len(pre),
+        "landmarks_at_cut": landmarks_at_cut,
+        "landmarks_at_end": live,
+        "frames_after": len(mine) - cut,
+        "jump_m": _jump(gt, pre[-1].stamp, post[0].stamp),
+        "ate_before_m": ate(mine[:cut]),
+        "lost_events_before_cut": sum(
+            1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
+        ),
+        "frames_to_lost": None if lost is None else lost - cut,
+        "frames_to_relocalised": None if reloc is None else reloc - cut,
+        "seconds_to_relocalised": None
+        if reloc is None
+        else mine[reloc]["stamp"] - mine[cut]["stamp"],
+        "ate_after_relocalised_m": None if reloc is None else ate(mine[reloc:]),
+        "status_counts_after_cut": {s: statuses[cut:].count(s) for s in set(statuses[cut:])},
+    }
+
+
 def kidnap_localiser(
     directory: Path, robot: int, before_s: float, cut_s: float, after_s: float, seed: int
 ) -> dict[str, Any]:
@@ -438,6 +505,11 @@ def main() -> None:
             kidnap(directory, r, 120.0, 60.0, 120.0) for r in args.kidnap_robots
         ]
         for row in doc["kidnap_service"]:
+            print(row)
+        doc["kidnap_shared_map"] = [
+            kidnap_shared(directory, r, 120.0, 60.0, 120.0) for r in args.kidnap_robots
+        ]
+        for row in doc["kidnap_shared_map"]:
             print(row)
     args.out.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=1))
