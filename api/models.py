@@ -359,9 +359,22 @@ class TransitionOut(BaseModel):
     count: int = Field(description="times this transition was made")
 
 
+class AppearancePlaceOut(BaseModel):
+    id: int = Field(description="appearance place id, stable (a camera map's own series)")
+    pose: PoseXYTheta = Field(description="graph pose where the panorama was taken")
+    robot: str = Field(description="robot that took it")
+    frame: int = Field(description="map frame index of that frame")
+    stamp: float = Field(description="stamp of that frame, seconds")
+
+
 class PlacesOut(BaseModel):
     map_id: str = Field(description="the map's id")
     places: list[PlaceOut] = Field(description="learnt places")
+    appearance_places: list[AppearancePlaceOut] = Field(
+        default_factory=list,
+        description="camera maps: places recognised by the whole panorama's appearance "
+        "(yaw-invariant); an image frame's localisation.place is one of these ids",
+    )
     transitions: list[TransitionOut] = Field(description="the topological map's edges")
 
 

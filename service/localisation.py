@@ -23,6 +23,7 @@ from graph.places import Place
 from graph.slam import BearingSlam, FrameOutcome
 from graph.snapshot import last_accepted, latest_pose_keys
 from graph.types import FrameInput, Pose2D
+from service.appearance_places import AppearancePlaces
 from service.offgraph import ODOMETRY, OffGraphLog
 
 FloatArray = NDArray[np.float64]
@@ -72,10 +73,15 @@ class MapLocalisation:
         self.last: dict[str, tuple[int, float]] = {}
         self.off_graph = OffGraphLog()
         """Frames acknowledged while the graph did not take them (see service.offgraph)."""
+        self.appearance = AppearancePlaces(
+            learn_distance_m=self.localiser.config.places.learn_distance_m
+        )
+        """Appearance places of a camera map's image frames."""
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        # Snapshots taken before the off-graph log existed lack it.
+        # Snapshots taken before the off-graph log or appearance places existed lack them.
         state.setdefault("off_graph", OffGraphLog())
+        state.setdefault("appearance", AppearancePlaces())
         self.__dict__.update(state)
 
     def last_accepted(self, slam: BearingSlam) -> dict[str, tuple[int, float]]:
@@ -170,21 +176,39 @@ class MapLocalisation:
             ms,
         )
 
-    def graph_only(self, frame: FrameInput, outcome: FrameOutcome) -> Localised:
+    def graph_only(
+        self,
+        frame: FrameInput,
+        outcome: FrameOutcome,
+        *,
+        signature: NDArray[np.float32] | None = None,
+    ) -> Localised:
         """A frame the graph took by another route (an image frame, whose observations
         come from the front end's association): the filter is not stepped and the
-        robot is reported as tracking. The place localiser runs on labelled frames."""
+        robot is reported as tracking. The place localiser runs on labelled frames; an
+        image's appearance `signature` is recognised among (and may become one of) the
+        map's appearance places (service.appearance_places)."""
         self.last[frame.robot] = (frame.seq, frame.stamp)
         assert outcome.covariance is not None
-        self.off_graph.on_graph(frame.robot, (outcome.pose.x, outcome.pose.y, outcome.pose.theta))
+        p = outcome.pose
+        self.off_graph.on_graph(frame.robot, (p.x, p.y, p.theta))
+        place = confidence = None
+        if signature is not None:
+            place, confidence, _ = self.appearance.observe(
+                signature,
+                robot=frame.robot,
+                pose=(p.x, p.y, p.theta),
+                frame=outcome.frame_index,
+                stamp=frame.stamp,
+            )
         return Localised(
             frame.robot,
             frame.seq,
             frame.stamp,
             outcome,
             TRACKING,
-            None,
-            None,
+            place,
+            confidence,
             outcome.pose,
             np.asarray(outcome.covariance),
             None,
@@ -294,6 +318,7 @@ class MapLocalisation:
                 }
                 for p in places.places
             ],
+            "appearance_places": self.appearance.doc(),
             "transitions": [
                 {
                     "source": t.source,
