@@ -12,7 +12,11 @@ the recovery their filter lacked:
   ``d = wrap(z_j - bearing(x, l_j))`` has density
   ``p(d) = eps / 2pi + (1 - eps) N(d; 0, sigma)`` (uniform outliers + Gaussian);
   a landmark enters the log-likelihood as ``q_j * log p(d)`` (a tempered
-  likelihood: a poor match counts for less);
+  likelihood: a poor match counts for less); sigma is each observation's own (with
+  an optional floor in quadrature), or a configured default;
+- progressive correction: an observation that would drop the ESS below
+  ``tempering_ess_fraction * N`` is applied in tempered stages with resampling and a
+  regularisation kernel between them (see ParticleFilter._temper);
 - resampling: systematic (or multinomial, by name) when the effective sample size
   falls below ``resample_ess_fraction * N``; the new count is KLD-adaptive (Fox
   2003) within ``[min_particles, max_particles]``;

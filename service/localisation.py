@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
+from graph.particles import FilterConfig
 from graph.places import Place
 from graph.slam import BearingSlam, FrameOutcome
 from graph.snapshot import last_accepted, latest_pose_keys
@@ -64,11 +65,23 @@ class Localised:
     ms: float
 
 
+MAP_BEARING_SIGMA_FLOOR_RAD = math.radians(1.0)
+"""The filter's sensor-sigma floor in a map the graph estimates: its landmarks carry
+position error (~5 cm at 3 m is 1 deg) that an observation's own sigma leaves out.
+(MRCLAM-6, robot 5 mapping its first 120 s: without the floor the filter, trusting 1 deg
+bearings to the graph's landmarks, parted from the graph and sent the robot `lost`.)"""
+
+
+def map_localiser_config() -> LocaliserConfig:
+    """The place localiser's configuration for maps the graph estimates."""
+    return LocaliserConfig(filter=FilterConfig(bearing_sigma_floor_rad=MAP_BEARING_SIGMA_FLOOR_RAD))
+
+
 class MapLocalisation:
     """The map's place localiser, its rng, and each robot's last accepted frame."""
 
     def __init__(self, seed: int, config: LocaliserConfig | None = None) -> None:
-        self.localiser = Localiser(config or LocaliserConfig())
+        self.localiser = Localiser(config or map_localiser_config())
         self.rng = np.random.default_rng([seed, 5])
         self.last: dict[str, tuple[int, float]] = {}
         self.off_graph = OffGraphLog()
