@@ -272,6 +272,10 @@ class FilterConfig:
             raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}")
         if not 0.0 < self.alpha_slow < self.alpha_fast <= 1.0:
             raise ValueError("need 0 < alpha_slow < alpha_fast <= 1")
+        if not 0.0 <= self.tempering_ess_fraction < 1.0 or self.tempering_max_stages < 1:
+            raise ValueError("need 0 <= tempering_ess_fraction < 1 and tempering_max_stages >= 1")
+        if not self.bearing_sigma_floor_rad >= 0.0 or not self.bearing_sigma_rad > 0.0:
+            raise ValueError("need bearing_sigma_rad > 0 and bearing_sigma_floor_rad >= 0")
 
 
 @dataclass(frozen=True, slots=True)

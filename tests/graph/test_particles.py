@@ -322,3 +322,18 @@ def test_a_config_pickled_before_new_fields_unpickles_with_defaults() -> None:
     assert old.min_particles == 123
     assert old.tempering_ess_fraction == FilterConfig().tempering_ess_fraction
     assert old.bearing_sigma_floor_rad == FilterConfig().bearing_sigma_floor_rad
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"tempering_ess_fraction": 1.0},
+        {"tempering_ess_fraction": -0.1},
+        {"tempering_max_stages": 0},
+        {"bearing_sigma_floor_rad": -0.01},
+        {"bearing_sigma_rad": 0.0},
+    ],
+)
+def test_config_refuses_unsafe_values(bad: dict) -> None:
+    with pytest.raises(ValueError):
+        FilterConfig(**bad)
