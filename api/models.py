@@ -199,8 +199,12 @@ class FrameResult(BaseModel):
 class RobotPose(BaseModel):
     seq: int = Field(description="seq of the robot's latest frame")
     stamp: float = Field(description="stamp of that frame, seconds")
-    pose: PoseXYTheta = Field(description="current estimate of the latest pose")
-    covariance: list[list[float]] = Field(description=COV3)
+    pose: PoseXYTheta | None = Field(
+        description="current estimate of the latest pose; for a robot the graph does not "
+        "track (initialising, lost) the latest frame's best pose (see the trajectory's "
+        "`source`), null while the particle filter has weighed no observation yet"
+    )
+    covariance: list[list[float]] | None = Field(description=f"{COV3}; null with a null pose")
     localisation: Localisation = Field(description="localisation status of the robot")
 
 
@@ -215,6 +219,13 @@ class TrajectoryPoint(BaseModel):
     x: float = Field(description="metres, map frame")
     y: float = Field(description="metres, map frame")
     theta: float = Field(description="yaw, radians, counter-clockwise from +x")
+    source: Literal["odometry", "filter"] | None = Field(
+        None,
+        description="only on frames the graph did not take (the robot was initialising or "
+        "lost): `odometry` = dead-reckoned from a graph pose (backwards from the frame that "
+        "re-anchored the robot, or forwards from its last graph pose while it is lost), "
+        "`filter` = the particle filter's estimate",
+    )
     # Present only on the poses ?stats_every=N picks (every N-th of a robot, and its latest):
     frame_id: int | None = Field(
         None, description="(stats_every) the frame's position in the map's log (1-based)"
@@ -348,9 +359,22 @@ class TransitionOut(BaseModel):
     count: int = Field(description="times this transition was made")
 
 
+class AppearancePlaceOut(BaseModel):
+    id: int = Field(description="appearance place id, stable (a camera map's own series)")
+    pose: PoseXYTheta = Field(description="graph pose where the panorama was taken")
+    robot: str = Field(description="robot that took it")
+    frame: int = Field(description="map frame index of that frame")
+    stamp: float = Field(description="stamp of that frame, seconds")
+
+
 class PlacesOut(BaseModel):
     map_id: str = Field(description="the map's id")
     places: list[PlaceOut] = Field(description="learnt places")
+    appearance_places: list[AppearancePlaceOut] = Field(
+        default_factory=list,
+        description="camera maps: places recognised by the whole panorama's appearance "
+        "(yaw-invariant); an image frame's localisation.place is one of these ids",
+    )
     transitions: list[TransitionOut] = Field(description="the topological map's edges")
 
 

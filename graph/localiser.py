@@ -136,23 +136,32 @@ class Localiser:
         """Poses around the top-ranked places (and over the map extent), each heading
         such that one observed landmark lies at its observed bearing."""
         cfg = self.config
+        # A place draws proposals by how much better it scores than a typical place (the
+        # median): a frame that every place explains alike (one landmark seen, which many
+        # places hold) says nothing about where the robot is, and the proposal stays
+        # uniform instead of favouring whichever places rank first among equals.
+        scores_all = np.asarray(recognition.scores, dtype=np.float64)
+        baseline = float(np.median(scores_all)) if len(scores_all) else 0.0
+        excess = np.maximum(scores_all - baseline, 0.0)
         ranked = [
-            (int(p), float(s), float(d))
-            for p, s, d in zip(
+            (int(p), float(e), float(d))
+            for p, e, d in zip(
                 recognition.place_ids[: cfg.top_places],
-                recognition.scores[: cfg.top_places],
+                excess[: cfg.top_places],
                 recognition.yaw_offsets_rad[: cfg.top_places],
                 strict=True,
             )
-            if s > 0
+            if e > 0
         ]
+        top = float(scores_all[0]) if len(scores_all) else 0.0
+        place_share = (1.0 - cfg.uniform_share) * (float(excess[0]) / top if top > 0 else 0.0)
         lo = np.array(bounds[:2], dtype=np.float64)
         hi = np.array(bounds[2:], dtype=np.float64)
         places = self.places.places
 
         def draw(n: int, rng: np.random.Generator) -> FloatArray:
             out = np.empty((n, 3))
-            n_place = round(n * (1.0 - cfg.uniform_share)) if ranked else 0
+            n_place = round(n * place_share) if ranked else 0
             out[n_place:, :2] = lo + rng.random((n - n_place, 2)) * (hi - lo)
             out[n_place:, 2] = rng.uniform(-math.pi, math.pi, n - n_place)
             if n_place:
@@ -196,6 +205,7 @@ class Localiser:
         stamp: float = 0.0,
         covariances: Callable[[], Mapping[str, FloatArray]] | None = None,
         ids: Mapping[str, int] | None = None,
+        sigmas_rad: Sequence[float | None] | None = None,
     ) -> StepResult:
         """One frame of one robot.
 
@@ -203,13 +213,17 @@ class Localiser:
         `graph_pose` is (pose (3,), covariance (3, 3), map frame) of the graph's estimate
         for this frame, or None while the graph does not track the robot (initialising,
         lost). `ids` maps labels to landmark ids; `covariances` gives the landmarks'
-        (2, 2) covariances when a place is learnt (computed only then).
+        (2, 2) covariances when a place is learnt (computed only then); `sigmas_rad`
+        each observation's own bearing sigma (None: not stated).
         """
         cfg = self.config
         known = [i for i, label in enumerate(labels) if label in landmarks]
         lm_xy = np.array([landmarks[labels[i]] for i in known], dtype=np.float64).reshape(-1, 2)
         z = np.array([bearings_rad[i] for i in known], dtype=np.float64)
         q = None if quality is None else np.array([quality[i] for i in known])
+        sig = None
+        if sigmas_rad is not None:
+            sig = np.array([np.nan if sigmas_rad[i] is None else sigmas_rad[i] for i in known])
         track = self.robots.get(robot)
         current = self.places.last_visited.get(robot)
         if track is not None and track.status != TRACKING:
@@ -237,7 +251,7 @@ class Localiser:
         elif odometry is not None:
             track.pf.predict(np.asarray(odometry, dtype=np.float64), dt_s=dt_s, rng=rng)
         if len(z):
-            track.pf.update(lm_xy, z, q, rng=rng, injector=injector)
+            track.pf.update(lm_xy, z, q, rng=rng, injector=injector, sigmas_rad=sig)
         est = track.pf.estimate()
         track.seen.append(frozenset(labels))
         while len(track.seen) > cfg.reliability_frames:

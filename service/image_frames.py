@@ -32,6 +32,10 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
+from frontend.appearance import signature
 from frontend.association import Associator
 from frontend.errors import ImageError
 from frontend.features import Features
@@ -48,7 +52,7 @@ __all__ = ["MapVision", "image_digest", "image_refused"]
 PREFETCH_LIMIT = 8
 """Most images whose features are extracted ahead of their frame."""
 
-Pending = Future[tuple[Features, float]]
+Pending = Future[tuple[Features, NDArray[np.float32], float]]
 """Features of one image being extracted, with the extraction's milliseconds."""
 
 
@@ -141,12 +145,17 @@ class MapVision:
     def extract(self, image: bytes) -> Pending:
         """Decode, validate and describe `image` in the helper thread."""
 
-        def run() -> tuple[Features, float]:
+        def run() -> tuple[Features, NDArray[np.float32], float]:
             t0 = time.perf_counter()
-            features = self.front_end.features(image)
-            return features, 1e3 * (time.perf_counter() - t0)
+            features, sig = self._describe(image)
+            return features, sig, 1e3 * (time.perf_counter() - t0)
 
         return self._threads.submit(run)
+
+    def _describe(self, image: bytes) -> tuple[Features, NDArray[np.float32]]:
+        """The image's features and its appearance signature (one decode)."""
+        panorama = self.front_end.panorama(image)
+        return self.front_end.extractor.extract(panorama), signature(panorama)
 
     def prefetch(self, image: bytes) -> None:
         """Start extracting the features of a frame that waits behind the current one."""
@@ -164,18 +173,19 @@ class MapVision:
 
     def process(
         self, frame: FrameInput, image: Pending | bytes, *, with_covariance: bool
-    ) -> tuple[ImageFrameResult, dict[str, float]]:
-        """Associate the image's features and run the estimator; (result, timings ms).
+    ) -> tuple[ImageFrameResult, dict[str, float], NDArray[np.float32]]:
+        """Associate the image's features and run the estimator; (result, timings ms,
+        the image's appearance signature).
 
         Raises ImageError for a refused image (nothing changed), and whatever the
         estimator raises (InvalidFrame, EstimationError; the front end unchanged).
         """
         t0 = time.perf_counter()
         if isinstance(image, bytes):
-            features = self.front_end.features(image)
+            features, sig = self._describe(image)
             extract_ms = 1e3 * (time.perf_counter() - t0)
         else:
-            features, extract_ms = image.result()
+            features, sig, extract_ms = image.result()
         waited_ms = 1e3 * (time.perf_counter() - t0)
         result = self.pipeline.submit(frame, features, with_covariance=with_covariance)
         timing = {
@@ -183,4 +193,4 @@ class MapVision:
             "features_wait": waited_ms,
             "association": result.timing_ms["association"],
         }
-        return result, timing
+        return result, timing, sig

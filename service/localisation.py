@@ -18,11 +18,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.localiser import LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
+from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
+from graph.particles import FilterConfig
 from graph.places import Place
 from graph.slam import BearingSlam, FrameOutcome
 from graph.snapshot import last_accepted, latest_pose_keys
 from graph.types import FrameInput, Pose2D
+from service.appearance_places import AppearancePlaces
+from service.offgraph import ODOMETRY, OffGraphLog
 
 FloatArray = NDArray[np.float64]
 
@@ -62,13 +65,37 @@ class Localised:
     ms: float
 
 
+MAP_BEARING_SIGMA_FLOOR_RAD = math.radians(1.0)
+"""The filter's sensor-sigma floor in a map the graph estimates: its landmarks carry
+position error (~5 cm at 3 m is 1 deg) that an observation's own sigma leaves out.
+(MRCLAM-6, robot 5 mapping its first 120 s: without the floor the filter, trusting 1 deg
+bearings to the graph's landmarks, parted from the graph and sent the robot `lost`.)"""
+
+
+def map_localiser_config() -> LocaliserConfig:
+    """The place localiser's configuration for maps the graph estimates."""
+    return LocaliserConfig(filter=FilterConfig(bearing_sigma_floor_rad=MAP_BEARING_SIGMA_FLOOR_RAD))
+
+
 class MapLocalisation:
     """The map's place localiser, its rng, and each robot's last accepted frame."""
 
     def __init__(self, seed: int, config: LocaliserConfig | None = None) -> None:
-        self.localiser = Localiser(config or LocaliserConfig())
+        self.localiser = Localiser(config or map_localiser_config())
         self.rng = np.random.default_rng([seed, 5])
         self.last: dict[str, tuple[int, float]] = {}
+        self.off_graph = OffGraphLog()
+        """Frames acknowledged while the graph did not take them (see service.offgraph)."""
+        self.appearance = AppearancePlaces(
+            learn_distance_m=self.localiser.config.places.learn_distance_m
+        )
+        """Appearance places of a camera map's image frames."""
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # Snapshots taken before the off-graph log or appearance places existed lack them.
+        state.setdefault("off_graph", OffGraphLog())
+        state.setdefault("appearance", AppearancePlaces())
+        self.__dict__.update(state)
 
     def last_accepted(self, slam: BearingSlam) -> dict[str, tuple[int, float]]:
         """(seq, stamp) of each robot's last accepted frame, graph or filter only."""
@@ -110,6 +137,7 @@ class MapLocalisation:
             dt_s=0.0 if prev is None else frame.stamp - prev[1],
             labels=[o.label for o in frame.observations],
             bearings_rad=[o.bearing_rad for o in frame.observations],
+            sigmas_rad=[o.sigma_rad for o in frame.observations],
             landmarks=self.landmark_map(slam),
             graph_pose=graph_pose,
             rng=self.rng,
@@ -124,11 +152,28 @@ class MapLocalisation:
             anchor = (Pose2D(*(float(v) for v in est.pose_xytheta)), est.covariance)
             outcome = slam.process(frame, with_covariance=True, anchor=anchor)
         self.last[frame.robot] = (frame.seq, frame.stamp)
-        if outcome is not None and result.status != LOST:
+        if outcome is not None:
+            # In the graph (also the frame that found the robot lost): its graph pose is
+            # the one in the trajectory, so it is the one reported.
             assert outcome.covariance is not None
             pose, cov = outcome.pose, np.asarray(outcome.covariance)
+            if result.anchor:
+                self.off_graph.anchor(frame.robot, seq=frame.seq, odometry=odometry)
+            self.off_graph.on_graph(frame.robot, (pose.x, pose.y, pose.theta))
         else:
-            pose = Pose2D(*(float(v) for v in est.pose_xytheta))
+            kept = self.off_graph.off_graph(
+                frame.robot,
+                seq=frame.seq,
+                stamp=frame.stamp,
+                odometry=odometry,
+                filter_pose=(
+                    float(est.pose_xytheta[0]),
+                    float(est.pose_xytheta[1]),
+                    float(est.pose_xytheta[2]),
+                ),
+                converged=est.converged,
+            )
+            pose = Pose2D(*kept.pose)
             cov = to_robot_frame(est.covariance, pose.theta)
         return Localised(
             frame.robot,
@@ -144,25 +189,91 @@ class MapLocalisation:
             ms,
         )
 
-    def graph_only(self, frame: FrameInput, outcome: FrameOutcome) -> Localised:
+    def graph_only(
+        self,
+        frame: FrameInput,
+        outcome: FrameOutcome,
+        *,
+        signature: NDArray[np.float32] | None = None,
+    ) -> Localised:
         """A frame the graph took by another route (an image frame, whose observations
         come from the front end's association): the filter is not stepped and the
-        robot is reported as tracking. The place localiser runs on labelled frames."""
+        robot is reported as tracking. The place localiser runs on labelled frames; an
+        image's appearance `signature` is recognised among (and may become one of) the
+        map's appearance places (service.appearance_places)."""
         self.last[frame.robot] = (frame.seq, frame.stamp)
         assert outcome.covariance is not None
+        p = outcome.pose
+        self.off_graph.on_graph(frame.robot, (p.x, p.y, p.theta))
+        place = confidence = None
+        if signature is not None:
+            place, confidence, _ = self.appearance.observe(
+                signature,
+                robot=frame.robot,
+                pose=(p.x, p.y, p.theta),
+                frame=outcome.frame_index,
+                stamp=frame.stamp,
+            )
         return Localised(
             frame.robot,
             frame.seq,
             frame.stamp,
             outcome,
             TRACKING,
-            None,
-            None,
+            place,
+            confidence,
             outcome.pose,
             np.asarray(outcome.covariance),
             None,
             0.0,
         )
+
+    def with_off_graph(
+        self, rows: dict[str, list[dict[str, Any]]], robot: str | None = None
+    ) -> dict[str, list[dict[str, Any]]]:
+        """The graph's trajectory rows per robot (`rows`, changed in place and returned)
+        with every off-graph frame added, ordered by seq; `robot`: that robot only."""
+        for name in self.off_graph.robots():
+            if robot is not None and name != robot:
+                continue
+            graph = rows.get(name, [])
+            by_seq = {int(r["seq"]): (r["x"], r["y"], r["theta"]) for r in graph}
+            extra = self.off_graph.rows(name, by_seq)
+            if extra:
+                rows[name] = sorted([*graph, *extra], key=lambda r: int(r["seq"]))
+        return rows
+
+    def robot_poses(self) -> dict[str, dict[str, Any]]:
+        """Pose documents of the robots the graph does not track now (initialising or
+        lost): the latest frame's best pose and the filter's covariance (robot frame);
+        pose and covariance null while the filter has not weighed any observation, or
+        when the latest frame is a graph frame (the graph's pose then stands)."""
+        out: dict[str, dict[str, Any]] = {}
+        for name, track in self.localiser.robots.items():
+            if track.status not in (INITIALISING, LOST) or name not in self.last:
+                continue
+            seq, stamp = self.last[name]
+            latest = self.off_graph.latest(name)
+            est = track.pf.estimate()
+            pose: dict[str, float] | None = None
+            cov: list[list[float]] | None = None
+            known = latest is not None and (latest.source == ODOMETRY or track.pf.w_slow > 0)
+            if latest is not None and latest.seq == seq and known:
+                x, y, theta = latest.pose
+                pose = {"x": x, "y": y, "theta": theta}
+                cov = to_robot_frame(est.covariance, theta).tolist()
+            out[name] = {
+                "seq": seq,
+                "stamp": stamp,
+                "pose": pose,
+                "covariance": cov,
+                "localisation": {
+                    "status": track.status,
+                    "place": None,
+                    "confidence": float(est.converged),
+                },
+            }
+        return out
 
     @staticmethod
     def _landmark_covariances(slam: BearingSlam) -> dict[str, FloatArray]:
@@ -220,6 +331,7 @@ class MapLocalisation:
                 }
                 for p in places.places
             ],
+            "appearance_places": self.appearance.doc(),
             "transitions": [
                 {
                     "source": t.source,

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
@@ -197,8 +198,8 @@ class MapSession:
         frame = frame_from_dict(doc)
         try:
             if "image" in doc:
-                outcome = self._replay_image(stored.id, frame, True)
-                localised = loc.graph_only(frame, outcome)
+                outcome, sig = self._replay_image(stored.id, frame, True)
+                localised = loc.graph_only(frame, outcome, signature=sig)
             else:
                 localised = loc.process(slam, frame)
         except (InvalidFrame, EstimationError, ImageError):
@@ -217,11 +218,14 @@ class MapSession:
             result = self._result_doc(slam, localised, stored.id, {})
             self._complete(slam, stored.id, json.dumps(result), localised, removals)
 
-    def _replay_image(self, log_id: int, frame: Any, with_covariance: bool) -> FrameOutcome:
+    def _replay_image(
+        self, log_id: int, frame: Any, with_covariance: bool
+    ) -> tuple[FrameOutcome, NDArray[np.float32]]:
         image = self.store.frame_image(log_id)
         if self.vision is None or image is None:
             raise InvalidFrame("image", f"log frame {log_id}: image or camera missing")
-        return self.vision.process(frame, image, with_covariance=with_covariance)[0].outcome
+        result, _, sig = self.vision.process(frame, image, with_covariance=with_covariance)
+        return result.outcome, sig
 
     @property
     def snapshot_due(self) -> bool:
@@ -301,8 +305,8 @@ class MapSession:
             if pending is None:
                 localised = self.loc.process(self.slam, frame)
             else:
-                outcome, vision_ms = self._process_image(frame, pending)
-                localised = self.loc.graph_only(frame, outcome)
+                outcome, vision_ms, sig = self._process_image(frame, pending)
+                localised = self.loc.graph_only(frame, outcome, signature=sig)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -350,10 +354,12 @@ class MapSession:
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
 
-    def _process_image(self, frame: Any, pending: Pending) -> tuple[FrameOutcome, dict[str, float]]:
+    def _process_image(
+        self, frame: Any, pending: Pending
+    ) -> tuple[FrameOutcome, dict[str, float], NDArray[np.float32]]:
         assert self.vision is not None
-        result, timing = self.vision.process(frame, pending, with_covariance=True)
-        return result.outcome, timing
+        result, timing, sig = self.vision.process(frame, pending, with_covariance=True)
+        return result.outcome, timing, sig
 
     def _result_doc(
         self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]
@@ -441,9 +447,15 @@ class MapSession:
         return MapConfig.model_validate(self.record.config).seed
 
     def pose(self) -> dict[str, Any]:
+        """Latest pose per robot, the graph's or (initialising, lost) the best off-graph
+        one: see MapLocalisation.robot_poses."""
         doc = pose_doc(self.slam, self.record.id)
         for name, robot in doc["robots"].items():
             robot["localisation"]["status"] = self.loc.status(name)
+        for name, off in self.loc.robot_poses().items():
+            if off["pose"] is None and name in doc["robots"]:
+                continue
+            doc["robots"][name] = off
         return doc
 
     def places(self) -> dict[str, Any]:
@@ -495,9 +507,11 @@ class MapSession:
     def trajectory(
         self, robot: str | None = None, *, stats_every: int = 0
     ) -> dict[str, list[dict[str, Any]]]:
-        rows: dict[str, list[dict[str, Any]]] = dict(
-            trajectory_doc(self.slam, self.record.id, robot)
-        )
+        if robot is not None and robot not in self.slam.robots and robot in self.loc.last:
+            rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
+        else:
+            rows = dict(trajectory_doc(self.slam, self.record.id, robot))
+        self.loc.with_off_graph(rows, robot)
         if stats_every > 0:
             labels = self.store.removed_labels()
             labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())

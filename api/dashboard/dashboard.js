@@ -519,8 +519,9 @@ function drawLocalisation(st) {
       cell(loc.status ?? "–", `status status-${loc.status}`),
       cell(loc.place ?? "–"),
       cell(loc.confidence != null ? loc.confidence.toFixed(2) : "–", "num"),
-      cell(`${p.pose.x.toFixed(2)}, ${p.pose.y.toFixed(2)}`, "num"),
-      cell(((p.pose.theta * 180) / Math.PI).toFixed(0), "num"),
+      // null while an initialising robot's filter has weighed no observation
+      cell(p.pose ? `${p.pose.x.toFixed(2)}, ${p.pose.y.toFixed(2)}` : "–", "num"),
+      cell(p.pose ? ((p.pose.theta * 180) / Math.PI).toFixed(0) : "–", "num"),
       cell(e ? `${e.rx.toFixed(2)}×${e.ry.toFixed(2)}` : "–", "num"),
     );
     tr.firstChild.style.color = robotColour(robot);

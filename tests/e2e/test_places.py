@@ -32,7 +32,12 @@ def test_places_and_localisation_over_http(client: httpx.Client) -> None:
     results = post_all(client, map_id, R1)
     assert {r["localisation"]["status"] for r in results} == {"tracking"}
 
-    r2 = post_all(client, map_id, [_r2(k) for k in range(40)])
+    r2 = post_all(client, map_id, [_r2(0)])
+    pose = client.get(f"/v1/maps/{map_id}/pose")
+    assert pose.status_code == 200, pose.text
+    assert pose.json()["robots"]["r2"]["localisation"]["status"] == "initialising"
+    assert pose.json()["robots"]["r2"]["seq"] == 0
+    r2 += post_all(client, map_id, [_r2(k) for k in range(1, 40)])
     statuses = [r["localisation"]["status"] for r in r2]
     assert statuses[0] == "initialising"
     assert "relocalised" in statuses, statuses
@@ -40,6 +45,12 @@ def test_places_and_localisation_over_http(client: httpx.Client) -> None:
     assert statuses[-1] == "tracking" and set(statuses[first + 1 :]) == {"tracking"}
     pose = client.get(f"/v1/maps/{map_id}/pose").json()["robots"]
     assert pose["r2"]["localisation"]["status"] == "tracking"
+    # every acknowledged frame is in the trajectory, those before the anchor with a source
+    rows = client.get(f"/v1/maps/{map_id}/trajectory", params={"robot": "r2"}).json()
+    rows = rows["robots"]["r2"]
+    assert [r["seq"] for r in rows] == list(range(40))
+    assert {r.get("source") for r in rows[:first]} == {"odometry"}
+    assert all("source" not in r for r in rows[first:])
 
     doc = client.get(f"/v1/maps/{map_id}/places")
     assert doc.status_code == 200

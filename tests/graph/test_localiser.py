@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from graph.angles import wrap_angle
 from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser
@@ -72,3 +73,26 @@ def test_initialising_relocalised_tracking_lost_and_back() -> None:
     for _, dist, yaw in errors:
         assert dist < 0.3 and yaw < math.radians(8)
     assert len(loc.places) >= 1  # learnt automatically while tracking
+
+
+def test_proposal_favours_places_only_as_far_as_recognition_tells_them_apart() -> None:
+    """Places whose scores tie (one landmark seen, which all of them hold) get no more
+    proposals than anywhere else; a place that stands out gets most of them."""
+    from graph.places import Recognition
+
+    loc = Localiser()
+    track_pose = np.array([1.0, 1.0, 0.0])
+    for k, xy in enumerate([(1.0, 1.0), (5.0, 5.0), (1.0, 5.0), (5.0, 1.0)]):
+        loc.learn("r", np.array([*xy, 0.0]), WORLD, frame=k, stamp=float(k))
+    assert len(loc.places) == 4
+    ids = np.arange(4)
+    bounds = (-1.0, -1.0, 7.0, 7.0)
+    rng = np.random.default_rng(0)
+    near = []
+    for scores in ([0.5, 0.5, 0.5, 0.5], [1.0, 0.1, 0.1, 0.1]):
+        rec = Recognition(ids, np.array(scores), np.zeros(4))
+        draw = loc.proposal(rec, np.zeros((0, 2)), np.zeros(0), bounds)(4000, rng)
+        near.append(float(np.mean(np.hypot(*(draw[:, :2] - track_pose[:2]).T) < 1.0)))
+    uniform = math.pi / 64.0  # a 1 m disc's share of the 8 m x 8 m extent
+    assert near[0] == pytest.approx(uniform, abs=0.02)
+    assert near[1] > 0.3  # 0.63 of the draws around place 0 (sigma 0.75 m): ~0.39

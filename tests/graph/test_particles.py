@@ -76,6 +76,36 @@ def test_sensor_model_quality_scales_each_landmark() -> None:
     np.testing.assert_allclose(half, first + 0.5 * (both - first), rtol=1e-5)
 
 
+def _loglik_reference(particles, lm, z, q) -> np.ndarray:
+    """The sensor model written plainly in float64: wrapped differences, density, sum."""
+    rel = lm[None, :, :] - particles[:, None, :2]
+    predicted = np.arctan2(rel[..., 1], rel[..., 0]) - particles[:, 2:3]
+    d = wrap_angles(z[None, :] - predicted)
+    gauss = (1 - EPS) * np.exp(-0.5 * (d / SIGMA) ** 2) / (math.sqrt(2 * math.pi) * SIGMA)
+    return np.log(EPS / (2 * math.pi) + gauss) @ q
+
+
+@pytest.mark.parametrize("offset", [0.0, 3.0e5])
+@pytest.mark.parametrize("n", [7, 1000, 2500])
+def test_sensor_model_agrees_with_the_plain_formula(n: int, offset: float) -> None:
+    """The factored float32 path (blocks of particles) against float64, also far from the
+    origin (UTM-sized coordinates); half the bearings near their predicted values."""
+    rng = np.random.default_rng(n)
+    particles = np.column_stack(
+        [rng.uniform(0, 10, n) + offset, rng.uniform(0, 10, n) - offset, rng.uniform(-4, 4, n)]
+    )
+    shift = np.array([offset, -offset])
+    lm = rng.uniform(-5, 15, (32, 2)) + shift
+    z = rng.uniform(-math.pi, math.pi, 32)
+    first = particles[:1] - np.append(shift, 0.0)
+    z[:16] = wrap_angles(predicted_bearings(first, lm[:16] - shift)[0] + rng.normal(0, SIGMA, 16))
+    q = rng.uniform(0, 1, 32)
+    got = _loglik(particles, lm, z, q)
+    want = _loglik_reference(particles, lm, z, q)
+    assert got.shape == (n,) and got.dtype == np.float64
+    np.testing.assert_allclose(got, want, atol=1e-3, rtol=1e-5)
+
+
 weights_st = st.lists(st.floats(0.0, 1.0), min_size=1, max_size=60).filter(lambda w: sum(w) > 0)
 
 
@@ -233,3 +263,77 @@ def test_recovers_after_a_kidnap() -> None:
     assert recovered[0] - kidnap <= 25
     dist, yaw = _error(history[-1][0], history[-1][1].pose_xytheta)
     assert dist < 0.2 and yaw < math.radians(5)
+
+
+# --------------------------------------------------------------------------- sharp updates
+def _sparse_cloud_and_sharp_fix(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """300 particles spread ~0.7 m / 10 deg around the truth; every landmark seen at once
+    with 0.3 deg noise: the likelihood's peak is far narrower than the particle spacing."""
+    rng = np.random.default_rng(seed)
+    truth = np.array([3.0, 2.5, 0.4])
+    cloud = truth + rng.normal(0.0, [0.7, 0.7, math.radians(10.0)], (300, 3))
+    z = predicted_bearings(truth[None, :], LANDMARKS)[0].astype(np.float64)
+    return truth, cloud, wrap_angles(z + rng.normal(0.0, math.radians(0.3), len(z)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_progressive_correction_draws_particles_to_a_sharp_peak(seed: int) -> None:
+    truth, cloud, z = _sparse_cloud_and_sharp_fix(seed)
+    sigmas = np.full(len(z), math.radians(0.3))
+    errors = {}
+    for tempering in (0.0, 0.1):
+        cfg = FilterConfig(min_particles=300, tempering_ess_fraction=tempering)
+        pf = ParticleFilter.from_poses(cloud, cfg)
+        pf.update(LANDMARKS, z, rng=np.random.default_rng(seed), sigmas_rad=sigmas)
+        est = pf.estimate()
+        errors[tempering] = _error(truth, est.pose_xytheta)[0]
+        if tempering:
+            assert pf.last_stages > 1
+            assert errors[tempering] < 0.05, "the peak is found, not just the nearest particle"
+        else:
+            assert pf.last_stages == 1
+    nearest = float(np.min(np.hypot(*(cloud[:, :2] - truth[:2]).T)))
+    assert errors[0.1] < errors[0.0] and errors[0.1] < nearest
+
+
+def test_each_observation_sigma_shapes_its_likelihood() -> None:
+    cfg = FilterConfig(bearing_sigma_floor_rad=math.radians(0.5))
+    pf = ParticleFilter.from_poses(np.zeros((1, 3)), cfg)
+    got = pf.bearing_sigmas(3, np.array([math.radians(1.0), np.nan, math.radians(4.0)]))
+    want = np.hypot(np.radians([1.0, 1.5, 4.0]), math.radians(0.5))  # NaN: the default
+    np.testing.assert_allclose(got, want)
+    p = np.array([[0.0, 0.0, 0.0]])
+    lm = np.array([[5.0, 0.0], [5.0, 0.0]])
+    off = np.array([math.radians(3.0)] * 2)
+    per = bearing_log_likelihood(
+        p, lm, off, np.array([1.0, 0.0]), sigma_rad=np.radians([1.0, 4.0]), outlier_fraction=EPS
+    )
+    wide = bearing_log_likelihood(
+        p, lm, off, np.array([0.0, 1.0]), sigma_rad=np.radians([1.0, 4.0]), outlier_fraction=EPS
+    )
+    assert wide[0] > per[0]  # 3 deg off: 3 sigma for the sharp one, 0.75 for the wide one
+
+
+def test_a_config_pickled_before_new_fields_unpickles_with_defaults() -> None:
+    cfg = FilterConfig(min_particles=123)
+    state = cfg.__getstate__()
+    old = FilterConfig.__new__(FilterConfig)
+    old.__setstate__(tuple(state)[:-3])  # as pickled before the last three fields existed
+    assert old.min_particles == 123
+    assert old.tempering_ess_fraction == FilterConfig().tempering_ess_fraction
+    assert old.bearing_sigma_floor_rad == FilterConfig().bearing_sigma_floor_rad
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"tempering_ess_fraction": 1.0},
+        {"tempering_ess_fraction": -0.1},
+        {"tempering_max_stages": 0},
+        {"bearing_sigma_floor_rad": -0.01},
+        {"bearing_sigma_rad": 0.0},
+    ],
+)
+def test_config_refuses_unsafe_values(bad: dict) -> None:
+    with pytest.raises(ValueError):
+        FilterConfig(**bad)

@@ -204,3 +204,43 @@ def test_export_of_an_image_map_is_refused_on_import(
     assert info.value.status == 422 and "image frame" in info.value.detail
     assert target.slam.frame_count == 0
     target.close()
+
+
+def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    import cv2
+
+    session = _new(tmp_path / "cam.sqlite")
+    results = [json.loads(session.submit(m, i)["result_json"]) for m, i in run[:30]]
+    places = session.places()["appearance_places"]
+    assert len(places) >= 2, "the run crosses more than one place spacing"
+    assert places[0]["robot"] == "r1" and places[0]["frame"] == 0
+    assert results[0]["localisation"]["place"] == 0
+    # A place is reported when its score reaches min_score (0.5): near where it was
+    # learnt; between places (~0.7 m away in these small rooms) none may be.
+    for r in results:
+        place, score = r["localisation"]["place"], r["localisation"]["confidence"]
+        assert score is not None and (place is not None) == (score >= 0.5)
+    assert sum(r["localisation"]["place"] is not None for r in results) >= len(results) // 2
+    assert all(r["localisation"]["status"] == "tracking" for r in results)
+
+    # r2 stands where r1 started, turned 90 deg left: its panorama is r1's first one
+    # shifted right by a quarter turn (see frontend.appearance's convention).
+    meta0, image0 = run[0]
+    pano = cv2.imdecode(np.frombuffer(image0, np.uint8), cv2.IMREAD_GRAYSCALE)
+    turned = np.roll(pano, CAMERA.width // 4, axis=1)
+    ok, png = cv2.imencode(".png", turned)
+    assert ok
+    start = meta0["initial_pose"]
+    meta = {
+        **meta0,
+        "robot": "r2",
+        "seq": 0,
+        "initial_pose": {**start, "theta": start["theta"] + np.pi / 2},
+    }
+    result = json.loads(session.submit(meta, png.tobytes())["result_json"])
+    assert result["localisation"]["place"] == 0
+    assert result["localisation"]["confidence"] > 0.95
+    assert len(session.places()["appearance_places"]) == len(places)  # nothing new learnt
+    session.close()

@@ -1,0 +1,81 @@
+"""Places of a camera map recognised by appearance (frontend.appearance).
+
+A camera map's frames do not go through the place localiser (their observations come
+from the front end's association). Their panoramas still say where the robot is: the
+map keeps an appearance place -- the panorama's signature at the robot's graph pose --
+whenever the robot is `learn_distance_m` from every such place, and every image frame
+is matched against all of them (yaw-invariant: a rotation is a column shift). The
+frame result reports the best place whose score reaches `min_score`, and the score
+as its confidence.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontend.appearance import AppearanceIndex
+
+
+@dataclass(frozen=True, slots=True)
+class AppearancePlace:
+    id: int
+    pose: tuple[float, float, float]
+    """Graph pose (x m, y m, theta rad) where the signature was taken."""
+    robot: str
+    frame: int
+    stamp: float
+
+
+@dataclass
+class AppearancePlaces:
+    learn_distance_m: float = 1.5
+    min_score: float = 0.5
+    """Normalised cross-correlation a place needs to be reported as recognised."""
+    index: AppearanceIndex = field(default_factory=AppearanceIndex)
+    places: list[AppearancePlace] = field(default_factory=list)
+
+    def observe(
+        self,
+        signature: NDArray[np.float32],
+        *,
+        robot: str,
+        pose: tuple[float, float, float],
+        frame: int,
+        stamp: float,
+    ) -> tuple[int | None, float | None, AppearancePlace | None]:
+        """Recognise (best place or None, its score or None), then learn a place here if
+        the robot is far from every place: (place, confidence, learnt)."""
+        best: int | None = None
+        score: float | None = None
+        if self.places:
+            found = self.index.match(signature)
+            top = int(found.order[0])
+            score = float(found.scores[top])
+            best = top if score >= self.min_score else None
+        near = min(
+            (math.hypot(p.pose[0] - pose[0], p.pose[1] - pose[1]) for p in self.places),
+            default=math.inf,
+        )
+        learnt = None
+        if near > self.learn_distance_m:
+            learnt = AppearancePlace(self.index.add(signature), pose, robot, frame, stamp)
+            self.places.append(learnt)
+            best, score = learnt.id, 1.0
+        return best, score, learnt
+
+    def doc(self) -> list[dict[str, Any]]:
+        return [
+            {
+                "id": p.id,
+                "pose": {"x": p.pose[0], "y": p.pose[1], "theta": p.pose[2]},
+                "robot": p.robot,
+                "frame": p.frame,
+                "stamp": p.stamp,
+            }
+            for p in self.places
+        ]
