@@ -11,7 +11,10 @@ export const CLUSTER_COLOURS = [
   "#4e79a7", "#f28e2b", "#e15759", "#59a14f", "#b07aa1", "#9c755f",
   "#17becf", "#edc948", "#ff9da7", "#76b7b2", "#8c564b", "#bcbd22",
 ];
-export const ROBOT_COLOURS = ["#0b5cad", "#c2410c", "#15803d", "#7e22ce", "#a16207", "#be185d", "#0f766e"];
+// Robots: no violet (that is the places' colour), dark enough for 1.5 px lines on white.
+export const ROBOT_COLOURS = ["#0b5cad", "#c2410c", "#15803d", "#be185d", "#a16207", "#0f766e", "#4b5563"];
+/** Place labels (P<id>) are drawn when at most this many places are visible; else hover. */
+const PLACE_LABELS_MAX = 12;
 
 export const clusterColour = (c) => CLUSTER_COLOURS[((c % CLUSTER_COLOURS.length) + CLUSTER_COLOURS.length) % CLUSTER_COLOURS.length];
 
@@ -340,20 +343,25 @@ export class MapView {
 
     const pl = this.q("layer-places");
     pl.replaceChildren();
+    const shown = d.places.filter((p) => visible(this.sx(p.x), this.sy(p.y))).length;
     for (const p of d.places) {
       const [x, y] = [this.sx(p.x), this.sy(p.y)];
       const g = el("g", { class: "place-marker", "data-id": p.id }, pl);
-      const sq = el("rect", { class: "place", x: (x - 6).toFixed(1), y: (y - 6).toFixed(1), width: 12, height: 12 }, g);
-      if (Number.isFinite(p.theta)) {
+      if (!visible(x, y)) g.setAttribute("visibility", "hidden");
+      const sq = el("rect", { class: "place", x: (x - 4).toFixed(1), y: (y - 4).toFixed(1), width: 8, height: 8 }, g);
+      if (Number.isFinite(p.theta)) { // the reference pose's heading
         el("line", {
-          class: "place", x1: x, y1: y, x2: x + 12 * Math.cos(p.theta), y2: y - 12 * Math.sin(p.theta),
+          class: "place-heading", x1: x, y1: y, x2: x + 11 * Math.cos(p.theta), y2: y - 11 * Math.sin(p.theta),
         }, g);
       }
-      el("text", { class: "place-label", x: x + 8, y: y - 8 }, g).textContent = `P${p.id}`;
+      if (shown <= PLACE_LABELS_MAX) el("text", { class: "place-label", x: x + 6, y: y - 6 }, g).textContent = `P${p.id}`;
       title(sq, `place ${p.id}: reference pose (${p.x.toFixed(2)}, ${p.y.toFixed(2)}) m` +
-        (p.landmarks != null ? `, ${p.landmarks} landmarks` : ""));
+        (Number.isFinite(p.theta) ? `, θ ${((p.theta * 180) / Math.PI).toFixed(0)}°` : "") +
+        (p.landmarks != null ? `, ${p.landmarks} landmarks` : "") +
+        (p.robot != null ? `, learnt by ${p.robot}` : "") + (p.frame != null ? ` at frame ${p.frame}` : ""));
     }
     pl.dataset.count = String(d.places.length);
+    pl.dataset.labels = String(pl.querySelectorAll("text.place-label").length);
     pl.dataset.transitions = String(d.transitions.length);
 
     const lm = this.q("layer-landmarks");

@@ -215,3 +215,142 @@ def test_dashboard_in_chromium_shows_the_map_and_follows_it_live(
     page.close()
     assert problems == []
     assert time.monotonic() - t0 < 60
+
+
+def _world_scale(page: Any) -> float:
+    """Pixels per metre of the map view (the #world transform is matrix(s,0,0,-s,tx,ty))."""
+    transform = page.get_attribute("#world", "transform")
+    return float(transform.split("(")[1].split(",")[0])
+
+
+def _dot(page: Any, layer: str, landmark: int) -> tuple[float, float]:
+    c = page.locator(f"#{layer} circle[data-id='{landmark}']")
+    return float(c.get_attribute("cx")), float(c.get_attribute("cy"))
+
+
+def _renamed(frames: list[dict[str, Any]], robot: str) -> list[dict[str, Any]]:
+    return [{**f, "robot": robot} for f in frames]
+
+
+def test_dashboard_two_robots_pan_zoom_and_phone_layout(
+    browser: Any, server: Server, client: httpx.Client
+) -> None:
+    """Two robots (named so that a plain sort would misorder them: r2 < r10), pan and
+    zoom that keep metres on the axes and survive live updates, places drawn from
+    GET places, and a phone-width page whose tables fit without sideways scrolling."""
+    map_id = create_map(client, "two robots", config={"landmark_cap": 6})
+    r10, r2 = _renamed(FRAMES[:40], "r10"), _renamed(FRAMES[:41], "r2")
+    post_all(client, map_id, [f for pair in zip(r10, r2[:40], strict=True) for f in pair])
+
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    problems: list[str] = []
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    page.goto(f"{server.url}/dashboard/?map={map_id}")
+    _wait_for(page, "app", "state", "live")
+    _wait_for(page, "app", "frame", 80)
+    rest = _rest(client, map_id)
+    shown = _layers(page)
+
+    # the status table and the legends list robots in natural order
+    assert page.eval_on_selector_all(
+        "#localisation tbody tr", "rows => rows.map(r => r.dataset.robot)"
+    ) == ["r2", "r10"]
+    assert int(shown["layer-trajectories"]["robots"]) == 2
+    assert int(shown["plot-uncertainty"]["series"]) == 4  # two eigenvalues per robot
+    assert page.eval_on_selector_all(
+        "#plot-uncertainty path[data-name^='r']", "ps => ps.map(p => p.dataset.name)"
+    ) == ["r2", "r10"]
+
+    # places from GET places: markers, headings of reference poses, labels while few
+    places = rest["places"].json()
+    assert shown["layer-places"]["state"] == "ok"
+    assert int(shown["layer-places"]["count"]) == len(places["places"])
+    assert int(shown["layer-places"]["transitions"]) == len(places["transitions"])
+    if 0 < len(places["places"]) <= 12:
+        assert int(shown["layer-places"]["labels"]) == len(places["places"])
+    assert int(shown["layer-transitions"]["count"]) == len(places["transitions"])
+    robot_colours = {
+        page.get_attribute(f"#layer-trajectories polyline[data-robot='{r}']", "stroke")
+        for r in ("r2", "r10")
+    }
+    assert len(robot_colours) == 2 and "#6f42c1" not in robot_colours  # violet = places
+
+    # holes: hatched (readable without colour vision), as many as REST says
+    assert int(shown["layer-coverage"]["holes"]) == rest["holes"]
+    if rest["holes"]:
+        fill = page.eval_on_selector("#layer-coverage rect.hole", "r => getComputedStyle(r).fill")
+        assert "hole-hatch" in fill
+
+    # metres on the axes
+    axis_text = page.eval_on_selector_all("#axes text", "ts => ts.map(t => t.textContent)")
+    assert "x [m]" in axis_text and "y [m]" in axis_text
+
+    # zoom with the wheel about the cursor: the landmark under it stays put
+    landmarks = client.get(f"/v1/maps/{map_id}/landmarks").json()
+    a, b = landmarks[0]["id"], landmarks[-1]["id"]
+    s0 = _world_scale(page)
+    box = page.locator("#map").bounding_box()
+    ax, ay = _dot(page, "layer-landmarks", a)
+    bx, by = _dot(page, "layer-landmarks", b)
+    page.mouse.move(box["x"] + ax, box["y"] + ay)
+    page.mouse.wheel(0, -400)
+    page.wait_for_function(
+        "s => !document.getElementById('world')"
+        ".getAttribute('transform').startsWith(`matrix(${s},`)",
+        arg=s0,
+    )
+    s1 = _world_scale(page)
+    assert s1 > 1.5 * s0
+    ax1, ay1 = _dot(page, "layer-landmarks", a)
+    assert (ax1, ay1) == pytest.approx((ax, ay), abs=1.5)
+    bx1, by1 = _dot(page, "layer-landmarks", b)
+    assert (bx1 - ax1, by1 - ay1) == pytest.approx(
+        ((bx - ax) * s1 / s0, (by - ay) * s1 / s0), abs=1.5
+    )
+
+    # pan by dragging: everything moves with the pointer
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(box["x"] + box["width"] / 2 + 60, box["y"] + box["height"] / 2 + 40, steps=5)
+    page.mouse.up()
+    page.wait_for_function(
+        "([id, x]) => Math.abs(Number(document.querySelector("
+        "`#layer-landmarks circle[data-id='${id}']`).getAttribute('cx')) - x) > 30",
+        arg=[a, ax1],
+    )
+    ax2, ay2 = _dot(page, "layer-landmarks", a)
+    assert (ax2 - ax1, ay2 - ay1) == pytest.approx((60, 40), abs=1.5)
+    assert _world_scale(page) == pytest.approx(s1)
+
+    # a live frame does not undo the user's view
+    transform = page.get_attribute("#world", "transform")
+    post_all(client, map_id, [r2[40]])
+    _wait_for(page, "app", "frame", 81)
+    page.evaluate("window.covslamDashboard.draw()")
+    assert page.get_attribute("#world", "transform") == transform
+    page.click("#zoom-fit")
+    page.wait_for_function(
+        "t => document.getElementById('world').getAttribute('transform') !== t", arg=transform
+    )
+    assert _world_scale(page) == pytest.approx(s0, rel=0.05)
+
+    # phone width: nothing wider than the screen; removal rows stack with their labels
+    page.set_viewport_size({"width": 390, "height": 844})
+    page.evaluate("window.covslamDashboard.draw()")
+    assert page.evaluate("document.documentElement.scrollWidth") <= 390
+    for table in ("#localisation", "#removals"):
+        fits = page.eval_on_selector(table, "t => t.scrollWidth <= t.parentElement.clientWidth + 1")
+        assert fits, table
+    if rest["ghosts"]:
+        assert (
+            page.eval_on_selector("#removals thead", "h => getComputedStyle(h).display") == "none"
+        )
+        labels = page.eval_on_selector_all(
+            "#removals tbody tr:first-child td[data-label]", "ts => ts.map(t => t.dataset.label)"
+        )
+        assert labels == ["frame", "landmark", "label", "cluster", "D", "I"]
+    ARTEFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(ARTEFACTS / "dashboard-two-robots-phone.png"), full_page=True)
+    page.close()
+    assert problems == []
