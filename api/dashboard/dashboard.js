@@ -602,6 +602,9 @@ window.covslamDashboard = {
   draw() {
     drawNow(true);
   },
+  reloadMaps() {
+    return loadMapList();
+  },
 };
 
 async function start() {

@@ -354,3 +354,56 @@ def test_dashboard_two_robots_pan_zoom_and_phone_layout(
     page.screenshot(path=str(ARTEFACTS / "dashboard-two-robots-phone.png"), full_page=True)
     page.close()
     assert problems == []
+
+
+def test_dashboard_catches_up_after_the_server_restarts(browser: Any, tmp_path: Path) -> None:
+    """A real drop of the stream: the service is killed (-9) and started again on the
+    same port; frames posted after the restart reach the open page without a reload,
+    and the map selector switches to a map created meanwhile."""
+    srv = Server(tmp_path / "data", workers=1)
+    srv.start()
+    try:
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            map_id = create_map(c, "restart", config={"landmark_cap": 6})
+            post_all(c, map_id, FRAMES[:30])
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        problems: list[str] = []
+        page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+        page.goto(f"{srv.url}/dashboard/?map={map_id}")
+        _wait_for(page, "app", "frame", 30)
+        page.evaluate("window.__same_page = true")
+
+        srv.kill9()
+        page.wait_for_function(  # the badge no longer says live
+            "() => document.getElementById('conn').dataset.state !== 'live'", timeout=30e3
+        )
+        srv.start()
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            post_all(c, map_id, FRAMES[30:45])
+            other = create_map(c, "made while the page was open", config={"landmark_cap": 4})
+            post_all(c, other, FRAMES[:12])
+            rest = _rest(c, map_id)
+        _wait_for(page, "app", "frame", 45, timeout_s=40)
+        _wait_for(page, "conn", "state", "live")
+        _wait_for(page, "layer-trajectories", "points", 45)
+        _wait_for(page, "layer-ghosts", "count", rest["ghosts"])
+        _wait_for(page, "layer-landmarks", "count", rest["landmarks"])
+        assert page.evaluate("window.__same_page") is True
+
+        # the selector lists the new map (re-read every 30 s, or on demand) and opens it
+        page.evaluate("window.covslamDashboard.reloadMaps()")
+        page.wait_for_function(
+            "id => [...document.querySelectorAll('#map-select option')].some(o => o.value === id)",
+            arg=other,
+        )
+        page.select_option("#map-select", other)
+        _wait_for(page, "app", "map", other)
+        _wait_for(page, "app", "frame", 12)
+        _wait_for(page, "layer-trajectories", "points", 12)
+        assert f"map={other}" in page.url
+        page.close()
+        # Console errors are expected here (refused connections while the server was
+        # down); uncaught exceptions are not.
+        assert problems == []
+    finally:
+        srv.stop()
