@@ -8,9 +8,7 @@ one. Without it the browser test is skipped and says why. Screenshots are writte
 
 from __future__ import annotations
 
-import os
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +16,8 @@ import httpx
 import numpy as np
 import pytest
 
-from bench.dashboard_screenshots import CHROMIUM_ARGS
 from tests.e2e.conftest import REPO, Server, create_map, frame_dicts, post_all, sim_frames
 
-CHROMIUM = Path(os.environ.get("COVSLAM_CHROMIUM", "/usr/bin/chromium"))
 ARTEFACTS = REPO / "tmp" / "artefacts"
 FRAMES = frame_dicts(sim_frames(80, seed=3))
 
@@ -71,17 +67,6 @@ def test_trajectory_stats_over_http_match_the_frame_results(client: httpx.Client
 
 
 # --------------------------------------------------------------------------- browser
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    if not CHROMIUM.exists():
-        pytest.skip(f"no Chromium at {CHROMIUM} (apt-get install chromium; .ci/run does)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
-    with sync_api.sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 def _layers(page: Any) -> dict[str, dict[str, str]]:
