@@ -213,6 +213,21 @@ def _dot(page: Any, layer: str, landmark: int) -> tuple[float, float]:
     return float(c.get_attribute("cx")), float(c.get_attribute("cy"))
 
 
+def _texts_outside(page: Any) -> list[str]:
+    """Axis and plot labels that run past the edge of their SVG (cut off on screen)."""
+    return page.evaluate(
+        """() => [...document.querySelectorAll('svg.plot, svg#map')].flatMap(svg => {
+          const w = svg.clientWidth, h = svg.clientHeight;
+          const texts = svg.id === 'map' ? svg.querySelectorAll('#axes text')
+                                         : svg.querySelectorAll('text');
+          return [...texts].filter(t => {
+            const b = t.getBBox();
+            return b.x < -0.5 || b.y < -0.5 || b.x + b.width > w + 0.5 || b.y + b.height > h + 0.5;
+          }).map(t => `${svg.id}: ${t.textContent}`);
+        })"""
+    )
+
+
 def _renamed(frames: list[dict[str, Any]], robot: str) -> list[dict[str, Any]]:
     return [{**f, "robot": robot} for f in frames]
 
@@ -266,6 +281,8 @@ def test_dashboard_two_robots_pan_zoom_and_phone_layout(
     if rest["holes"]:
         fill = page.eval_on_selector("#layer-coverage rect.hole", "r => getComputedStyle(r).fill")
         assert "hole-hatch" in fill
+
+    assert _texts_outside(page) == []
 
     # metres on the axes
     axis_text = page.eval_on_selector_all("#axes text", "ts => ts.map(t => t.textContent)")
@@ -324,6 +341,7 @@ def test_dashboard_two_robots_pan_zoom_and_phone_layout(
     page.set_viewport_size({"width": 390, "height": 844})
     page.evaluate("window.covslamDashboard.draw()")
     assert page.evaluate("document.documentElement.scrollWidth") <= 390
+    assert _texts_outside(page) == []
     for table in ("#localisation", "#removals"):
         fits = page.eval_on_selector(table, "t => t.scrollWidth <= t.parentElement.clientWidth + 1")
         assert fits, table
