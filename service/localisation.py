@@ -69,6 +69,18 @@ class MapLocalisation:
         self.localiser = Localiser(config or LocaliserConfig())
         self.rng = np.random.default_rng([seed, 5])
         self.last: dict[str, tuple[int, float]] = {}
+        self.reported: dict[str, tuple[int | None, float | None]] = {}
+        """(place, confidence) that each robot's last frame result reported."""
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update({"reported": {}, **state})  # snapshots from before `reported`
+
+    def localisation(self, robot: str) -> dict[str, Any]:
+        """{status, place, confidence} of a robot as its last frame result reported them
+        (status as it is now; place and confidence None if no frame since a snapshot
+        older than this field)."""
+        place, confidence = self.reported.get(robot, (None, None))
+        return {"status": self.status(robot), "place": place, "confidence": confidence}
 
     def last_accepted(self, slam: BearingSlam) -> dict[str, tuple[int, float]]:
         """(seq, stamp) of each robot's last accepted frame, graph or filter only."""
@@ -124,6 +136,7 @@ class MapLocalisation:
             anchor = (Pose2D(*(float(v) for v in est.pose_xytheta)), est.covariance)
             outcome = slam.process(frame, with_covariance=True, anchor=anchor)
         self.last[frame.robot] = (frame.seq, frame.stamp)
+        self.reported[frame.robot] = (result.place, result.confidence)
         if outcome is not None and result.status != LOST:
             assert outcome.covariance is not None
             pose, cov = outcome.pose, np.asarray(outcome.covariance)
@@ -149,6 +162,7 @@ class MapLocalisation:
         come from the front end's association): the filter is not stepped and the
         robot is reported as tracking. The place localiser runs on labelled frames."""
         self.last[frame.robot] = (frame.seq, frame.stamp)
+        self.reported[frame.robot] = (None, None)
         assert outcome.covariance is not None
         return Localised(
             frame.robot,

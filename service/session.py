@@ -443,7 +443,7 @@ class MapSession:
     def pose(self) -> dict[str, Any]:
         doc = pose_doc(self.slam, self.record.id)
         for name, robot in doc["robots"].items():
-            robot["localisation"]["status"] = self.loc.status(name)
+            robot["localisation"] = self.loc.localisation(name)
         return doc
 
     def places(self) -> dict[str, Any]:

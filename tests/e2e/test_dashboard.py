@@ -240,7 +240,8 @@ def test_dashboard_two_robots_pan_zoom_and_phone_layout(
     GET places, and a phone-width page whose tables fit without sideways scrolling."""
     map_id = create_map(client, "two robots", config={"landmark_cap": 6})
     r10, r2 = _renamed(FRAMES[:40], "r10"), _renamed(FRAMES[:41], "r2")
-    post_all(client, map_id, [f for pair in zip(r10, r2[:40], strict=True) for f in pair])
+    results = post_all(client, map_id, [f for pair in zip(r10, r2[:40], strict=True) for f in pair])
+    reported = {r["robot"]: r["localisation"] for r in results}  # each robot's last
 
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     problems: list[str] = []
@@ -257,6 +258,13 @@ def test_dashboard_two_robots_pan_zoom_and_phone_layout(
         "#localisation tbody tr", "rows => rows.map(r => r.dataset.robot)"
     ) == ["r2", "r10"]
     assert int(shown["layer-trajectories"]["robots"]) == 2
+    # status, place and confidence as the robot's last frame result said, over REST too
+    assert {r: p["localisation"] for r, p in rest["pose"].items()} == reported
+    assert any(loc["place"] is not None for loc in reported.values())
+    for robot, loc in reported.items():
+        row = page.locator(f"#localisation tr[data-robot='{robot}'] td")
+        place = "–" if loc["place"] is None else str(loc["place"])
+        assert row.nth(1).inner_text() == loc["status"] and row.nth(2).inner_text() == place
     assert int(shown["plot-uncertainty"]["series"]) == 4  # two eigenvalues per robot
     assert page.eval_on_selector_all(
         "#plot-uncertainty path[data-name^='r']", "ps => ps.map(p => p.dataset.name)"
