@@ -19,6 +19,8 @@ const PLACE_LABELS_MAX = 12;
 export const clusterColour = (c) => CLUSTER_COLOURS[((c % CLUSTER_COLOURS.length) + CLUSTER_COLOURS.length) % CLUSTER_COLOURS.length];
 
 const MARGIN = { left: 46, right: 8, top: 8, bottom: 24 };
+/** The view's scale [px/m] stays within these. */
+const clampScale = (s) => Math.min(Math.max(s, 0.05), 5000);
 const SIGMAS = 2;
 
 /** Half-axes (2σ) and angle (radians, counter-clockwise from +x) of a 2x2 covariance. */
@@ -98,49 +100,65 @@ export class MapView {
 
   zoomAt(factor, px, py) {
     const [wx, wy] = this.toWorld(px, py);
-    this.view.s = Math.min(Math.max(this.view.s * factor, 0.05), 5000);
-    const [nx, ny] = this.toWorld(px, py);
-    this.view.cx += wx - nx;
-    this.view.cy += wy - ny;
+    this.view.s = clampScale(this.view.s * factor);
+    this._pin(wx, wy, px, py);
     this.autoFit = false;
     this.redraw({ world: false });
   }
 
+  /** Move the view so that the world point (wx, wy) [m] is at (px, py) on screen. */
+  _pin(wx, wy, px, py) {
+    const { pw, ph } = this._size();
+    this.view.cx = wx - (px - MARGIN.left - pw / 2) / this.view.s;
+    this.view.cy = wy + (py - MARGIN.top - ph / 2) / this.view.s;
+  }
+
+  /** A pointer's position in the SVG's own pixels (inside its border). */
+  _local(e) {
+    const r = this.svg.getBoundingClientRect();
+    return [e.clientX - r.left - this.svg.clientLeft, e.clientY - r.top - this.svg.clientTop];
+  }
+
+  /**
+   * Drag with one pointer pans; two pointers (a pinch) keep the map point under their
+   * midpoint under it while their spread scales the view. Each move is applied against
+   * the pointers' previous positions, so the map stays under the fingers.
+   */
   _installInteraction() {
     const svg = this.svg;
     const pointers = new Map();
-    let pinch = null;
+    const mid = (p) => [(p[0][0] + p[1][0]) / 2, (p[0][1] + p[1][1]) / 2];
+    const spread = (p) => Math.hypot(p[0][0] - p[1][0], p[0][1] - p[1][1]);
     svg.addEventListener("pointerdown", (e) => {
       svg.setPointerCapture(e.pointerId);
-      pointers.set(e.pointerId, [e.offsetX, e.offsetY]);
+      pointers.set(e.pointerId, this._local(e));
       svg.classList.add("dragging");
     });
     const end = (e) => {
       pointers.delete(e.pointerId);
-      pinch = null;
       if (!pointers.size) svg.classList.remove("dragging");
     };
     svg.addEventListener("pointerup", end);
     svg.addEventListener("pointercancel", end);
     svg.addEventListener("pointermove", (e) => {
       if (!pointers.has(e.pointerId)) return;
-      const [ox, oy] = pointers.get(e.pointerId);
-      pointers.set(e.pointerId, [e.offsetX, e.offsetY]);
-      if (pointers.size === 2) {
-        const [a, b] = [...pointers.values()];
-        const dist = Math.hypot(a[0] - b[0], a[1] - b[1]);
-        if (pinch) this.zoomAt(dist / pinch, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2);
-        pinch = dist;
-        return;
+      const before = [...pointers.values()].slice(0, 2);
+      pointers.set(e.pointerId, this._local(e));
+      const after = [...pointers.values()].slice(0, 2);
+      if (after.length === 2) {
+        const [wx, wy] = this.toWorld(...mid(before));
+        if (spread(before) > 0) this.view.s = clampScale((this.view.s * spread(after)) / spread(before));
+        this._pin(wx, wy, ...mid(after));
+      } else {
+        const [wx, wy] = this.toWorld(...before[0]);
+        this._pin(wx, wy, ...after[0]);
       }
-      this.view.cx -= (e.offsetX - ox) / this.view.s;
-      this.view.cy += (e.offsetY - oy) / this.view.s;
       this.autoFit = false;
       this.redraw({ world: false });
     });
     svg.addEventListener("wheel", (e) => {
       e.preventDefault();
-      this.zoomAt(Math.exp(-e.deltaY * 0.0015), e.offsetX, e.offsetY);
+      this.zoomAt(Math.exp(-e.deltaY * 0.0015), ...this._local(e));
     }, { passive: false });
   }
 

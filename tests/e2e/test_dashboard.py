@@ -418,3 +418,82 @@ def test_dashboard_catches_up_after_the_server_restarts(browser: Any, tmp_path: 
         assert problems == []
     finally:
         srv.stop()
+
+
+def _transform(page: Any) -> tuple[float, float, float]:
+    """(s, tx, ty) of the #world transform matrix(s,0,0,-s,tx,ty): screen = s*x + tx."""
+    t = page.get_attribute("#world", "transform")
+    a = [float(v) for v in t[t.index("(") + 1 : -1].split(",")]
+    return a[0], a[4], a[5]
+
+
+def test_dashboard_pinch_zoom_and_touch_pan_on_a_phone(
+    browser: Any, server: Server, client: httpx.Client
+) -> None:
+    """A touch screen at phone width: two fingers zoom about their midpoint, one finger
+    pans the map (not the page)."""
+    map_id = create_map(client, "touch", config={"landmark_cap": 6})
+    post_all(client, map_id, FRAMES[:30])
+    context = browser.new_context(
+        viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True
+    )
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    page.goto(f"{server.url}/dashboard/?map={map_id}")
+    _wait_for(page, "app", "frame", 30)
+    cdp = context.new_cdp_session(page)
+
+    def touch(kind: str, points: list[tuple[float, float]]) -> None:
+        cdp.send(
+            "Input.dispatchTouchEvent",
+            {
+                "type": kind,
+                "touchPoints": [{"x": x, "y": y, "id": i} for i, (x, y) in enumerate(points)],
+            },
+        )
+
+    box = page.locator("#map").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.evaluate("window.covslamDashboard.draw()")  # the layout settled before measuring
+    box = page.locator("#map").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    s0, tx0, ty0 = _transform(page)
+    # the SVG's own coordinates start inside its border
+    ox, oy = page.eval_on_selector(
+        "#map",
+        "m => [m.getBoundingClientRect().left + m.clientLeft, "
+        "m.getBoundingClientRect().top + m.clientTop]",
+    )
+    world = ((cx - ox - tx0) / s0, (cy - oy - ty0) / -s0)  # under the fingers' midpoint
+    touch("touchStart", [(cx - 20, cy), (cx + 20, cy)])
+    for d in range(25, 101, 5):
+        touch("touchMove", [(cx - d, cy), (cx + d, cy)])
+    touch("touchEnd", [])
+    page.wait_for_function(
+        "s => !document.getElementById('world').getAttribute('transform')"
+        ".startsWith(`matrix(${s},`)",
+        arg=s0,
+    )
+    s1, tx1, ty1 = _transform(page)
+    assert s1 > 2.5 * s0  # fingers 40 px -> 200 px apart
+    after = page.locator("#map").bounding_box()
+    assert (after["x"], after["y"]) == pytest.approx((box["x"], box["y"]), abs=0.5)  # no scroll
+    assert (world[0] * s1 + tx1, -world[1] * s1 + ty1) == pytest.approx((cx - ox, cy - oy), abs=1)
+
+    scroll = page.evaluate("window.scrollY")
+    touch("touchStart", [(cx, cy)])
+    for d in range(0, 61, 10):
+        touch("touchMove", [(cx + d, cy + d)])
+    touch("touchEnd", [])
+    page.wait_for_function(
+        "tx => Math.abs(Number(document.getElementById('world').getAttribute('transform')"
+        ".split(',')[4]) - tx) > 30",
+        arg=tx1,
+    )
+    s2, tx2, ty2 = _transform(page)
+    assert (s2, tx2 - tx1, ty2 - ty1) == pytest.approx((s1, 60, 60), abs=1.5)
+    assert page.evaluate("window.scrollY") == scroll  # the map took the gesture
+    context.close()
+    assert problems == []
