@@ -228,6 +228,42 @@ def _texts_outside(page: Any) -> list[str]:
     )
 
 
+def _low_contrast(page: Any) -> list[str]:
+    """Text whose colour has less than WCAG AA contrast (4.5:1) with the background it
+    sits on (HTML text and SVG labels; the nearest ancestor with a background)."""
+    return page.evaluate(
+        """() => {
+          const rgb = (c) => (c.match(/[\\d.]+/g) || []).map(Number);
+          const lum = ([r, g, b]) => {
+            const f = (v) => (v / 255 <= 0.03928 ? v / 255 / 12.92
+                                                   : ((v / 255 + 0.055) / 1.055) ** 2.4);
+            return 0.2126 * f(r) + 0.7152 * f(g) + 0.0722 * f(b);
+          };
+          const background = (el) => {
+            for (let e = el; e; e = e.parentElement) {
+              const c = rgb(getComputedStyle(e).backgroundColor);
+              if (c.length >= 3 && (c.length < 4 || c[3] > 0.5)) return c;
+            }
+            return [255, 255, 255];
+          };
+          const bad = [];
+          const texts = [...document.querySelectorAll('#app *')].filter((e) =>
+            [...e.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim())
+            && e.getClientRects().length && e.closest('title') === null && e.tagName !== 'title');
+          for (const e of texts) {
+            const st = getComputedStyle(e);
+            const fg = rgb(e instanceof SVGElement ? st.fill : st.color);
+            if (fg.length < 3) continue;
+            const [a, b] = [lum(fg), lum(background(e))].sort((x, y) => y - x);
+            const ratio = (a + 0.05) / (b + 0.05);
+            if (ratio < 4.5) bad.push(`${e.tagName}.${e.className.baseVal ?? e.className}` +
+              ` "${e.textContent.trim().slice(0, 30)}": ${ratio.toFixed(2)}`);
+          }
+          return bad;
+        }"""
+    )
+
+
 def _renamed(frames: list[dict[str, Any]], robot: str) -> list[dict[str, Any]]:
     return [{**f, "robot": robot} for f in frames]
 
@@ -291,6 +327,7 @@ def test_dashboard_two_robots_pan_zoom_and_phone_layout(
         assert "hole-hatch" in fill
 
     assert _texts_outside(page) == []
+    assert _low_contrast(page) == []
 
     # metres on the axes
     axis_text = page.eval_on_selector_all("#axes text", "ts => ts.map(t => t.textContent)")
