@@ -96,7 +96,7 @@ export function linePlot(svg, series, { logY = false, xLabel = "", yLabel = "" }
   }
   for (const t of linearTicks(x0, x1, 5)) {
     const x = sx(t);
-    const label = fmt(t);
+    const label = Number.isInteger(t) && Math.abs(t) < 1e6 ? String(t) : fmt(t); // frame numbers in full
     // a label that would run past the right edge ends at its tick instead
     const anchor = x + 3.5 * label.length > w ? "end" : "middle";
     el("text", { x, y: h - m.bottom + 14, "text-anchor": anchor }, svg).textContent = label;
