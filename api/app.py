@@ -13,8 +13,10 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from api import errors
+from api.docs import DOCS_ASSETS, DocsPolicy
 from api.metrics import Metrics
 from api.models import FrameIn
 from api.routes import events, frames, maps, places, queries, system
@@ -48,7 +50,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             await service.stop()
 
-    app = FastAPI(
+    app = FastAPIOffline(  # /docs and /redoc with local assets (api/docs.py)
+        static_url=DOCS_ASSETS,
         title="covslam",
         version="1",
         description=DESCRIPTION,
@@ -63,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_import_bytes=settings.api.max_import_bytes,
         max_image_frame_bytes=settings.api.max_image_bytes + (1 << 20),
     )
+    app.add_middleware(DocsPolicy)
     for module in (maps, frames, queries, events, places, system):
         app.include_router(module.router)
     app.mount("/dashboard", StaticFiles(directory=DASHBOARD_DIR, html=True), name="dashboard")

@@ -8,6 +8,10 @@ Run from the repository root, against a server that holds the map::
 Drives Debian's headless Chromium (``/usr/bin/chromium``, or ``--chromium``) through
 Playwright; waits until the page shows the map's latest frame, then saves a PNG and
 prints what the page's layers hold (their data attributes) as JSON.
+
+The README's screenshots: ``bench.mrclam_http_all`` (MRCLAM-6, five robots, one map)
+and ``covslam simulate`` + ``covslam replay --url`` (a lifelong run) fill the maps;
+``--width 390 --height 844 --full-page`` gives the phone-width pictures.
 """
 
 from __future__ import annotations

@@ -90,12 +90,22 @@ class MapLocalisation:
             learn_distance_m=self.localiser.config.places.learn_distance_m
         )
         """Appearance places of a camera map's image frames."""
+        self.reported: dict[str, tuple[int | None, float | None]] = {}
+        """(place, confidence) that each robot's last frame result reported."""
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        # Snapshots taken before the off-graph log or appearance places existed lack them.
+        # Snapshots taken before these fields existed lack them.
         state.setdefault("off_graph", OffGraphLog())
         state.setdefault("appearance", AppearancePlaces())
+        state.setdefault("reported", {})
         self.__dict__.update(state)
+
+    def localisation(self, robot: str) -> dict[str, Any]:
+        """{status, place, confidence} of a robot as its last frame result reported them
+        (status as it is now; place and confidence None if no frame since a snapshot
+        older than this field)."""
+        place, confidence = self.reported.get(robot, (None, None))
+        return {"status": self.status(robot), "place": place, "confidence": confidence}
 
     def last_accepted(self, slam: BearingSlam) -> dict[str, tuple[int, float]]:
         """(seq, stamp) of each robot's last accepted frame, graph or filter only."""
@@ -152,6 +162,7 @@ class MapLocalisation:
             anchor = (Pose2D(*(float(v) for v in est.pose_xytheta)), est.covariance)
             outcome = slam.process(frame, with_covariance=True, anchor=anchor)
         self.last[frame.robot] = (frame.seq, frame.stamp)
+        self.reported[frame.robot] = (result.place, result.confidence)
         if outcome is not None:
             # In the graph (also the frame that found the robot lost): its graph pose is
             # the one in the trajectory, so it is the one reported.
@@ -214,6 +225,7 @@ class MapLocalisation:
                 frame=outcome.frame_index,
                 stamp=frame.stamp,
             )
+        self.reported[frame.robot] = (place, confidence)
         return Localised(
             frame.robot,
             frame.seq,
@@ -267,11 +279,7 @@ class MapLocalisation:
                 "stamp": stamp,
                 "pose": pose,
                 "covariance": cov,
-                "localisation": {
-                    "status": track.status,
-                    "place": None,
-                    "confidence": float(est.converged),
-                },
+                "localisation": self.localisation(name),
             }
         return out
 

@@ -451,7 +451,7 @@ class MapSession:
         one: see MapLocalisation.robot_poses."""
         doc = pose_doc(self.slam, self.record.id)
         for name, robot in doc["robots"].items():
-            robot["localisation"]["status"] = self.loc.status(name)
+            robot["localisation"] = self.loc.localisation(name)
         for name, off in self.loc.robot_poses().items():
             if off["pose"] is None and name in doc["robots"]:
                 continue

@@ -92,6 +92,7 @@ function parsePlaces(body) {
       x: Number(pose.x), y: Number(pose.y),
       theta: pose.theta != null ? Number(pose.theta) : NaN,
       landmarks: Array.isArray(p.landmarks) ? p.landmarks.length : p.landmark_count ?? null,
+      robot: p.robot ?? null, frame: p.frame ?? null,
     };
   }).filter((p) => Number.isFinite(p.x) && Number.isFinite(p.y));
   const raw = Array.isArray(body) ? [] : body?.transitions ?? [];
@@ -471,6 +472,8 @@ function swatch(kind, colour) {
     line: `<line x1="1" y1="7" x2="13" y2="7" stroke="${colour}" stroke-width="2"/>`,
     dash: `<line x1="1" y1="7" x2="13" y2="7" stroke="${colour}" stroke-width="2" stroke-dasharray="4 2"/>`,
     square: `<rect x="2" y="2" width="10" height="10" fill="${colour}"/>`,
+    hatch: `<rect x="2" y="2" width="10" height="10" fill="url(#hole-hatch)" stroke="${colour}"/>`,
+    place: `<rect x="3" y="3" width="8" height="8" fill="${colour}" fill-opacity="0.3" stroke="${colour}"/>`,
   };
   return `<svg width="14" height="14" aria-hidden="true">${shapes[kind]}</svg>`;
 }
@@ -483,25 +486,31 @@ function drawLegend(st) {
       `E(X) by cluster: ${clusters.size} clusters`],
     [swatch("ring", "#8a939c"), `ghosts ${st.removals.length}` +
       (st.removalCount > st.removals.length ? ` (latest of ${st.removalCount})` : "") + " — hover for the reason"],
-    ...Object.keys(st.trajectories).map((r) => [swatch("line", robotColour(r)),
+    ...Object.keys(st.trajectories).sort(byName).map((r) => [swatch("line", robotColour(r)),
       `${r} ${st.trajectories[r].length} poses`]),
     [swatch("ellipse", "#56606b"), "2σ pose ellipses"],
     [swatch("square", "rgba(26,127,55,0.35)"), "coverage"],
-    [swatch("square", "rgba(214,40,40,0.45)"), `holes ${st.grid ? st.grid.holes.length : 0}`],
-    [swatch("dash", "#6f42c1"), $("layer-places").dataset.state === "ok"
-      ? `places ${st.places.length}, transitions ${st.transitions.length}` : "places: not available"],
+    [swatch("hatch", "#b42318"), `holes ${st.grid ? st.grid.holes.length : 0}`],
+    [swatch("place", "#6f42c1") + swatch("dash", "#6f42c1"), $("layer-places").dataset.state === "ok"
+      ? `places ${st.places.length} (reference poses), transitions ${st.transitions.length}`
+      : "places: not available"],
   ];
   $("legend").innerHTML = items.map(([s, t]) => `<li>${s}${escapeHtml(t)}</li>`).join("");
 }
+
+/** Robot names in natural order: r2 before r10. */
+const byName = (a, b) => a.localeCompare(b, undefined, { numeric: true });
 
 function escapeHtml(s) {
   return String(s).replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`);
 }
 
-function cell(text, cls = "") {
+/** A table cell; `label` (the column's name) is shown beside it when rows stack (phone). */
+function cell(text, cls = "", label = "") {
   const td = document.createElement("td");
   td.textContent = text;
   if (cls) td.className = cls;
+  if (label) td.dataset.label = label;
   return td;
 }
 
@@ -509,7 +518,7 @@ const num = (v, digits = 3) => (v == null || !Number.isFinite(v) ? "–" : Numbe
 
 function drawLocalisation(st) {
   const body = $("localisation").querySelector("tbody");
-  const rows = Object.entries(st.localisation).map(([robot, p]) => {
+  const rows = Object.entries(st.localisation).sort(([a], [b]) => byName(a, b)).map(([robot, p]) => {
     const tr = document.createElement("tr");
     tr.dataset.robot = robot;
     const loc = p.localisation ?? {};
@@ -539,12 +548,12 @@ function drawRemovals(st) {
     const tr = document.createElement("tr");
     tr.dataset.landmark = r.landmark_id;
     tr.append(
-      cell(r.frame_id ?? r.frame, "num"),
-      cell(r.landmark_id, "num"),
-      cell(r.label),
-      cell(d.cluster ?? "–", "num"),
-      cell(num(d.cluster_spread), "num"),
-      cell(num(d.information), "num"),
+      cell(r.frame_id ?? r.frame, "num", "frame"),
+      cell(r.landmark_id, "num", "landmark"),
+      cell(r.label, "", "label"),
+      cell(d.cluster ?? "–", "num", "cluster"),
+      cell(num(d.cluster_spread), "num", "D"),
+      cell(num(d.information), "num", "I"),
       cell(r.reason, "reason"),
     );
     return tr;
@@ -559,7 +568,7 @@ function drawPlots(st) {
   const byRobot = {};
   for (const p of st.series) (byRobot[p.robot] ??= []).push(p);
   const uncertainty = [];
-  for (const [robot, pts] of Object.entries(byRobot)) {
+  for (const [robot, pts] of Object.entries(byRobot).sort(([a], [b]) => byName(a, b))) {
     const c = robotColour(robot);
     uncertainty.push({ name: robot, colour: c, points: pts.map((p) => [p.frame, p.l1]) });
     uncertainty.push({ colour: c, dash: "3 2", points: pts.map((p) => [p.frame, p.l2]) });
@@ -593,6 +602,9 @@ window.covslamDashboard = {
   },
   draw() {
     drawNow(true);
+  },
+  reloadMaps() {
+    return loadMapList();
   },
 };
 

@@ -11,11 +11,16 @@ export const CLUSTER_COLOURS = [
   "#4e79a7", "#f28e2b", "#e15759", "#59a14f", "#b07aa1", "#9c755f",
   "#17becf", "#edc948", "#ff9da7", "#76b7b2", "#8c564b", "#bcbd22",
 ];
-export const ROBOT_COLOURS = ["#0b5cad", "#c2410c", "#15803d", "#7e22ce", "#a16207", "#be185d", "#0f766e"];
+// Robots: no violet (that is the places' colour), dark enough for 1.5 px lines on white.
+export const ROBOT_COLOURS = ["#0b5cad", "#c2410c", "#15803d", "#be185d", "#a16207", "#0f766e", "#4b5563"];
+/** Place labels (P<id>) are drawn when at most this many places are visible; else hover. */
+const PLACE_LABELS_MAX = 12;
 
 export const clusterColour = (c) => CLUSTER_COLOURS[((c % CLUSTER_COLOURS.length) + CLUSTER_COLOURS.length) % CLUSTER_COLOURS.length];
 
 const MARGIN = { left: 46, right: 8, top: 8, bottom: 24 };
+/** The view's scale [px/m] stays within these. */
+const clampScale = (s) => Math.min(Math.max(s, 0.05), 5000);
 const SIGMAS = 2;
 
 /** Half-axes (2σ) and angle (radians, counter-clockwise from +x) of a 2x2 covariance. */
@@ -95,49 +100,65 @@ export class MapView {
 
   zoomAt(factor, px, py) {
     const [wx, wy] = this.toWorld(px, py);
-    this.view.s = Math.min(Math.max(this.view.s * factor, 0.05), 5000);
-    const [nx, ny] = this.toWorld(px, py);
-    this.view.cx += wx - nx;
-    this.view.cy += wy - ny;
+    this.view.s = clampScale(this.view.s * factor);
+    this._pin(wx, wy, px, py);
     this.autoFit = false;
     this.redraw({ world: false });
   }
 
+  /** Move the view so that the world point (wx, wy) [m] is at (px, py) on screen. */
+  _pin(wx, wy, px, py) {
+    const { pw, ph } = this._size();
+    this.view.cx = wx - (px - MARGIN.left - pw / 2) / this.view.s;
+    this.view.cy = wy + (py - MARGIN.top - ph / 2) / this.view.s;
+  }
+
+  /** A pointer's position in the SVG's own pixels (inside its border). */
+  _local(e) {
+    const r = this.svg.getBoundingClientRect();
+    return [e.clientX - r.left - this.svg.clientLeft, e.clientY - r.top - this.svg.clientTop];
+  }
+
+  /**
+   * Drag with one pointer pans; two pointers (a pinch) keep the map point under their
+   * midpoint under it while their spread scales the view. Each move is applied against
+   * the pointers' previous positions, so the map stays under the fingers.
+   */
   _installInteraction() {
     const svg = this.svg;
     const pointers = new Map();
-    let pinch = null;
+    const mid = (p) => [(p[0][0] + p[1][0]) / 2, (p[0][1] + p[1][1]) / 2];
+    const spread = (p) => Math.hypot(p[0][0] - p[1][0], p[0][1] - p[1][1]);
     svg.addEventListener("pointerdown", (e) => {
       svg.setPointerCapture(e.pointerId);
-      pointers.set(e.pointerId, [e.offsetX, e.offsetY]);
+      pointers.set(e.pointerId, this._local(e));
       svg.classList.add("dragging");
     });
     const end = (e) => {
       pointers.delete(e.pointerId);
-      pinch = null;
       if (!pointers.size) svg.classList.remove("dragging");
     };
     svg.addEventListener("pointerup", end);
     svg.addEventListener("pointercancel", end);
     svg.addEventListener("pointermove", (e) => {
       if (!pointers.has(e.pointerId)) return;
-      const [ox, oy] = pointers.get(e.pointerId);
-      pointers.set(e.pointerId, [e.offsetX, e.offsetY]);
-      if (pointers.size === 2) {
-        const [a, b] = [...pointers.values()];
-        const dist = Math.hypot(a[0] - b[0], a[1] - b[1]);
-        if (pinch) this.zoomAt(dist / pinch, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2);
-        pinch = dist;
-        return;
+      const before = [...pointers.values()].slice(0, 2);
+      pointers.set(e.pointerId, this._local(e));
+      const after = [...pointers.values()].slice(0, 2);
+      if (after.length === 2) {
+        const [wx, wy] = this.toWorld(...mid(before));
+        if (spread(before) > 0) this.view.s = clampScale((this.view.s * spread(after)) / spread(before));
+        this._pin(wx, wy, ...mid(after));
+      } else {
+        const [wx, wy] = this.toWorld(...before[0]);
+        this._pin(wx, wy, ...after[0]);
       }
-      this.view.cx -= (e.offsetX - ox) / this.view.s;
-      this.view.cy += (e.offsetY - oy) / this.view.s;
       this.autoFit = false;
       this.redraw({ world: false });
     });
     svg.addEventListener("wheel", (e) => {
       e.preventDefault();
-      this.zoomAt(Math.exp(-e.deltaY * 0.0015), e.offsetX, e.offsetY);
+      this.zoomAt(Math.exp(-e.deltaY * 0.0015), ...this._local(e));
     }, { passive: false });
   }
 
@@ -340,20 +361,25 @@ export class MapView {
 
     const pl = this.q("layer-places");
     pl.replaceChildren();
+    const shown = d.places.filter((p) => visible(this.sx(p.x), this.sy(p.y))).length;
     for (const p of d.places) {
       const [x, y] = [this.sx(p.x), this.sy(p.y)];
       const g = el("g", { class: "place-marker", "data-id": p.id }, pl);
-      const sq = el("rect", { class: "place", x: (x - 6).toFixed(1), y: (y - 6).toFixed(1), width: 12, height: 12 }, g);
-      if (Number.isFinite(p.theta)) {
+      if (!visible(x, y)) g.setAttribute("visibility", "hidden");
+      const sq = el("rect", { class: "place", x: (x - 4).toFixed(1), y: (y - 4).toFixed(1), width: 8, height: 8 }, g);
+      if (Number.isFinite(p.theta)) { // the reference pose's heading
         el("line", {
-          class: "place", x1: x, y1: y, x2: x + 12 * Math.cos(p.theta), y2: y - 12 * Math.sin(p.theta),
+          class: "place-heading", x1: x, y1: y, x2: x + 11 * Math.cos(p.theta), y2: y - 11 * Math.sin(p.theta),
         }, g);
       }
-      el("text", { class: "place-label", x: x + 8, y: y - 8 }, g).textContent = `P${p.id}`;
+      if (shown <= PLACE_LABELS_MAX) el("text", { class: "place-label", x: x + 6, y: y - 6 }, g).textContent = `P${p.id}`;
       title(sq, `place ${p.id}: reference pose (${p.x.toFixed(2)}, ${p.y.toFixed(2)}) m` +
-        (p.landmarks != null ? `, ${p.landmarks} landmarks` : ""));
+        (Number.isFinite(p.theta) ? `, θ ${((p.theta * 180) / Math.PI).toFixed(0)}°` : "") +
+        (p.landmarks != null ? `, ${p.landmarks} landmarks` : "") +
+        (p.robot != null ? `, learnt by ${p.robot}` : "") + (p.frame != null ? ` at frame ${p.frame}` : ""));
     }
     pl.dataset.count = String(d.places.length);
+    pl.dataset.labels = String(pl.querySelectorAll("text.place-label").length);
     pl.dataset.transitions = String(d.transitions.length);
 
     const lm = this.q("layer-landmarks");

@@ -57,7 +57,7 @@ export function linePlot(svg, series, { logY = false, xLabel = "", yLabel = "" }
   const w = svg.clientWidth || 400;
   const h = svg.clientHeight || 140;
   svg.setAttribute("viewBox", `0 0 ${w} ${h}`);
-  const m = { left: 48, right: 8, top: 18, bottom: 26 };
+  const m = { left: 48, right: 8, top: 18, bottom: 28 };
   const kept = series.map((s) => ({
     ...s,
     points: s.points.filter(([x, y]) => Number.isFinite(x) && Number.isFinite(y) && (!logY || y > 0)),
@@ -95,10 +95,14 @@ export function linePlot(svg, series, { logY = false, xLabel = "", yLabel = "" }
     el("text", { x: m.left - 4, y: sy(t) + 4, "text-anchor": "end" }, svg).textContent = fmt(t);
   }
   for (const t of linearTicks(x0, x1, 5)) {
-    el("text", { x: sx(t), y: h - m.bottom + 14, "text-anchor": "middle" }, svg).textContent = fmt(t);
+    const x = sx(t);
+    const label = Number.isInteger(t) && Math.abs(t) < 1e6 ? String(t) : fmt(t); // frame numbers in full
+    // a label that would run past the right edge ends at its tick instead
+    const anchor = x + 3.5 * label.length > w ? "end" : "middle";
+    el("text", { x, y: h - m.bottom + 14, "text-anchor": anchor }, svg).textContent = label;
   }
   el("path", { class: "frame", d: `M${m.left},${m.top}V${h - m.bottom}H${w - m.right}` }, svg);
-  if (xLabel) el("text", { x: w - m.right, y: h - 2, "text-anchor": "end" }, svg).textContent = xLabel;
+  if (xLabel) el("text", { x: w - m.right, y: h - 4, "text-anchor": "end" }, svg).textContent = xLabel;
   if (yLabel) el("text", { x: m.left, y: 11 }, svg).textContent = yLabel;
   const named = kept.filter((s) => s.name && s.points.length);
   let lx = w - m.right - named.reduce((sum, s) => sum + 18 + 6.5 * s.name.length, 0);

@@ -16,11 +16,13 @@ import httpx
 import numpy as np
 import pytest
 
+from bench.dashboard_screenshots import CHROMIUM_ARGS
 from graph.types import FrameInput
 from service.datasets.indoor_sim import make_world, simulate
 from service.frames_io import frame_to_dict
 
 REPO = Path(__file__).resolve().parents[2]
+CHROMIUM = Path(os.environ.get("COVSLAM_CHROMIUM", "/usr/bin/chromium"))
 
 
 def free_port() -> int:
@@ -140,3 +142,15 @@ def post_all(client: httpx.Client, map_id: str, frames: list[dict[str, Any]]) ->
         assert r.status_code == 200, r.text
         out.append(r.json())
     return out
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """Headless Debian Chromium through Playwright (never a downloaded browser)."""
+    if not CHROMIUM.exists():
+        pytest.skip(f"no Chromium at {CHROMIUM} (apt-get install chromium; .ci/run does)")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
+    with sync_api.sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
