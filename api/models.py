@@ -60,7 +60,13 @@ class MapPatch(BaseModel):
 
 
 class MapCounts(BaseModel):
-    frames: int = Field(description="frames in the map")
+    frames: int = Field(
+        description="frames in the map: every acknowledged frame, in the graph or not"
+    )
+    off_graph_frames: int = Field(
+        description="of those, frames the graph did not take (the robot was initialising "
+        "or lost): they are in the trajectory with a pose from odometry or the filter"
+    )
     robots: int = Field(description="robots that posted frames")
     live_landmarks: int = Field(description="landmarks currently in the graph")
     candidates: int = Field(description="observed labels not yet triangulated")

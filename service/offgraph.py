@@ -122,6 +122,14 @@ class OffGraphLog:
         rows.reverse()
         self.anchored.setdefault(robot, []).append(AnchoredRun(seq, tuple(rows)))
 
+    def count(self) -> int:
+        """Frames kept off the graph, all robots."""
+        return (
+            sum(len(run.frames) for runs in self.anchored.values() for run in runs)
+            + sum(len(frames) for frames in self.settled.values())
+            + sum(len(frames) for frames in self.pending.values())
+        )
+
     def robots(self) -> list[str]:
         return sorted(set(self.pending) | set(self.anchored) | set(self.settled))
 

@@ -419,12 +419,16 @@ class MapSession:
     # ------------------------------------------------------------ queries
     def summary(self) -> dict[str, Any]:
         ms = np.asarray(self._timing) if self._timing else None
+        off_graph = self.loc.off_graph.count()
+        robots = self.slam.robots
+        robots += [r for r in self.loc.off_graph.robots() if r not in robots]
         return {
             **self.record.as_dict(),
             "estimator": slam_config_dict(self.slam.config),
             "counts": {
-                "frames": self.slam.frame_count,
-                "robots": len(self.slam.robots),
+                "frames": self.slam.frame_count + off_graph,
+                "off_graph_frames": off_graph,
+                "robots": len(robots),
                 "live_landmarks": len(self.slam.landmarks),
                 "candidates": self.slam.candidate_count,
                 "removals": self.store.removal_count(),
@@ -432,7 +436,7 @@ class MapSession:
                 "graph_factors": self.slam.graph.num_factors,
                 "replay_errors": self.replay_errors,
             },
-            "robots": self.slam.robots,
+            "robots": robots,
             "timing_ms": None
             if ms is None
             else {

@@ -84,6 +84,14 @@ def test_frames_acknowledged_while_lost_are_in_the_trajectory(kidnapped) -> None
     assert max(yaw[lost + 1 : again]) < math.radians(10)
 
 
+def test_map_counts_every_acknowledged_frame(kidnapped) -> None:
+    counts = kidnapped["session"].summary()["counts"]
+    statuses = kidnapped["statuses"]
+    lost, again = statuses.index("lost"), statuses.index("relocalised", statuses.index("lost"))
+    assert counts["frames"] == len(KEPT)
+    assert counts["off_graph_frames"] == again - lost - 1
+
+
 def test_tum_text_has_every_frame(kidnapped) -> None:
     rows = kidnapped["session"].trajectory("r1")["r1"]
     lines = [ln for ln in tum_text(rows).splitlines() if ln and not ln.startswith("#")]
