@@ -120,6 +120,14 @@ class MapVision:
             pipeline.set_state(doc)
         self._pipeline = pipeline
 
+    def state_doc(self) -> dict[str, Any]:
+        """The front end's state as JSON-ready data (a map export; see ImagePipeline)."""
+        return self.pipeline.state_doc()
+
+    def set_state_doc(self, doc: Any) -> None:
+        """Put back an export's front-end state; ValueError naming a bad field."""
+        self.pipeline.set_state_doc(doc)
+
     def state(self) -> bytes:
         """The front end's state as bytes (for the snapshot taken now)."""
         return pickle.dumps(self.pipeline.state(), protocol=5)

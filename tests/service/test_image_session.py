@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import pickle
 import queue
+import sqlite3
 import time
 from multiprocessing import Pipe
 from pathlib import Path
@@ -190,17 +191,104 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
         worker_end.close()
 
 
-def test_export_of_an_image_map_is_refused_on_import(
+def _labels(reply: dict[str, Any], session: MapSession) -> list[str]:
+    """Labels of the landmarks a frame's result says it observed."""
+    result = json.loads(reply["result_json"])
+    return sorted(session.slam.landmarks[i].label for i in result["landmarks"]["observed"])
+
+
+def test_export_import_of_an_image_map_goes_on_associating_as_the_original(
     tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
 ) -> None:
-    session = _new(tmp_path / "cam.sqlite")
-    session.submit(*run[0])
-    doc = session.export()
-    assert doc["frames"][0]["frame"]["image"]["bytes"] == len(run[0][1])
-    session.close()
-    target = _new(tmp_path / "imported.sqlite")
+    source = _new(tmp_path / "cam.sqlite", every=1000)
+    for meta, image in run[:24]:
+        source.submit(meta, image)
+    doc = json.loads(json.dumps(source.export()))  # through JSON, as over HTTP
+    image_frames = [f["frame"] for f in doc["frames"]]
+    assert all("sha256" in f["image"] and f["observations"] for f in image_frames[1:])
+    assert doc["frontend"]["associator"]["landmarks"], "landmark descriptors exported"
+
+    target = _new(tmp_path / "imported.sqlite", every=1000)
+    target.import_frames(doc["frames"], doc["frontend"])
+    assert sorted(r.label for r in target.slam.landmarks.values()) == sorted(
+        r.label for r in source.slam.landmarks.values()
+    )
+    # New images: the imported map labels them exactly as the original does.
+    observed = 0
+    for meta, image in run[24:]:
+        a, b = source.submit(meta, image), target.submit(meta, image)
+        assert _labels(a, source) == _labels(b, target)
+        observed += len(_labels(a, source))
+    assert observed > 50
+    ta, tb = source.trajectory()["r1"], target.trajectory()["r1"]
+    assert len(ta) == len(tb) == len(run)
+    for pa, pb in zip(ta, tb, strict=True):
+        assert abs(pa["x"] - pb["x"]) < 1e-6 and abs(pa["y"] - pb["y"]) < 1e-6
+    # Its own export round-trips too (observations kept, no images needed).
+    again = target.export()
+    assert [f["frame"]["observations"] for f in again["frames"][:24]] == [
+        f["observations"] for f in image_frames
+    ]
+    source.close()
+    target.close()
+
+
+def test_imported_image_map_reloads_from_its_log_alone(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    source = _new(tmp_path / "cam.sqlite", every=1000)
+    for meta, image in run[:20]:
+        source.submit(meta, image)
+    doc = json.loads(json.dumps(source.export()))
+    path = tmp_path / "imported.sqlite"
+    target = _new(path, every=1000)
+    target.import_frames(doc["frames"], doc["frontend"])
+    target.close()
+    # Without its snapshots the map is its log: imported frames replay from their
+    # observations and the export's front-end state is put back after them.
+    conn = sqlite3.connect(path)
+    conn.execute("DELETE FROM snapshots")
+    conn.execute("DELETE FROM frontend_states")
+    conn.commit()
+    conn.close()
+    reopened = MapSession(path, StoreSettings(snapshot_every=1000))
+    assert reopened.loaded_from_snapshot == 0 and reopened.replay_errors == 0
+    for meta, image in run[20:26]:
+        a, b = source.submit(meta, image), reopened.submit(meta, image)
+        assert _labels(a, source) == _labels(b, reopened)
+    source.close()
+    reopened.close()
+
+
+def test_import_refuses_a_bad_front_end_state_and_keeps_nothing(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    source = _new(tmp_path / "cam.sqlite")
+    for meta, image in run[:6]:
+        source.submit(meta, image)
+    doc = json.loads(json.dumps(source.export()))
+    source.close()
+    state = doc["frontend"]
+    bad_descriptor = json.loads(json.dumps(state))
+    bad_descriptor["associator"]["tracks"]["r1"][0]["descriptor"] = "AAAA"
+    bad_pose = json.loads(json.dumps(state))
+    bad_pose["last"]["r1"]["pose"] = [0.0, "x", 0.0]
+    for bad, field in (
+        (bad_descriptor, "associator.tracks.r1[0].descriptor"),
+        (bad_pose, "frontend.last.r1"),
+        ({"associator": 3, "last": {}}, "associator"),
+    ):
+        target = _new(tmp_path / "imported.sqlite")
+        with pytest.raises(ServiceError) as info:
+            target.import_frames(doc["frames"], bad)
+        assert info.value.status == 422 and field in info.value.detail
+        assert target.slam.frame_count == 0 and target.store.frame_count() == 0
+        target.close()
+    # A frame whose image digest is not one is refused too.
+    frames = json.loads(json.dumps(doc["frames"]))
+    frames[2]["frame"]["image"] = {"sha256": "nope", "bytes": 3}
+    target = _new(tmp_path / "imported2.sqlite")
     with pytest.raises(ServiceError) as info:
-        target.import_frames(doc["frames"])
-    assert info.value.status == 422 and "image frame" in info.value.detail
-    assert target.slam.frame_count == 0
+        target.import_frames(frames, state)
+    assert info.value.status == 422 and "frames[2].frame" in info.value.detail
     target.close()
