@@ -292,3 +292,64 @@ def test_import_refuses_a_bad_front_end_state_and_keeps_nothing(
         target.import_frames(frames, state)
     assert info.value.status == 422 and "frames[2].frame" in info.value.detail
     target.close()
+
+
+def _json_frame(meta: dict[str, Any]) -> dict[str, Any]:
+    """An image frame's meta as a JSON frame with no bearings (odometry only)."""
+    return {**meta, "observations": []}
+
+
+def _run_with_json_gap(
+    path: Path, run: list[tuple[dict[str, Any], bytes]], gap: range
+) -> tuple[MapSession, list[dict[str, Any]]]:
+    session = _new(path, every=1000)
+    results = []
+    for k, (meta, image) in enumerate(run[:30]):
+        reply = session.submit(_json_frame(meta)) if k in gap else session.submit(meta, image)
+        results.append(json.loads(reply["result_json"]))
+    return session, results
+
+
+def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gap = range(14, 20)  # six frames of odometry only, posted as JSON
+    session, results = _run_with_json_gap(tmp_path / "a.sqlite", run, gap)
+    assert session.vision is not None
+    # The front end predicts the next image frame from the JSON frame's pose.
+    pose, _ = session.vision.pipeline._last["r1"]
+    last = results[-1]["pose"]
+    np.testing.assert_allclose(pose, [last["x"], last["y"], last["theta"]], atol=1e-9)
+    after = results[gap.stop]
+    reference = _new(tmp_path / "ref.sqlite", every=1000)
+    ref = [json.loads(reference.submit(m, i)["result_json"]) for m, i in run[: gap.stop + 1]]
+    assert len(after["landmarks"]["observed"]) >= 10  # measured 14 (36 with images throughout)
+    assert abs(after["pose"]["x"] - ref[-1]["pose"]["x"]) < 0.05
+    # Reopened from its log (no snapshot), the map predicts the same way.
+    session.close()
+    reopened = MapSession(tmp_path / "a.sqlite", StoreSettings(snapshot_every=1000))
+    assert reopened.vision is not None
+    np.testing.assert_allclose(reopened.vision.pipeline._last["r1"][0], pose, atol=1e-9)
+    reopened.close()
+    reference.close()
+    # Without the JSON frames' poses, the image frame after the gap is predicted from the
+    # last image frame plus one frame's odometry, far off, and matches little.
+    monkeypatch.setattr(MapSession, "_note_json_frame", lambda self, localised: None)
+    stale, stale_results = _run_with_json_gap(tmp_path / "b.sqlite", run, gap)
+    stale_observed = len(stale_results[gap.stop]["landmarks"]["observed"])
+    assert stale_observed <= 0.5 * len(after["landmarks"]["observed"])  # measured 3
+    stale.close()
+
+
+def test_a_robot_may_start_with_a_json_frame_then_send_images(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "c.sqlite", every=1000)
+    session.submit(_json_frame(run[0][0]))
+    meta = {k: v for k, v in run[1][0].items() if k != "initial_pose"}
+    result = json.loads(session.submit(meta, run[1][1])["result_json"])
+    assert result["seq"] == run[1][0]["seq"]
+    for meta, image in run[2:8]:
+        result = json.loads(session.submit(meta, image)["result_json"])
+    assert len(session.slam.landmarks) > 0 and result["landmarks"]["observed"]
+    session.close()
