@@ -56,6 +56,8 @@ def associator_to_doc(assoc: Associator) -> dict[str, Any]:
                 "view_angles": [float(a) for a in lm.view_angles],
                 "height_m": lm.height_m,
                 "height_n": lm.height_n,
+                "lateral_m2": lm.lateral_m2,
+                "lateral_n": lm.lateral_n,
             }
             for label, lm in assoc._landmarks.items()
         ],
@@ -169,6 +171,8 @@ def associator_from_doc(doc: Any, config: AssociationConfig | None = None) -> As
             view_angles=[r.num(a, f"{path}.view_angles[{k}]") for k, a in enumerate(angles)],
             height_m=None if height is None else r.num(height, f"{path}.height_m"),
             height_n=r.count(item.get("height_n"), f"{path}.height_n"),
+            lateral_m2=max(0.0, r.num(item.get("lateral_m2", 0.0), f"{path}.lateral_m2")),
+            lateral_n=max(0.0, r.num(item.get("lateral_n", 0.0), f"{path}.lateral_n")),
         )
     for robot, tracks in r.obj(doc.get("tracks"), "associator.tracks").items():
         kept: list[_Track] = []
