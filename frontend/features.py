@@ -189,12 +189,13 @@ class FeatureExtractor:
             k = 2 * round(2.0 * scale) + 1  # box smoothing: ~5x cheaper than a Gaussian
             smooth = cv2.blur(padded, (k, k))
             off = np.rint(_BRIEF_PAIRS * scale).astype(np.int64)  # (256, 4)
-            x1 = cu[sel, None] + off[None, :, 0]
+            flat = smooth.ravel()
+            stride = smooth.shape[1]
             y1 = np.clip(cv[sel, None] + off[None, :, 1], 0, h - 1)
-            x2 = cu[sel, None] + off[None, :, 2]
             y2 = np.clip(cv[sel, None] + off[None, :, 3], 0, h - 1)
-            bits = smooth[y1, x1] < smooth[y2, x2]  # (n, 256)
-            out[sel] = np.packbits(bits, axis=1)
+            i1 = y1 * stride + (cu[sel, None] + off[None, :, 0])
+            i2 = y2 * stride + (cu[sel, None] + off[None, :, 2])
+            out[sel] = np.packbits(flat[i1] < flat[i2], axis=1)  # (n, 32) from (n, 256)
         return out
 
     def extract(self, panorama: NDArray[np.uint8]) -> Features:
@@ -228,7 +229,15 @@ class FeatureExtractor:
         u = np.mod(np.array([kp.pt[0] for kp in keypoints]) + shift, cam.width)
         v = np.array([kp.pt[1] for kp in keypoints]) + shift
         response = np.array([kp.response for kp in keypoints])
-        if cfg.subpixel:
+        if cfg.subpixel and self._pool is not None and len(u) > 1:
+            # cornerSubPix releases the GIL: refine the halves in parallel (same result).
+            parts = np.array_split(np.arange(len(u)), cfg.threads)
+            refined = list(
+                self._pool.map(lambda i: self._refine(panorama, u[i], v[i], octave[i]), parts)
+            )
+            u = np.concatenate([r[0] for r in refined])
+            v = np.concatenate([r[1] for r in refined])
+        elif cfg.subpixel:
             u, v = self._refine(panorama, u, v, octave)
         if cfg.min_corner_quality > 0:
             good = _corner_quality(panorama, u, v) >= cfg.min_corner_quality
