@@ -65,6 +65,10 @@ class AssociationConfig:
     default_landmark_sigma_m: float = 0.1
     """Landmark position sigma used when no covariance is given (a prior: see
     `learn_landmark_sigma`)."""
+    no_tracks_from_contested: bool = True
+    """Features inside a live landmark's gate and within max_distance of its views, that
+    no landmark took, start no track (duplicate landmarks of one corner filled the cap:
+    1816 landmarks for 394 corners on a 1000-frame rendered run)."""
     learn_landmark_sigma: bool = True
     """Without covariances, gate each landmark with a position sigma learnt from its own
     matches: the RMS of their lateral errors (bearing residual after the pose correction
@@ -224,6 +228,7 @@ class Associator:
         self._next_track = 0
         self._last_fit: dict[str, float] = {}
         self._last_lateral: dict[str, float] = {}
+        self._last_contested: IntArray = np.zeros(0, dtype=np.int64)
 
     @property
     def known_landmarks(self) -> int:
@@ -248,9 +253,16 @@ class Associator:
         n = len(features)
         free = np.ones(n, dtype=bool)
         self._last_fit = {}
+        self._last_contested = np.zeros(0, dtype=np.int64)
         lm_matches = self._match_landmarks(features, pose, cov, landmarks)
         for c in lm_matches.values():
             free[c] = False
+        # A feature that some live landmark could have been (inside its gate, close in
+        # descriptor) but that no landmark took (ratio test, mutual best) starts no new
+        # track: its track would become a second landmark on the same corner.
+        seeds = free.copy()
+        if self.config.no_tracks_from_contested:
+            seeds[self._last_contested] = False
         tr_matches = self._match_tracks(features, robot, pose, free)
         for c in tr_matches.values():
             free[c] = False
@@ -281,7 +293,7 @@ class Associator:
             kind=tuple(kind),
             landmark_matches=lm_matches,
             track_matches=tr_matches,
-            unmatched=np.flatnonzero(free).astype(np.int64),
+            unmatched=np.flatnonzero(free & seeds).astype(np.int64),
             landmark_fit=dict(self._last_fit),
             landmark_lateral_m=dict(self._last_lateral),
         )
@@ -396,6 +408,7 @@ class Associator:
             inside &= ~known[:, None] | (de <= 2.0 * tol)
         li, fi = np.nonzero(inside)
         if len(li) == 0:
+            self._last_contested = np.zeros(0, dtype=np.int64)
             return [], resid, jp, var_l
         # Distance to each stored view; keep the smallest per pair.
         views, counts = self._view_stack(labels, np.unique(li))
@@ -409,6 +422,7 @@ class Associator:
         d[np.arange(k)[None, :] >= counts[li][:, None]] = np.inf
         dist = d.min(axis=1)
         limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
+        self._last_contested = fi[dist <= limit]
         return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
 
     def _view_stack(self, labels: list[str], rows: IntArray) -> tuple[NDArray[Any], IntArray]:

@@ -257,3 +257,29 @@ def test_a_well_matched_landmark_gets_a_tight_gate_against_a_lookalike_nearby() 
         )
         taken[learn] = "A" in result.landmark_matches
     assert taken == {True: False, False: True}
+
+
+def test_a_feature_a_landmark_could_have_been_starts_no_track() -> None:
+    """Two near-identical features inside landmark A's gate: the ratio test takes
+    neither, and neither becomes a new track (it would grow a second landmark on A's
+    corner); a feature far from every landmark still starts one."""
+    rng = np.random.default_rng(7)
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    other = rng.integers(0, 256, 32, dtype=np.uint8)
+    started = {}
+    for rule in (True, False):
+        assoc = Associator(AssociationConfig(no_tracks_from_contested=rule))
+        _learn(assoc, _features([0.0], base[None, :]), {0: "A"})
+        feats = _features(
+            [-0.3, 0.3, 90.0], np.stack([_flip(base, 3, rng), _flip(base, 3, rng), other])
+        )
+        result = assoc.associate(
+            feats,
+            robot="r2",
+            predicted_pose=(0, 0, 0),
+            pose_cov=np.diag([1e-4, 1e-4, math.radians(1.0) ** 2]),
+            landmarks={"A": (np.array([2.0, 0.0]), None)},
+        )
+        assert result.landmark_matches == {}
+        started[rule] = sorted(result.unmatched.tolist())
+    assert started == {True: [2], False: [0, 1, 2]}
