@@ -194,7 +194,8 @@ class FrameResult(BaseModel):
     timing_ms: dict[str, float] = Field(
         description="worker time per stage, milliseconds (prepare, update, budget, "
         "covariance, total; log = parse, checks and the committed append to the durable log; "
-        "image frames also: features = decode + validate + extraction in the helper thread, "
+        "image frames also: decode = PNG/JPEG decoding + validation (+ omni unwrap) and "
+        "features = feature extraction, both in the helper thread, "
         "features_wait = how long the frame waited for them after logging, association)"
     )
 

@@ -60,7 +60,16 @@ from service.store import MapRecord
 from service.vision import ImagePipeline
 
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("log", "features", "features_wait", "association", "update", "budget", "total")
+STAGES = (
+    "log",
+    "decode",
+    "features",
+    "features_wait",
+    "association",
+    "update",
+    "budget",
+    "total",
+)
 
 
 def _rendered(directory: Path, frames: int, width: int) -> list[tuple[dict[str, Any], bytes]]:

@@ -83,6 +83,56 @@ def feature_truth(
     return out
 
 
+def diagnose_wrong(
+    wrong: list[dict[str, Any]],
+    tw: Any,
+    identity: np.ndarray,
+    label_id: dict[str, int],
+    label_truth: dict[str, list[int]],
+) -> dict[str, Any]:
+    """Sort the wrong landmark matches into cases.
+
+    Each entry of `wrong`: frame, label, feature identity `fid`, landmark identity
+    `lid`, feature bearing, fit, predicted-pose error. Cases: `same_face` (the two
+    corners are on the same wall face: a neighbouring corner of the same poster or
+    of one nearby), `other_face` (a look-alike elsewhere), `wrap` (the feature within
+    5 deg of the image's seam), `lid_hidden` (the landmark's own corner not visible
+    in that frame), `impure_landmark` (under 90 % of the label's observations are its
+    identity).
+    """
+    first: dict[int, int] = {}
+    for c, i in enumerate(identity.tolist()):
+        first.setdefault(int(i), c)
+    counts: Counter[str] = Counter()
+    sep: list[float] = []
+    for w in wrong:
+        cf, cl = first[w["fid"]], first[w["lid"]]
+        d = float(np.hypot(*(tw.corners_xyz[cf, :2] - tw.corners_xyz[cl, :2])))
+        w["corner_distance_m"] = d
+        sep.append(d)
+        same = int(tw.corner_face[cf]) // 2 == int(tw.corner_face[cl]) // 2
+        counts["same_wall" if same else "other_wall"] += 1
+        counts["near_1m" if d < 1.0 else "far"] += 1
+        if abs(w["bearing"]) > math.pi - math.radians(5.0):
+            counts["wrap"] += 1
+        if not w["lid_visible"]:
+            counts["lid_hidden"] += 1
+        truths = [t for t in label_truth[w["label"]] if t >= 0]
+        purity = sum(1 for t in truths if t == label_id[w["label"]]) / max(1, len(truths))
+        w["label_purity"] = purity
+        if purity < 0.9:
+            counts["impure_landmark"] += 1
+        if w["pose_error_m"] > 0.1 or w["pose_error_deg"] > 2.0:
+            counts["predicted_pose_off"] += 1
+    return {
+        "wrong": len(wrong),
+        "cases": dict(counts),
+        "corner_distance_m_median": float(np.median(sep)) if sep else None,
+        "fit_median": float(np.median([w["fit"] for w in wrong])) if wrong else None,
+        "entries": wrong[:400],
+    }
+
+
 def speed_test(camera: PanoramaCamera, images: list[np.ndarray]) -> dict[str, Any]:
     """Features per panorama, alone (no estimator running): wall and CPU ms, 1 and 2 threads."""
     out: dict[str, Any] = {"images": len(images)}
@@ -104,6 +154,19 @@ def speed_test(camera: PanoramaCamera, images: list[np.ndarray]) -> dict[str, An
         }
     out["load_average"] = list(os.getloadavg())
     return out
+
+
+def speed_only(args: argparse.Namespace) -> dict[str, Any]:
+    """The features speed test alone, on 40 panoramas spread over the run."""
+    rng = np.random.default_rng(args.seed)
+    world = make_world(rooms=(3, 3), landmarks=9, rng=rng)
+    tw = make_textured_world(world, rng=rng)
+    sim = simulate(world, frames=args.frames, rng=rng, door_probability=0.5)
+    camera = PanoramaCamera(args.width, args.width // 4)
+    poses = sim.ground_truth.poses()
+    step = max(1, args.frames // 40)
+    images = [render_panorama(tw, poses[k], camera)[0] for k in range(0, args.frames, step)]
+    return {"load_average_start": list(os.getloadavg()), **speed_test(camera, images)}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -129,18 +192,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     kept_images: list[np.ndarray] = []
     label_truth: dict[str, list[int]] = defaultdict(list)
     matched: list[tuple[str, int, float, int]] = []  # label, truth corner, bearing, frame
+    context: dict[tuple[int, str], dict[str, Any]] = {}  # (frame, label) -> diagnosis
     n_obs = n_track_obs = 0
+    dump: list[dict[str, Any]] | None = [] if args.dump else None
     for k, frame in enumerate(sim.frames):
         t0 = time.perf_counter()
         image, _ = render_panorama(tw, truth_poses[k], camera)
         render_ms.append(1e3 * (time.perf_counter() - t0))
         if k % max(1, args.frames // 40) == 0:
             kept_images.append(image)
+        t0 = time.perf_counter()
         feats = pipeline.front_end.features(image)
+        features_ms = 1e3 * (time.perf_counter() - t0)
         ids, b, e = visible_corners(tw, truth_poses[k], camera)
         truth = feature_truth(feats, camera, ids, b, e, args.truth_px)
-        result = pipeline.submit(frame, image)
-        feature_ms.append(result.timing_ms["features"])
+        predicted = pipeline.predict(frame)[0]
+        result = pipeline.submit(frame, feats)
+        feature_ms.append(features_ms)
         assoc_ms.append(result.timing_ms["association"])
         assoc = result.association
         for ob, fi, kind in zip(
@@ -151,6 +219,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             n_obs += 1
             if kind == "landmark":
                 matched.append((ob.label, c, ob.bearing_rad, k))
+                dp = predicted - truth_poses[k]
+                context[(k, ob.label)] = {
+                    "fit": assoc.landmark_fit.get(ob.label, float("nan")),
+                    "pose_error_m": float(np.hypot(dp[0], dp[1])),
+                    "pose_error_deg": abs(math.degrees(float(wrap_angles(dp[2])))),
+                    "visible": {int(identity[i]) for i in ids.tolist()},
+                }
             else:
                 n_track_obs += 1
         # Oracle: the same features, labelled by their true identity, one per identity.
@@ -166,7 +241,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     float(feats.bearing_rad[fi]), f"c{identity[c]}", float(feats.sigma_rad[fi])
                 )
             )
-        oracle.process(replace(frame, observations=tuple(obs)), with_covariance=False)
+        if not args.no_oracle:
+            oracle.process(replace(frame, observations=tuple(obs)), with_covariance=False)
+        if dump is not None:
+            dump.append(
+                {
+                    "images": [
+                        (ob.label, ob.bearing_rad, ob.sigma_rad, int(truth[fi]), kind)
+                        for ob, fi, kind in zip(
+                            assoc.observations,
+                            assoc.feature_index.tolist(),
+                            assoc.kind,
+                            strict=True,
+                        )
+                    ],
+                    "oracle": [(ob.label, ob.bearing_rad, ob.sigma_rad) for ob in obs],
+                }
+            )
         if (k + 1) % 100 == 0:
             log.info(
                 "frame %d: live %d (oracle %d), %.1f ms features",
@@ -184,10 +275,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             label_id[label] = Counter(known).most_common(1)[0][0]
     correct = wrong = unknown = 0
     errors: list[float] = []
+    wrong_list: list[dict[str, Any]] = []
     for label, c, bearing, k in matched:
         if c < 0 or label not in label_id:
             unknown += 1
             continue
+        ctx = context[(k, label)]
+        if int(identity[c]) != label_id[label]:
+            wrong_list.append(
+                {
+                    "frame": k,
+                    "label": label,
+                    "fid": int(identity[c]),
+                    "lid": label_id[label],
+                    "bearing": bearing,
+                    "fit": ctx["fit"],
+                    "pose_error_m": ctx["pose_error_m"],
+                    "pose_error_deg": ctx["pose_error_deg"],
+                    "lid_visible": label_id[label] in ctx["visible"],
+                }
+            )
         if int(identity[c]) == label_id[label]:
             correct += 1
             x, y, th = truth_poses[k]
@@ -205,9 +312,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         rows = slam.trajectory("r1")["r1"]
         return Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
 
-    speed = speed_test(camera, kept_images)
+    if dump is not None:
+        import pickle
+
+        with open(args.dump, "wb") as fh:
+            pickle.dump({"frames": sim.frames, "obs": dump, "identity": identity}, fh)
+    speed = speed_test(camera, kept_images) if not args.no_speed else {}
     ate_images = ate_rmse(trajectory(pipeline.slam), sim.ground_truth)
-    ate_oracle = ate_rmse(trajectory(oracle), sim.ground_truth)
+    ate_oracle = ate_rmse(trajectory(oracle), sim.ground_truth) if not args.no_oracle else None
+    # Landmarks none of whose observations lie on a poster corner (texture, edges, occluding
+    # contours): their share of the landmark matches.
+    no_truth_labels = {lb for lb, ts in label_truth.items() if all(t < 0 for t in ts)}
+    wrong_doc = diagnose_wrong(wrong_list, tw, identity, label_id, label_truth)
     from service.evaluation import dead_reckoning
 
     ate_dr = ate_rmse(dead_reckoning(sim.frames), sim.ground_truth)
@@ -230,10 +346,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "track_observations": n_track_obs,
         "median_bearing_error_deg": math.degrees(float(np.median(errors))) if errors else None,
         "p90_bearing_error_deg": math.degrees(float(np.percentile(errors, 90))) if errors else None,
+        "landmark_matches_without_any_truth": sum(1 for m in matched if m[0] in no_truth_labels),
+        "wrong_matches": wrong_doc,
+        "load_average_end": list(os.getloadavg()),
         "ate_images_m": ate_images,
         "ate_oracle_m": ate_oracle,
         "ate_dead_reckoning_m": ate_dr,
-        "ate_ratio": ate_images / ate_oracle if ate_oracle > 0 else None,
+        "ate_ratio": ate_images / ate_oracle if ate_oracle else None,
         "features_ms_median": float(np.median(feature_ms)),
         "features_ms_p90": float(np.percentile(feature_ms, 90)),
         "association_ms_median": float(np.median(assoc_ms)),
@@ -246,7 +365,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "trajectories": {
             "truth": truth_poses[:, :2].round(4).tolist(),
             "images": trajectory(pipeline.slam).poses()[:, :2].round(4).tolist(),
-            "oracle": trajectory(oracle).poses()[:, :2].round(4).tolist(),
+            "oracle": trajectory(oracle).poses()[:, :2].round(4).tolist()
+            if not args.no_oracle
+            else [],
         },
         "note": "2-core machine shared with two other engineers' jobs: timings are noisy",
     }
@@ -262,9 +383,11 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     tr = doc["trajectories"]
     for name, style in (("truth", "k-"), ("oracle", "b-"), ("images", "r-")):
         xy = np.asarray(tr[name])
+        if len(xy) == 0:
+            continue
         axes[0].plot(xy[:, 0], xy[:, 1], style, lw=0.8, label=name)
     axes[0].set_aspect("equal")
-    axes[0].set_title(f"ATE images {doc['ate_images_m']:.3f} m, oracle {doc['ate_oracle_m']:.3f} m")
+    axes[0].set_title(f"ATE images {doc['ate_images_m']:.3f} m, oracle {doc['ate_oracle_m']} m")
     axes[0].legend()
     axes[1].hist(doc["errors_deg"], bins=60, range=(0, 1.0))
     axes[1].set_title(
@@ -288,8 +411,18 @@ def main() -> None:
     p.add_argument("--pose-window", type=int, default=100)
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")
+    p.add_argument("--no-oracle", action="store_true", help="skip the oracle map (diagnosis)")
+    p.add_argument("--no-speed", action="store_true", help="skip the features speed test")
+    p.add_argument("--speed-only", action="store_true", help="only the features speed test")
+    p.add_argument("--dump", help="pickle each frame's observations (and truth) to this file")
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.speed_only:
+        speed = speed_only(args)
+        RESULTS.mkdir(exist_ok=True)
+        (RESULTS / f"{args.out}_speed.json").write_text(json.dumps(speed, indent=1))
+        print(json.dumps(speed, indent=1))
+        return
     doc = run(args)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{args.out}.json").write_text(json.dumps(doc))

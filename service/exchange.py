@@ -5,6 +5,14 @@ covariances and observation statistics, trajectories, the removal log and the
 frame log with each frame's result. Import replays the frame log into a new map
 (frames are validated like any posted frame; nothing in the document is trusted
 as estimator state).
+
+A camera map's image frames carry the image's digest (``"image"``) and the
+labelled observations the front end made of the image, not the image; the
+document's ``frontend`` member is the front end's state at export (each live
+landmark's descriptors and view directions, candidate tracks, each robot's last
+pose: JSON, descriptors in base64). Import feeds those observations to the
+estimator and then restores that state, so the new map goes on associating images
+as the old one would.
 """
 
 from __future__ import annotations
@@ -25,8 +33,9 @@ def _bad_import(field: str, detail: str) -> ServiceError:
     )
 
 
-def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any]]:
-    """Check an export document: (name, mode, config, frames); ServiceError 400/422."""
+def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any], Any]:
+    """Check an export document: (name, mode, config, frames, front-end state or None);
+    ServiceError 400/422. The front-end state is checked by the import itself."""
     doc = loads_object(raw, "a covslam.map document")
     if doc.get("format") != EXPORT_FORMAT:
         raise _bad_import("format", f"must be {EXPORT_FORMAT!r}, got {doc.get('format')!r}")
@@ -49,4 +58,4 @@ def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any]]:
     frames = doc.get("frames")
     if not isinstance(frames, list):
         raise _bad_import("frames", "must be an array of {frame, result}")
-    return name, mode, config, frames
+    return name, mode, config, frames, doc.get("frontend")

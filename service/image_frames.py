@@ -52,8 +52,9 @@ __all__ = ["MapVision", "image_digest", "image_refused"]
 PREFETCH_LIMIT = 8
 """Most images whose features are extracted ahead of their frame."""
 
-Pending = Future[tuple[Features, NDArray[np.float32], float]]
-"""Features of one image being extracted, with the extraction's milliseconds."""
+Pending = Future[tuple[Features, NDArray[np.float32], float, float]]
+"""Features of one image being extracted, with its appearance signature and the
+decoding's and the extraction's milliseconds."""
 
 
 def image_digest(image: bytes) -> dict[str, Any]:
@@ -124,6 +125,14 @@ class MapVision:
             pipeline.set_state(doc)
         self._pipeline = pipeline
 
+    def state_doc(self) -> dict[str, Any]:
+        """The front end's state as JSON-ready data (a map export; see ImagePipeline)."""
+        return self.pipeline.state_doc()
+
+    def set_state_doc(self, doc: Any) -> None:
+        """Put back an export's front-end state; ValueError naming a bad field."""
+        self.pipeline.set_state_doc(doc)
+
     def state(self) -> bytes:
         """The front end's state as bytes (for the snapshot taken now)."""
         return pickle.dumps(self.pipeline.state(), protocol=5)
@@ -145,17 +154,20 @@ class MapVision:
     def extract(self, image: bytes) -> Pending:
         """Decode, validate and describe `image` in the helper thread."""
 
-        def run() -> tuple[Features, NDArray[np.float32], float]:
-            t0 = time.perf_counter()
-            features, sig = self._describe(image)
-            return features, sig, 1e3 * (time.perf_counter() - t0)
+        def run() -> tuple[Features, NDArray[np.float32], float, float]:
+            return self._features(image)
 
         return self._threads.submit(run)
 
-    def _describe(self, image: bytes) -> tuple[Features, NDArray[np.float32]]:
-        """The image's features and its appearance signature (one decode)."""
+    def _features(self, image: bytes) -> tuple[Features, NDArray[np.float32], float, float]:
+        """(features, appearance signature, decode ms (with validation and an omni
+        unwrap), extraction ms (features and signature)): one decode."""
+        t0 = time.perf_counter()
         panorama = self.front_end.panorama(image)
-        return self.front_end.extractor.extract(panorama), signature(panorama)
+        t1 = time.perf_counter()
+        features = self.front_end.extractor.extract(panorama)
+        sig = signature(panorama)
+        return features, sig, 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1)
 
     def prefetch(self, image: bytes) -> None:
         """Start extracting the features of a frame that waits behind the current one."""
@@ -182,13 +194,13 @@ class MapVision:
         """
         t0 = time.perf_counter()
         if isinstance(image, bytes):
-            features, sig = self._describe(image)
-            extract_ms = 1e3 * (time.perf_counter() - t0)
+            features, sig, decode_ms, extract_ms = self._features(image)
         else:
-            features, sig, extract_ms = image.result()
+            features, sig, decode_ms, extract_ms = image.result()
         waited_ms = 1e3 * (time.perf_counter() - t0)
         result = self.pipeline.submit(frame, features, with_covariance=with_covariance)
         timing = {
+            "decode": decode_ms,
             "features": extract_ms,
             "features_wait": waited_ms,
             "association": result.timing_ms["association"],

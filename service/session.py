@@ -25,6 +25,7 @@ from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
 from graph.snapshot import SnapshotError, capture, restore_with_extra
+from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
@@ -41,29 +42,59 @@ from service.views import (
     pose_doc,
     trajectory_doc,
 )
+from service.vision import parse_state_doc
 
 log = logging.getLogger(__name__)
 
 SNAPSHOT_OVERDUE = 5
 """A snapshot due for this many times `snapshot_every` frames is taken inside a request."""
+IMPORTED_FRONTEND = "imported_frontend"
+"""Meta key: an imported camera map's front-end state and the log frame it follows."""
 MAX_REPLAY_ATTEMPTS = 2
 """Reloads that may retry an unfinished log frame before it is dropped as a poison pill."""
 
 
-def canonical_frame(body: dict[str, Any], image: bytes | None = None) -> tuple[Any, str]:
+def canonical_frame(
+    body: dict[str, Any], image: bytes | None = None, digest: dict[str, Any] | None = None
+) -> tuple[Any, str]:
     """Parse a frame object; (FrameInput, canonical JSON text used for idempotency).
 
-    An image frame's text records the image's digest (``"image"``), so a retry must
-    repeat the image too."""
+    An image frame's text records the image's digest (``"image"``; given as `digest`
+    for an imported frame, whose image is not at hand), so a retry must repeat the
+    image too. The text of an image frame has no observations (they come from the
+    image)."""
     try:
         frame = frame_from_dict(body)
     except InvalidFrame as exc:
         raise invalid_frame(exc.field, exc.detail) from exc
     doc = frame_to_dict(frame)
-    if image is not None:
-        doc["image"] = image_digest(image)
+    if image is not None or digest is not None:
+        doc["image"] = image_digest(image) if image is not None else digest
+        doc["observations"] = []
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
     return frame, text
+
+
+def _observations_json(observations: Any) -> str:
+    """The JSON text of observations as the REST frame writes them."""
+    doc = frame_to_dict(FrameInput(robot="-", seq=0, stamp=0.0, observations=tuple(observations)))
+    return json.dumps(doc["observations"], separators=(",", ":"))
+
+
+def _digest(value: Any, field: str) -> dict[str, Any]:
+    """An export's record of an image (``{"sha256": hex, "bytes": n}``), checked."""
+    ok = (
+        isinstance(value, dict)
+        and isinstance(value.get("sha256"), str)
+        and len(value["sha256"]) == 64
+        and all(ch in "0123456789abcdef" for ch in value["sha256"])
+        and isinstance(value.get("bytes"), int)
+        and not isinstance(value.get("bytes"), bool)
+        and value["bytes"] > 0
+    )
+    if not ok:
+        raise invalid_frame(field, 'must be {"sha256": 64 lowercase hex digits, "bytes": n > 0}')
+    return {"sha256": value["sha256"], "bytes": value["bytes"]}
 
 
 class _RemovalBuffer:
@@ -163,9 +194,12 @@ class MapSession:
         tail = self.store.frames_after(upto)
         self.loaded_from_snapshot = upto
         last = upto
+        imported = None if self.vision is None else self.store.get_meta(IMPORTED_FRONTEND)
         for stored in tail:
+            self._restore_imported_frontend(imported, upto, last)
             self._replay(slam, loc, stored)
             last = stored.id
+        self._restore_imported_frontend(imported, upto, last)
         log.info(
             "map %s: loaded snapshot up to frame %d + %d log frames in %.0f ms",
             self.record.id,
@@ -174,6 +208,15 @@ class MapSession:
             1e3 * (time.perf_counter() - t0),
         )
         return slam, loc, last, len(tail)
+
+    def _restore_imported_frontend(self, imported: Any, upto: int, last: int) -> None:
+        """Replaying an imported map's log without a snapshot from after its import: put
+        the export's front-end state back where the import did (after log frame `after`)."""
+        if imported is None or self.vision is None:
+            return
+        after = int(imported["after"])
+        if last == after and upto <= after:
+            self.vision.set_state_doc(imported["state"])
 
     def _replay(self, slam: BearingSlam, loc: MapLocalisation, stored: StoredFrame) -> None:
         if stored.result is None:
@@ -196,12 +239,14 @@ class MapSession:
             self.store.count_attempt(stored.id)
         doc = json.loads(stored.body)
         frame = frame_from_dict(doc)
+        observations = None
         try:
             if "image" in doc:
-                outcome, sig = self._replay_image(stored.id, frame, True)
+                outcome, observations, sig = self._replay_image(slam, stored.id, frame)
                 localised = loc.graph_only(frame, outcome, signature=sig)
             else:
                 localised = loc.process(slam, frame)
+                self._note_json_frame(localised)
         except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
@@ -216,16 +261,42 @@ class MapSession:
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
             result = self._result_doc(slam, localised, stored.id, {})
-            self._complete(slam, stored.id, json.dumps(result), localised, removals)
+            self._complete(slam, stored.id, json.dumps(result), localised, removals, observations)
 
     def _replay_image(
-        self, log_id: int, frame: Any, with_covariance: bool
-    ) -> tuple[FrameOutcome, NDArray[np.float32]]:
+        self, slam: BearingSlam, log_id: int, frame: FrameInput
+    ) -> tuple[FrameOutcome, str | None, NDArray[np.float32] | None]:
+        """A logged image frame again: through the front end from its image, or (an
+        imported frame, no image) from the observations its image gave. Returns the
+        outcome, the observations as JSON text and the appearance signature (None for
+        an imported frame)."""
+        if self.vision is None:
+            raise InvalidFrame("image", f"log frame {log_id}: the map has no camera")
         image = self.store.frame_image(log_id)
-        if self.vision is None or image is None:
-            raise InvalidFrame("image", f"log frame {log_id}: image or camera missing")
-        result, _, sig = self.vision.process(frame, image, with_covariance=with_covariance)
-        return result.outcome, sig
+        if image is None:
+            observations = self.store.image_observations(log_id)
+            if observations is None:
+                raise InvalidFrame("image", f"log frame {log_id}: image and observations missing")
+            observed = frame_from_dict({**frame_to_dict(frame), "observations": observations})
+            return self._process_observed(slam, observed), None, None
+        result, _, sig = self.vision.process(frame, image, with_covariance=True)
+        return result.outcome, _observations_json(result.association.observations), sig
+
+    def _process_observed(self, slam: BearingSlam, frame: FrameInput) -> FrameOutcome:
+        """An imported image frame: the observations its image gave, straight to the
+        estimator (as the image route does: no place localiser), and the front end
+        learns the robot's pose."""
+        assert self.vision is not None
+        outcome = slam.process(frame, with_covariance=True)
+        assert outcome.covariance is not None
+        self.vision.pipeline.note_pose(frame.robot, outcome.pose, outcome.covariance)
+        return outcome
+
+    def _note_json_frame(self, localised: Localised) -> None:
+        """A JSON frame in a camera map moved the robot in the graph: its next image
+        frame is predicted from this pose, not from its last image frame."""
+        if self.vision is not None and localised.outcome is not None:
+            self.vision.pipeline.note_pose(localised.robot, localised.pose, localised.covariance)
 
     @property
     def snapshot_due(self) -> bool:
@@ -259,8 +330,14 @@ class MapSession:
         self.slam.config = slam_config(self.record.config, mode)
 
     # ------------------------------------------------------------ the frame use case
-    def submit(self, body: dict[str, Any], image: bytes | None = None) -> dict[str, Any]:
+    def submit(
+        self, body: dict[str, Any], image: bytes | None = None, *, imported: bool = False
+    ) -> dict[str, Any]:
         """Take one frame object (with `image`: the meta of an image frame and its bytes).
+
+        `imported`: `body` is an image frame of an export document: the image's digest
+        (``"image"``) and the observations the front end made of it, which go to the
+        estimator as they are.
 
         Returns {"result_json" (the frame result as JSON text, exactly as stored),
         "replayed" (True for an idempotent retry answered from the log), "timing_ms",
@@ -268,9 +345,12 @@ class MapSession:
         """
         t0 = time.perf_counter()
         prefetched = None if self.vision is None or image is None else self.vision.take(image)
-        frame, text = canonical_frame(body, image)
+        digest = _digest(body.get("image"), "image") if imported else None
+        frame, text = canonical_frame(body, image, digest)
         if image is not None:
             self._check_image_frame(frame)
+        if imported and self.vision is None:
+            raise no_camera(self.record.id)
         stored = self.store.find_frame(frame.robot, frame.seq)
         if stored is not None:
             if stored.body == text and stored.result is not None:
@@ -298,14 +378,18 @@ class MapSession:
             raise out_of_order(exc.field, exc.detail) from exc
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
-        log_id = self.store.append_frame(frame.robot, frame.seq, text, image)
+        observations = _observations_json(frame.observations) if imported else None
+        log_id = self.store.append_frame(frame.robot, frame.seq, text, image, observations)
         t1 = time.perf_counter()
         vision_ms: dict[str, float] = {}
         try:
-            if pending is None:
+            if imported:
+                localised = self.loc.graph_only(frame, self._process_observed(self.slam, frame))
+            elif pending is None:
                 localised = self.loc.process(self.slam, frame)
+                self._note_json_frame(localised)
             else:
-                outcome, vision_ms, sig = self._process_image(frame, pending)
+                outcome, observations, vision_ms, sig = self._process_image(frame, pending)
                 localised = self.loc.graph_only(frame, outcome, signature=sig)
         except ImageError as exc:
             self.store.delete_frame(log_id)
@@ -331,7 +415,9 @@ class MapSession:
         )
         t2 = time.perf_counter()
         text = json.dumps(result)
-        event_ids = self._complete(self.slam, log_id, text, localised, removals)
+        event_ids = self._complete(
+            self.slam, log_id, text, localised, removals, None if imported else observations
+        )
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
@@ -356,10 +442,17 @@ class MapSession:
 
     def _process_image(
         self, frame: Any, pending: Pending
-    ) -> tuple[FrameOutcome, dict[str, float], NDArray[np.float32]]:
+    ) -> tuple[FrameOutcome, str, dict[str, float], NDArray[np.float32]]:
+        """(outcome, the observations the image gave as JSON text, timings ms, the
+        image's appearance signature)."""
         assert self.vision is not None
         result, timing, sig = self.vision.process(frame, pending, with_covariance=True)
-        return result.outcome, timing, sig
+        return (
+            result.outcome,
+            _observations_json(result.association.observations),
+            timing,
+            sig,
+        )
 
     def _result_doc(
         self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]
@@ -398,6 +491,7 @@ class MapSession:
         result_json: str,
         localised: Localised,
         removals: list[RemovalRecord],
+        observations: str | None = None,
     ) -> list[int]:
         events: list[tuple[str, str]] = [("frame", result_json)]
         added = () if localised.outcome is None else localised.outcome.added
@@ -414,7 +508,7 @@ class MapSession:
             doc = {**r.as_dict(), "frame_id": log_id}
             events.append(("landmark_marginalised", json.dumps(doc)))
             rows.append((r.landmark_id, r.frame, json.dumps(doc)))
-        return self.store.complete_frame(log_id, result_json, events, rows)
+        return self.store.complete_frame(log_id, result_json, events, rows, observations)
 
     # ------------------------------------------------------------ queries
     def summary(self) -> dict[str, Any]:
@@ -538,14 +632,31 @@ class MapSession:
 
     # ------------------------------------------------------------ export / import
     def export(self) -> dict[str, Any]:
+        """The map document. An image frame carries its image's digest and the
+        observations the front end made of it (not the image); a camera map's document
+        has the front end's state (`frontend`: landmark descriptors, tracks, last poses)."""
         frames = []
         for stored in self.store.frames_after(0):
+            body = json.loads(stored.body)
+            if "image" in body:
+                observations = self.store.image_observations(stored.id)
+                if observations is None:
+                    raise ServiceError(
+                        422,
+                        "not-exportable",
+                        "Map cannot be exported",
+                        f"frame {stored.id} (robot {stored.robot!r} seq {stored.seq}): an "
+                        "image frame whose observations were not recorded (logged by an "
+                        "older version); an export carries observations, not images",
+                    )
+                body["observations"] = observations
             frames.append(
                 {
-                    "frame": json.loads(stored.body),
+                    "frame": body,
                     "result": None if stored.result is None else json.loads(stored.result),
                 }
             )
+        front = {} if self.vision is None else {"frontend": self.vision.state_doc()}
         return {
             "format": EXPORT_FORMAT,
             "version": EXPORT_VERSION,
@@ -556,10 +667,28 @@ class MapSession:
             "trajectories": self.trajectory(),
             "removals": self.store.removals(),
             "frames": frames,
+            **front,
         }
 
-    def import_frames(self, frames: list[dict[str, Any]]) -> None:
-        """Replay an export's frame log into this (new, empty) map."""
+    def import_frames(self, frames: list[dict[str, Any]], frontend: Any = None) -> None:
+        """Replay an export's frame log into this (new, empty) map; then put back the
+        front end's state of a camera map (`frontend`, the export's; without it the
+        front end starts afresh: its landmarks have no descriptors to match)."""
+        if frontend is not None and self.vision is None:
+            raise ServiceError(
+                422,
+                "invalid-import",
+                "Invalid map document",
+                "frontend: a front-end state for a map without a camera",
+                field="frontend",
+            )
+        if frontend is not None and self.vision is not None:
+            try:  # refuse a bad state before replaying anything
+                parse_state_doc(frontend, self.vision.front_end.associator.config)
+            except ValueError as exc:
+                raise ServiceError(
+                    422, "invalid-import", "Invalid map document", str(exc), field="frontend"
+                ) from exc
         for i, item in enumerate(frames):
             if not isinstance(item, dict) or not isinstance(item.get("frame"), dict):
                 raise ServiceError(
@@ -569,17 +698,8 @@ class MapSession:
                     f"frames[{i}].frame: must be a frame object",
                     field=f"frames[{i}].frame",
                 )
-            if "image" in item["frame"]:
-                raise ServiceError(
-                    422,
-                    "invalid-import",
-                    "Invalid map document",
-                    f"frames[{i}].frame: an image frame; export documents carry no image "
-                    "bytes, so maps fed with images cannot be imported (yet)",
-                    field=f"frames[{i}].frame",
-                )
             try:
-                self.submit(item["frame"])
+                self.submit(item["frame"], imported="image" in item["frame"])
             except ServiceError as exc:
                 raise ServiceError(
                     422,
@@ -588,4 +708,7 @@ class MapSession:
                     f"frames[{i}].frame: {exc.detail}",
                     field=f"frames[{i}].frame",
                 ) from exc
+        if frontend is not None and self.vision is not None:
+            self.vision.set_state_doc(frontend)
+            self.store.set_meta(IMPORTED_FRONTEND, {"after": self._last_log_id, "state": frontend})
         self.snapshot()

@@ -15,7 +15,9 @@ result, its events and the removals it caused are written together in one
 transaction afterwards. ``UNIQUE(robot, seq)`` backs idempotent retries. An image
 frame's encoded image is appended in the same transaction as its log row (table
 ``images``), so replaying the log reproduces the map; a snapshot of a camera map
-carries the front end's state (``frontend_states``, same transaction).
+carries the front end's state (``frontend_states``, same transaction). The labelled
+observations the front end made of an image are stored with the frame's result
+(``image_observations``): an export carries them instead of the image.
 """
 
 from __future__ import annotations
@@ -54,6 +56,10 @@ CREATE TABLE IF NOT EXISTS frames (
 CREATE TABLE IF NOT EXISTS images (
     frame_id INTEGER PRIMARY KEY,
     data BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS image_observations (
+    frame_id INTEGER PRIMARY KEY,
+    observations TEXT NOT NULL
 );
 CREATE TABLE IF NOT EXISTS frontend_states (
     snapshot_id INTEGER PRIMARY KEY,
@@ -231,8 +237,16 @@ class MapStore:
         ).fetchone()
         return None if row is None else StoredFrame(*row)
 
-    def append_frame(self, robot: str, seq: int, body: str, image: bytes | None = None) -> int:
-        """Append an accepted frame (and its encoded image) to the log and commit; its log id."""
+    def append_frame(
+        self,
+        robot: str,
+        seq: int,
+        body: str,
+        image: bytes | None = None,
+        observations: str | None = None,
+    ) -> int:
+        """Append an accepted frame (and its encoded image, or for an imported image frame
+        the observations its image gave) to the log and commit; its log id."""
         with transaction(self._conn):
             cur = self._conn.execute(
                 "INSERT INTO frames (robot, seq, body, received) VALUES (?, ?, ?, ?)",
@@ -243,6 +257,11 @@ class MapStore:
                 self._conn.execute(
                     "INSERT INTO images (frame_id, data) VALUES (?, ?)", (cur.lastrowid, image)
                 )
+            if observations is not None:
+                self._conn.execute(
+                    "INSERT INTO image_observations (frame_id, observations) VALUES (?, ?)",
+                    (cur.lastrowid, observations),
+                )
         return cur.lastrowid
 
     def frame_image(self, frame_id: int) -> bytes | None:
@@ -251,6 +270,13 @@ class MapStore:
             "SELECT data FROM images WHERE frame_id = ?", (frame_id,)
         ).fetchone()
         return None if row is None else bytes(row[0])
+
+    def image_observations(self, frame_id: int) -> list[Any] | None:
+        """The labelled observations a logged image frame's image gave (None: not stored)."""
+        row = self._conn.execute(
+            "SELECT observations FROM image_observations WHERE frame_id = ?", (frame_id,)
+        ).fetchone()
+        return None if row is None else list(json.loads(row[0]))
 
     def count_attempt(self, frame_id: int) -> None:
         """Note (durably) that an unfinished frame is about to be processed again."""
@@ -263,6 +289,7 @@ class MapStore:
         with transaction(self._conn):
             self._conn.execute("DELETE FROM frames WHERE id = ?", (frame_id,))
             self._conn.execute("DELETE FROM images WHERE frame_id = ?", (frame_id,))
+            self._conn.execute("DELETE FROM image_observations WHERE frame_id = ?", (frame_id,))
 
     def complete_frame(
         self,
@@ -270,12 +297,20 @@ class MapStore:
         result: str,
         events: list[tuple[str, str]],
         removals: list[tuple[int, int, str]],
+        observations: str | None = None,
     ) -> list[int]:
-        """Store a frame's result, its events and removals in one transaction; event ids."""
+        """Store a frame's result, its events and removals (and, for an image frame, the
+        observations its image gave, JSON text) in one transaction; event ids."""
         now = time.time()
         ids: list[int] = []
         with transaction(self._conn):
             self._conn.execute("UPDATE frames SET result = ? WHERE id = ?", (result, frame_id))
+            if observations is not None:
+                self._conn.execute(
+                    "INSERT OR REPLACE INTO image_observations (frame_id, observations) "
+                    "VALUES (?, ?)",
+                    (frame_id, observations),
+                )
             self._conn.executemany(
                 "INSERT OR IGNORE INTO removals (landmark_id, frame, record) VALUES (?, ?, ?)",
                 removals,

@@ -23,16 +23,17 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from frontend.association import Association
+from frontend.association import Association, AssociationConfig, Associator
+from frontend.association_state import associator_from_doc, associator_to_doc
 from frontend.features import Features
 from frontend.pipeline import FrontEnd
 from graph.factors import odometry_sigmas
 from graph.slam import BearingSlam, FrameOutcome
-from graph.types import FrameInput
+from graph.types import FrameInput, Pose2D
 
-__all__ = ["ImageFrameResult", "ImagePipeline"]
+__all__ = ["ImageFrameResult", "ImagePipeline", "parse_state_doc"]
 
 FloatArray = NDArray[np.float64]
 
@@ -51,6 +52,33 @@ def _rotate_cov(cov: FloatArray, theta: float) -> FloatArray:
     c, s = math.cos(theta), math.sin(theta)
     r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return r @ cov @ r.T
+
+
+def parse_state_doc(
+    doc: Any, config: AssociationConfig
+) -> tuple[Associator, dict[str, tuple[FloatArray, FloatArray]]]:
+    """(associator, last pose and covariance per robot) of `ImagePipeline.state_doc`'s
+    document; ValueError naming the first bad field."""
+    if not isinstance(doc, dict):
+        raise ValueError("frontend: must be an object with associator and last")
+    associator = associator_from_doc(doc.get("associator"), config)
+    last_doc = doc.get("last")
+    if not isinstance(last_doc, dict):
+        raise ValueError("frontend.last: must be an object (robot -> pose, covariance)")
+    last: dict[str, tuple[FloatArray, FloatArray]] = {}
+    for robot, item in last_doc.items():
+        path = f"frontend.last.{robot}"
+        try:
+            pose = np.asarray(item["pose"], dtype=np.float64)
+            cov = np.asarray(item["covariance"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: must be {{pose: [3], covariance: [3][3]}}") from exc
+        if pose.shape != (3,) or cov.shape != (3, 3):
+            raise ValueError(f"{path}: pose must have 3 numbers, covariance 3x3")
+        if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(cov))):
+            raise ValueError(f"{path}: must be finite")
+        last[robot] = (pose, cov)
+    return associator, last
 
 
 class ImagePipeline:
@@ -80,6 +108,33 @@ class ImagePipeline:
     def set_state(self, state: dict[str, Any]) -> None:
         self.front_end.associator = state["associator"]
         self._last = dict(state["last"])
+
+    def state_doc(self) -> dict[str, Any]:
+        """The same state as JSON-ready data (a map export): the associator's landmark
+        views and tracks, and each robot's last pose (x, y, theta) with its (3, 3)
+        covariance (x, y in the map frame)."""
+        return {
+            "associator": associator_to_doc(self.front_end.associator),
+            "last": {
+                robot: {"pose": pose.tolist(), "covariance": cov.tolist()}
+                for robot, (pose, cov) in self._last.items()
+            },
+        }
+
+    def set_state_doc(self, doc: Any) -> None:
+        """Put back `state_doc`'s document (checked first: ValueError naming the field;
+        nothing changes then). Landmarks the estimator no longer has are dropped at the
+        next frame."""
+        self.front_end.associator, self._last = parse_state_doc(
+            doc, self.front_end.associator.config
+        )
+
+    def note_pose(self, robot: str, pose: Pose2D, covariance_robot: ArrayLike) -> None:
+        """The robot's frame went through the estimator by another route (a JSON frame
+        with bearing observations): its next image frame is predicted from here.
+        `covariance_robot`: (3, 3), x, y in the robot frame (as the estimator reports)."""
+        xy_theta = np.array([pose.x, pose.y, pose.theta])
+        self._last[robot] = (xy_theta, _rotate_cov(np.asarray(covariance_robot), pose.theta))
 
     def predict(self, frame: FrameInput) -> tuple[FloatArray, FloatArray]:
         """Predicted (pose (3,), covariance (3, 3), map frame) of the frame's robot."""

@@ -98,7 +98,7 @@ def _delete(map_id: str, payload: dict[str, Any]) -> None:
 def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     """A new map from an export document's bytes: parse, check, replay its frame log
     (in mapping mode, as it was built), then set the document's mode."""
-    name, mode, config, frames = parse_export(payload["body"])
+    name, mode, config, frames, frontend = parse_export(payload["body"])
     config = config.with_default_cap(payload["default_cap"])
     try:
         slam_config(config.model_dump(mode="json"), mode)
@@ -109,7 +109,7 @@ def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     _create(map_id, {"record": record.as_dict()})
     try:
         session = _sessions[map_id]
-        session.import_frames(frames)
+        session.import_frames(frames, frontend)
         if mode != "mapping":
             session.set_mode(mode)
     except BaseException:

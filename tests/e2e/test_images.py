@@ -255,3 +255,47 @@ def test_replay_cli_posts_image_frames_with_the_camera_config(
     assert summary["config"]["camera"] == {**CAMERA.as_config(), "model": "panorama"}
     assert summary["counts"]["frames"] == 8
     assert "8 frames over HTTP" in capsys.readouterr().out
+
+
+def test_export_import_of_an_image_map_over_http(
+    client: httpx.Client, frames: list[ImageFrame]
+) -> None:
+    """An exported camera map imports as a map that labels new images as the original."""
+    source = _camera_map(client, "to-export")
+    for f in frames[:24]:
+        assert client.post(f"/v1/maps/{source}/frames", **image_frame_parts(f)).status_code == 200
+    r = client.get(f"/v1/maps/{source}/export")
+    assert r.status_code == 200, r.text
+    doc = r.json()
+    assert doc["map"]["config"]["camera"]["width"] == CAMERA.width
+    assert doc["frontend"]["associator"]["landmarks"] and doc["frontend"]["last"]["r1"]
+    assert all("image" in f["frame"] for f in doc["frames"])
+    assert len(r.content) < 24 * 20_000, "observations and descriptors, not images"
+
+    r = client.post("/v1/maps/import", json=doc)
+    assert r.status_code == 201, r.text
+    copy = r.json()["id"]
+    assert r.json()["counts"]["frames"] == 24
+
+    def labels(map_id: str, result: dict[str, Any]) -> list[str]:
+        live = {lm["id"]: lm["label"] for lm in client.get(f"/v1/maps/{map_id}/landmarks").json()}
+        return sorted(live[i] for i in result["landmarks"]["observed"] if i in live)
+
+    matched = 0
+    for f in frames[24:32]:
+        a = client.post(f"/v1/maps/{source}/frames", **image_frame_parts(f))
+        b = client.post(f"/v1/maps/{copy}/frames", **image_frame_parts(f))
+        assert a.status_code == b.status_code == 200, (a.text, b.text)
+        assert a.json()["landmarks"]["observed"] == b.json()["landmarks"]["observed"]
+        assert labels(source, a.json()) == labels(copy, b.json())
+        assert abs(a.json()["pose"]["x"] - b.json()["pose"]["x"]) < 1e-6
+        matched += len(a.json()["landmarks"]["observed"])
+    assert matched > 30, "the imported map matched its landmarks in new images"
+    # A retry of an imported image frame (same meta, same image) is answered from the log.
+    again = client.post(f"/v1/maps/{copy}/frames", **image_frame_parts(frames[5]))
+    assert again.headers.get("idempotent-replayed") == "true", again.text
+    # A document with a broken front-end state is refused and creates no map.
+    maps_before = len(client.get("/v1/maps").json())
+    doc["frontend"]["associator"]["landmarks"][0]["descriptors"] = ["!!"]
+    _problem(client.post("/v1/maps/import", json=doc), 422, "invalid-import")
+    assert len(client.get("/v1/maps").json()) == maps_before

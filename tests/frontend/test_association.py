@@ -229,3 +229,57 @@ def test_at_most_one_observation_per_landmark_and_per_feature() -> None:
     assert len(set(result.feature_index.tolist())) == len(result.feature_index)
     # L0 has two look-alike candidates 0.3° apart: refused; the other five match.
     assert set(result.landmark_matches) == {f"L{i}" for i in range(1, 6)}
+
+
+def test_a_well_matched_landmark_gets_a_tight_gate_against_a_lookalike_nearby() -> None:
+    """Its lateral errors teach the associator the landmark's sigma (without covariances
+    from the graph): a look-alike 3 deg off, the landmark's own corner missing, is then
+    outside the gate; with the default 0.1 m sigma (gate ~5 deg at 2 m) it is taken."""
+    rng = np.random.default_rng(4)
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    lookalike = _flip(base, 6, rng)
+    taken = {}
+    for learn in (True, False):
+        assoc = Associator(AssociationConfig(learn_landmark_sigma=learn))
+        _learn(assoc, _features([0.0], base[None, :]), {0: "A"})
+        landmarks = {"A": (np.array([2.0, 0.0]), None)}
+        cov = np.diag([1e-6, 1e-6, math.radians(0.05) ** 2])
+        for k in range(12):
+            seen = _features([0.02 * (-1) ** k], _flip(base, 2, rng)[None, :])
+            a = assoc.associate(
+                seen, robot="r1", predicted_pose=(0, 0, 0), pose_cov=cov, landmarks=landmarks
+            )
+            assert a.landmark_matches == {"A": 0}
+            assoc.commit(a, pose=(0, 0, 0), live_labels={"A"}, landmark_xy={"A": (2.0, 0.0)})
+        fake = _features([3.0], lookalike[None, :])
+        result = assoc.associate(
+            fake, robot="r1", predicted_pose=(0, 0, 0), pose_cov=cov, landmarks=landmarks
+        )
+        taken[learn] = "A" in result.landmark_matches
+    assert taken == {True: False, False: True}
+
+
+def test_a_feature_a_landmark_could_have_been_starts_no_track() -> None:
+    """Two near-identical features inside landmark A's gate: the ratio test takes
+    neither, and neither becomes a new track (it would grow a second landmark on A's
+    corner); a feature far from every landmark still starts one."""
+    rng = np.random.default_rng(7)
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    other = rng.integers(0, 256, 32, dtype=np.uint8)
+    started = {}
+    for rule in (True, False):
+        assoc = Associator(AssociationConfig(no_tracks_from_contested=rule))
+        _learn(assoc, _features([0.0], base[None, :]), {0: "A"})
+        feats = _features(
+            [-0.3, 0.3, 90.0], np.stack([_flip(base, 3, rng), _flip(base, 3, rng), other])
+        )
+        result = assoc.associate(
+            feats,
+            robot="r2",
+            predicted_pose=(0, 0, 0),
+            pose_cov=np.diag([1e-4, 1e-4, math.radians(1.0) ** 2]),
+            landmarks={"A": (np.array([2.0, 0.0]), None)},
+        )
+        assert result.landmark_matches == {}
+        started[rule] = sorted(result.unmatched.tolist())
+    assert started == {True: [2], False: [0, 1, 2]}

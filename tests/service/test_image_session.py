@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import pickle
 import queue
+import sqlite3
 import time
 from multiprocessing import Pipe
 from pathlib import Path
@@ -190,19 +191,45 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
         worker_end.close()
 
 
-def test_export_of_an_image_map_is_refused_on_import(
+def _labels(reply: dict[str, Any], session: MapSession) -> list[str]:
+    """Labels of the landmarks a frame's result says it observed."""
+    result = json.loads(reply["result_json"])
+    return sorted(session.slam.landmarks[i].label for i in result["landmarks"]["observed"])
+
+
+def test_export_import_of_an_image_map_goes_on_associating_as_the_original(
     tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
 ) -> None:
-    session = _new(tmp_path / "cam.sqlite")
-    session.submit(*run[0])
-    doc = session.export()
-    assert doc["frames"][0]["frame"]["image"]["bytes"] == len(run[0][1])
-    session.close()
-    target = _new(tmp_path / "imported.sqlite")
-    with pytest.raises(ServiceError) as info:
-        target.import_frames(doc["frames"])
-    assert info.value.status == 422 and "image frame" in info.value.detail
-    assert target.slam.frame_count == 0
+    source = _new(tmp_path / "cam.sqlite", every=1000)
+    for meta, image in run[:24]:
+        source.submit(meta, image)
+    doc = json.loads(json.dumps(source.export()))  # through JSON, as over HTTP
+    image_frames = [f["frame"] for f in doc["frames"]]
+    assert all("sha256" in f["image"] and f["observations"] for f in image_frames[1:])
+    assert doc["frontend"]["associator"]["landmarks"], "landmark descriptors exported"
+
+    target = _new(tmp_path / "imported.sqlite", every=1000)
+    target.import_frames(doc["frames"], doc["frontend"])
+    assert sorted(r.label for r in target.slam.landmarks.values()) == sorted(
+        r.label for r in source.slam.landmarks.values()
+    )
+    # New images: the imported map labels them exactly as the original does.
+    observed = 0
+    for meta, image in run[24:]:
+        a, b = source.submit(meta, image), target.submit(meta, image)
+        assert _labels(a, source) == _labels(b, target)
+        observed += len(_labels(a, source))
+    assert observed > 50
+    ta, tb = source.trajectory()["r1"], target.trajectory()["r1"]
+    assert len(ta) == len(tb) == len(run)
+    for pa, pb in zip(ta, tb, strict=True):
+        assert abs(pa["x"] - pb["x"]) < 1e-6 and abs(pa["y"] - pb["y"]) < 1e-6
+    # Its own export round-trips too (observations kept, no images needed).
+    again = target.export()
+    assert [f["frame"]["observations"] for f in again["frames"][:24]] == [
+        f["observations"] for f in image_frames
+    ]
+    source.close()
     target.close()
 
 
@@ -243,4 +270,125 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
     assert result["localisation"]["place"] == 0
     assert result["localisation"]["confidence"] > 0.95
     assert len(session.places()["appearance_places"]) == len(places)  # nothing new learnt
+
+
+def test_imported_image_map_reloads_from_its_log_alone(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    source = _new(tmp_path / "cam.sqlite", every=1000)
+    for meta, image in run[:20]:
+        source.submit(meta, image)
+    doc = json.loads(json.dumps(source.export()))
+    path = tmp_path / "imported.sqlite"
+    target = _new(path, every=1000)
+    target.import_frames(doc["frames"], doc["frontend"])
+    target.close()
+    # Without its snapshots the map is its log: imported frames replay from their
+    # observations and the export's front-end state is put back after them.
+    conn = sqlite3.connect(path)
+    conn.execute("DELETE FROM snapshots")
+    conn.execute("DELETE FROM frontend_states")
+    conn.commit()
+    conn.close()
+    reopened = MapSession(path, StoreSettings(snapshot_every=1000))
+    assert reopened.loaded_from_snapshot == 0 and reopened.replay_errors == 0
+    for meta, image in run[20:26]:
+        a, b = source.submit(meta, image), reopened.submit(meta, image)
+        assert _labels(a, source) == _labels(b, reopened)
+    source.close()
+    reopened.close()
+
+
+def test_import_refuses_a_bad_front_end_state_and_keeps_nothing(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    source = _new(tmp_path / "cam.sqlite")
+    for meta, image in run[:6]:
+        source.submit(meta, image)
+    doc = json.loads(json.dumps(source.export()))
+    source.close()
+    state = doc["frontend"]
+    bad_descriptor = json.loads(json.dumps(state))
+    bad_descriptor["associator"]["tracks"]["r1"][0]["descriptor"] = "AAAA"
+    bad_pose = json.loads(json.dumps(state))
+    bad_pose["last"]["r1"]["pose"] = [0.0, "x", 0.0]
+    for bad, field in (
+        (bad_descriptor, "associator.tracks.r1[0].descriptor"),
+        (bad_pose, "frontend.last.r1"),
+        ({"associator": 3, "last": {}}, "associator"),
+    ):
+        target = _new(tmp_path / "imported.sqlite")
+        with pytest.raises(ServiceError) as info:
+            target.import_frames(doc["frames"], bad)
+        assert info.value.status == 422 and field in info.value.detail
+        assert target.slam.frame_count == 0 and target.store.frame_count() == 0
+        target.close()
+    # A frame whose image digest is not one is refused too.
+    frames = json.loads(json.dumps(doc["frames"]))
+    frames[2]["frame"]["image"] = {"sha256": "nope", "bytes": 3}
+    target = _new(tmp_path / "imported2.sqlite")
+    with pytest.raises(ServiceError) as info:
+        target.import_frames(frames, state)
+    assert info.value.status == 422 and "frames[2].frame" in info.value.detail
+    target.close()
+
+
+def _json_frame(meta: dict[str, Any]) -> dict[str, Any]:
+    """An image frame's meta as a JSON frame with no bearings (odometry only)."""
+    return {**meta, "observations": []}
+
+
+def _run_with_json_gap(
+    path: Path, run: list[tuple[dict[str, Any], bytes]], gap: range
+) -> tuple[MapSession, list[dict[str, Any]]]:
+    session = _new(path, every=1000)
+    results = []
+    for k, (meta, image) in enumerate(run[:30]):
+        reply = session.submit(_json_frame(meta)) if k in gap else session.submit(meta, image)
+        results.append(json.loads(reply["result_json"]))
+    return session, results
+
+
+def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gap = range(14, 20)  # six frames of odometry only, posted as JSON
+    session, results = _run_with_json_gap(tmp_path / "a.sqlite", run, gap)
+    assert session.vision is not None
+    # The front end predicts the next image frame from the JSON frame's pose.
+    pose, _ = session.vision.pipeline._last["r1"]
+    last = results[-1]["pose"]
+    np.testing.assert_allclose(pose, [last["x"], last["y"], last["theta"]], atol=1e-9)
+    after = results[gap.stop]
+    reference = _new(tmp_path / "ref.sqlite", every=1000)
+    ref = [json.loads(reference.submit(m, i)["result_json"]) for m, i in run[: gap.stop + 1]]
+    assert len(after["landmarks"]["observed"]) >= 10  # measured 14 (36 with images throughout)
+    assert abs(after["pose"]["x"] - ref[-1]["pose"]["x"]) < 0.05
+    # Reopened from its log (no snapshot), the map predicts the same way.
+    session.close()
+    reopened = MapSession(tmp_path / "a.sqlite", StoreSettings(snapshot_every=1000))
+    assert reopened.vision is not None
+    np.testing.assert_allclose(reopened.vision.pipeline._last["r1"][0], pose, atol=1e-9)
+    reopened.close()
+    reference.close()
+    # Without the JSON frames' poses, the image frame after the gap is predicted from the
+    # last image frame plus one frame's odometry, far off, and matches little.
+    monkeypatch.setattr(MapSession, "_note_json_frame", lambda self, localised: None)
+    stale, stale_results = _run_with_json_gap(tmp_path / "b.sqlite", run, gap)
+    stale_observed = len(stale_results[gap.stop]["landmarks"]["observed"])
+    assert stale_observed <= 0.5 * len(after["landmarks"]["observed"])  # measured 3
+    stale.close()
+
+
+def test_a_robot_may_start_with_a_json_frame_then_send_images(
+    tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
+) -> None:
+    session = _new(tmp_path / "c.sqlite", every=1000)
+    session.submit(_json_frame(run[0][0]))
+    meta = {k: v for k, v in run[1][0].items() if k != "initial_pose"}
+    result = json.loads(session.submit(meta, run[1][1])["result_json"])
+    assert result["seq"] == run[1][0]["seq"]
+    for meta, image in run[2:8]:
+        result = json.loads(session.submit(meta, image)["result_json"])
+    assert len(session.slam.landmarks) > 0 and result["landmarks"]["observed"]
     session.close()
