@@ -99,6 +99,16 @@ def _truth_at(gt: Trajectory, stamp: float) -> np.ndarray | None:
     return np.array([t.xy[0, 0], t.xy[0, 1], t.theta[0]])
 
 
+def _ate_of_results(rows: list[dict], gt: Any) -> float | None:
+    """Position RMSE (m) of frame results' poses against ground truth at their stamps."""
+    errs = []
+    for r in rows:
+        truth = _truth_at(gt, r["stamp"])
+        if truth is not None:
+            errs.append(np.hypot(r["pose"]["x"] - truth[0], r["pose"]["y"] - truth[1]))
+    return float(np.sqrt(np.mean(np.square(errs)))) if errs else None
+
+
 def _errors(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(float(est[2] - truth[2])))
 
@@ -240,21 +250,13 @@ def kidnap(
     lost = next((k for k in range(cut, len(statuses)) if statuses[k] == "lost"), None)
     reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
 
-    def ate(rows: list[dict]) -> float | None:
-        errs = []
-        for r in rows:
-            truth = _truth_at(gt, r["stamp"])
-            if truth is not None:
-                errs.append(np.hypot(r["pose"]["x"] - truth[0], r["pose"]["y"] - truth[1]))
-        return float(np.sqrt(np.mean(np.square(errs)))) if errs else None
-
     return {
         "robot": robot,
         "frames_before": cut,
         "frames_after": len(stream) - cut,
         "cut_s": cut_s,
         "jump_m": _jump(gt, pre[-1].stamp, first.stamp),
-        "ate_before_m": ate(results[:cut]),
+        "ate_before_m": _ate_of_results(results[:cut], gt),
         "lost_events_before_cut": sum(
             1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
         ),
@@ -263,7 +265,7 @@ def kidnap(
         "seconds_to_relocalised": None
         if reloc is None
         else results[reloc]["stamp"] - results[cut]["stamp"],
-        "ate_after_relocalised_m": None if reloc is None else ate(results[reloc:]),
+        "ate_after_relocalised_m": None if reloc is None else _ate_of_results(results[reloc:], gt),
         "status_counts_after_cut": {s: statuses[cut:].count(s) for s in set(statuses[cut:])},
     }
 
@@ -305,14 +307,6 @@ def kidnap_shared(
     reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
     landmarks_at_cut = next((r["landmarks"]["live"] for r in reversed(results[: len(pre)])), None)
 
-    def ate(rows: list[dict]) -> float | None:
-        errs = []
-        for r in rows:
-            truth = _truth_at(gt, r["stamp"])
-            if truth is not None:
-                errs.append(np.hypot(r["pose"]["x"] - truth[0], r["pose"]["y"] - truth[1]))
-        return float(np.sqrt(np.mean(np.square(errs)))) if errs else None
-
     return {
         "robot": robot,
         "frames_before": cut,
@@ -321,7 +315,7 @@ def kidnap_shared(
         "landmarks_at_end": live,
         "frames_after": len(mine) - cut,
         "jump_m": _jump(gt, pre[-1].stamp, post[0].stamp),
-        "ate_before_m": ate(mine[:cut]),
+        "ate_before_m": _ate_of_results(mine[:cut], gt),
         "lost_events_before_cut": sum(
             1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
         ),
@@ -330,7 +324,7 @@ def kidnap_shared(
         "seconds_to_relocalised": None
         if reloc is None
         else mine[reloc]["stamp"] - mine[cut]["stamp"],
-        "ate_after_relocalised_m": None if reloc is None else ate(mine[reloc:]),
+        "ate_after_relocalised_m": None if reloc is None else _ate_of_results(mine[reloc:], gt),
         "status_counts_after_cut": {s: statuses[cut:].count(s) for s in set(statuses[cut:])},
     }
 
