@@ -227,11 +227,20 @@ def main(argv: list[str] | None = None) -> int:
         help="niceness of the worker processes (service default %(default)s); on a machine "
         "shared with other CPU-heavy work a niced worker loses time to it",
     )
+    parser.add_argument(
+        "--optimizer",
+        choices=("dogleg", "gauss_newton"),
+        default=None,
+        help="the map's iSAM2 step (default: the service's); results go to "
+        "http_latency_<optimizer>.json when given",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     args = parser.parse_args(argv)
 
     load_start = os.getloadavg()
     frames, config = _frames(args.source, args.frames)
+    if args.optimizer is not None:
+        config["optimizer"] = args.optimizer
     dicts = [frame_to_dict(f) for f in frames]
     print(
         f"{len(frames)} {args.source} frames, config {config}, sqlite {args.synchronous}, "
@@ -271,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     stem = "http_latency" if args.source == "mrclam" else "http_latency_sim"
     if args.worker_nice != WorkerSettings().nice:
         stem += f"_nice{args.worker_nice}"
+    if args.optimizer is not None:
+        stem += f"_{args.optimizer}"
     (args.out / f"{stem}.json").write_text(json.dumps(result, indent=2))
     for key in ("in_process", "session", "http_1_map", f"http_{args.maps}_maps"):
         s = result[key]

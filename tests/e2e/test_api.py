@@ -55,6 +55,9 @@ def test_default_cap_comes_from_settings_and_null_means_uncapped(client: httpx.C
     assert default["estimator"]["landmark_cap"] == 50
     uncapped = client.post("/v1/maps", json={"name": "u", "config": {"landmark_cap": None}})
     assert uncapped.json()["estimator"]["landmark_cap"] is None
+    assert default["estimator"]["optimizer"] == "dogleg"
+    fast = client.post("/v1/maps", json={"name": "g", "config": {"optimizer": "gauss_newton"}})
+    assert fast.json()["estimator"]["optimizer"] == "gauss_newton"
 
 
 def test_frames_give_results_and_the_map_answers(
@@ -199,6 +202,8 @@ def test_unknown_map_and_bad_config(client: httpx.Client) -> None:
     assert _problem(bad, 422)["field"] == "config.landmark_cap"
     bad = client.post("/v1/maps", json={"name": "x", "config": {"policy": "magic"}})
     assert "unknown policy" in _problem(bad, 422)["detail"]
+    bad = client.post("/v1/maps", json={"name": "x", "config": {"optimizer": "lm"}})
+    assert _problem(bad, 422)["field"] == "config.optimizer"
     bad = client.post("/v1/maps", json={"name": "x", "config": {"sigma": 1}})
     assert "config.sigma" in _problem(bad, 422)["detail"]
     _problem(client.post("/v1/maps", json={"name": "x", "mode": "dreaming"}), 422)
