@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
+
+Optimizer = Literal["dogleg", "gauss_newton"]
+"""The iSAM2 step (see SlamConfig.optimizer)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,7 +52,7 @@ class SlamConfig:
     """Largest one-sigma position error of a triangulated landmark."""
     candidate_ttl_frames: int = 200
     """A candidate not observed for this many frames (of any robot) expires."""
-    optimizer: str = "dogleg"
+    optimizer: Optimizer = "dogleg"
     """iSAM2 step: 'dogleg' (Powell's trust region) or 'gauss_newton'. Gauss-Newton has
     no damping, and on bearing-only graphs a poor linearisation (a new landmark seen
     from nearly one direction) can throw the estimate off for good: MRCLAM-6 robot 5 at

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from graph.config import SlamConfig
+from graph.config import Optimizer, SlamConfig
 from graph.policies import POLICY_NAMES
 
 if TYPE_CHECKING:
@@ -162,8 +162,8 @@ class MapConfig(BaseModel):
         "means a default 2048x512 panorama",
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
-    optimizer: Literal["dogleg", "gauss_newton"] = Field(
-        _DEFAULTS.optimizer,  # type: ignore[arg-type]
+    optimizer: Optimizer = Field(
+        _DEFAULTS.optimizer,
         description="iSAM2 step: 'dogleg' (trust region: robust, but every update costs a "
         "step over the whole graph; MRCLAM-6 r1 at cap 8: 11 ms/frame median) or "
         "'gauss_newton' (undamped, partial updates: 2 ms/frame there, but a poorly "
