@@ -237,25 +237,40 @@ def kidnap(
     jump = dataclasses.replace(first, odometry=Odometry(0.0, 0.0, 0.0))  # no odometry for the gap
     stream = [*pre, jump, *post[1:]]
     stream = [dataclasses.replace(f, seq=i) for i, f in enumerate(stream)]
-    config = {"landmark_cap": None, "seed": robot}
-    with tempfile.TemporaryDirectory() as tmp:
-        record = MapRecord("k", "kidnap", "mapping", config, time.time())
-        session = MapSession.create(
-            Path(tmp) / "k.sqlite", record, StoreSettings(snapshot_every=10_000)
-        )
-        results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
-        session.close()
+    results, _ = _run_session("kidnap", stream, robot)
     cut = len(pre)
-    statuses = [r["localisation"]["status"] for r in results]
-    lost = next((k for k in range(cut, len(statuses)) if statuses[k] == "lost"), None)
-    reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
-
     return {
         "robot": robot,
         "frames_before": cut,
         "frames_after": len(stream) - cut,
         "cut_s": cut_s,
         "jump_m": _jump(gt, pre[-1].stamp, first.stamp),
+        **_after_cut(results, cut, gt),
+    }
+
+
+def _run_session(name: str, stream: list[FrameInput], seed: int) -> tuple[list[dict], int]:
+    """Every frame of `stream` through a fresh uncapped MapSession: the frame results,
+    and the live landmarks at the end."""
+    config = {"landmark_cap": None, "seed": seed}
+    with tempfile.TemporaryDirectory() as tmp:
+        record = MapRecord("k", name, "mapping", config, time.time())
+        session = MapSession.create(
+            Path(tmp) / "k.sqlite", record, StoreSettings(snapshot_every=10_000)
+        )
+        results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+        live = len(session.slam.landmarks)
+        session.close()
+    return results, live
+
+
+def _after_cut(results: list[dict], cut: int, gt: Any) -> dict[str, Any]:
+    """What one robot's frame results show around its cut (frame index `cut`): ATE
+    before, false `lost` events before, frames until `lost` and `relocalised`, ATE after."""
+    statuses = [r["localisation"]["status"] for r in results]
+    lost = next((k for k in range(cut, len(statuses)) if statuses[k] == "lost"), None)
+    reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
+    return {
         "ate_before_m": _ate_of_results(results[:cut], gt),
         "lost_events_before_cut": sum(
             1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
@@ -291,20 +306,9 @@ def kidnap_shared(
         seq[f.robot] = seq.get(f.robot, -1) + 1
         stream.append(dataclasses.replace(f, seq=seq[f.robot]))
     name = frames[0].robot
-    config = {"landmark_cap": None, "seed": robot}
-    with tempfile.TemporaryDirectory() as tmp:
-        record = MapRecord("k", "kidnap-shared", "mapping", config, time.time())
-        session = MapSession.create(
-            Path(tmp) / "k.sqlite", record, StoreSettings(snapshot_every=10_000)
-        )
-        results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
-        live = len(session.slam.landmarks)
-        session.close()
+    results, live = _run_session("kidnap-shared", stream, robot)
     mine = [r for r in results if r["robot"] == name]
     cut = sum(1 for f in pre if f.robot == name)
-    statuses = [r["localisation"]["status"] for r in mine]
-    lost = next((k for k in range(cut, len(statuses)) if statuses[k] == "lost"), None)
-    reloc = next((k for k in range(cut, len(statuses)) if statuses[k] == "relocalised"), None)
     landmarks_at_cut = next((r["landmarks"]["live"] for r in reversed(results[: len(pre)])), None)
 
     return {
@@ -315,17 +319,7 @@ def kidnap_shared(
         "landmarks_at_end": live,
         "frames_after": len(mine) - cut,
         "jump_m": _jump(gt, pre[-1].stamp, post[0].stamp),
-        "ate_before_m": _ate_of_results(mine[:cut], gt),
-        "lost_events_before_cut": sum(
-            1 for k in range(1, cut) if statuses[k] == "lost" and statuses[k - 1] != "lost"
-        ),
-        "frames_to_lost": None if lost is None else lost - cut,
-        "frames_to_relocalised": None if reloc is None else reloc - cut,
-        "seconds_to_relocalised": None
-        if reloc is None
-        else mine[reloc]["stamp"] - mine[cut]["stamp"],
-        "ate_after_relocalised_m": None if reloc is None else _ate_of_results(mine[reloc:], gt),
-        "status_counts_after_cut": {s: statuses[cut:].count(s) for s in set(statuses[cut:])},
+        **_after_cut(mine, cut, gt),
     }
 
 
