@@ -159,3 +159,29 @@ def test_the_spec_pickles_and_rebuilds_the_same_factor() -> None:
     _retract(at, KEYS[0], np.array([0.2, -0.1, 0.3]))
     assert list(again.keys()) == list(factor.keys())
     assert again.error(at) == pytest.approx(factor.error(at), rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_plain_arithmetic_coordinates_match_gtsam(seed: int) -> None:
+    """The error path's plain-float y(x) equals the gtsam-based one, including headings
+    across +-pi and relative rotations of (nearly) zero."""
+    from graph.relative import _Blanket
+
+    rng = np.random.default_rng(seed)
+    theta = _theta()
+    blanket = _Blanket(KEYS[0], KEYS, theta)
+    moved = gtsam.Values()
+    for key in KEYS:
+        if key in (KEYS[1], KEYS[3]):
+            moved.insert(key, theta.atPoint2(key) + rng.normal(scale=2.0, size=2))
+            continue
+        pose = theta.atPose2(key)
+        if seed % 4 == 0:
+            step = np.zeros(3)  # at theta: every relative rotation is exactly zero
+        elif seed % 4 == 1:
+            step = np.array([rng.normal(), rng.normal(), math.pi - pose.theta() - 1e-9])
+        else:
+            step = rng.normal(scale=[1.0, 1.0, 3.0])
+        moved.insert(key, pose.retract(step))
+    expected, _, _ = blanket.evaluate(moved, with_jacobians=False)
+    np.testing.assert_allclose(blanket.coordinates(moved), expected, rtol=1e-9, atol=1e-12)
