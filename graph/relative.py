@@ -226,7 +226,7 @@ class RelativeMarginalFactor(gtsam.CustomFactor):
             _factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
         ) -> FloatArray:
             if jacobians is None:
-                return m @ blanket.coordinates(values) - b  # type: ignore[no-any-return]
+                return m @ blanket.coordinates(values) - b
             y, column, diagonal = blanket.evaluate(values, with_jacobians=True)
             residual: FloatArray = m @ y - b
             if jacobians is not None:
