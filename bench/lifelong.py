@@ -193,6 +193,7 @@ def run_worker(
         "peak_rss_before_reset_mb": peak_before_reset,
         "loadavg_start": load_start,
         "loadavg_end": load_end,
+        "git_commit": machine_info()["git_commit"],
         "frame_ms": result.frame_ms,
         "cpu_ms": cpu_ms,
         "stage_ms": stages,
@@ -345,6 +346,7 @@ def run_summary(record: dict[str, Any], n: int, gt: Trajectory) -> dict[str, Any
         ),
         "accuracy": ate(record, gt),
         "checkpoints": checkpoints(record, n),
+        "git_commit": record.get("git_commit"),
         "loadavg_start": [round(x, 2) for x in record["loadavg_start"]],
         "loadavg_end": [round(x, 2) for x in record["loadavg_end"]],
         "series": series(record),
@@ -641,6 +643,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument("--baseline-budget-s", type=float, default=900.0)
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument(
+        "--records",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="build the report from saved child records (bounded first, then the "
+        "baseline) instead of running them: e.g. a long baseline run on its own with "
+        "`--worker baseline --worker-out FILE`",
+    )
     parser.add_argument("--seed", type=int, default=SEED, help=argparse.SUPPRESS)
     parser.add_argument("--worker", choices=sorted(RUNS), default=None, help=argparse.SUPPRESS)
     parser.add_argument("--worker-max-frames", type=int, default=None, help=argparse.SUPPRESS)
@@ -666,12 +678,21 @@ def main(argv: Sequence[str] | None = None) -> None:
     del run
     print(f"run digest {digest}")
 
-    records: dict[str, dict[str, Any]] = {"bounded": spawn("bounded", n, args.seed, n, None)}
     base_frames = n if args.baseline_frames is None else min(n, args.baseline_frames)
-    if base_frames > 0:
-        records["baseline"] = spawn(
-            "baseline", n, args.seed, base_frames, args.baseline_budget_s or None
-        )
+    records: dict[str, dict[str, Any]] = {}
+    if args.records is not None:
+        for name, path in zip(("bounded", "baseline"), args.records, strict=False):
+            records[name] = json.loads(path.read_text())
+            if records[name].get("name") != name:
+                parser.error(f"{path} holds a {records[name].get('name')!r} record, not {name}")
+        if "baseline" in records:
+            base_frames = records["baseline"]["frames_done"]
+    else:
+        records["bounded"] = spawn("bounded", n, args.seed, n, None)
+        if base_frames > 0:
+            records["baseline"] = spawn(
+                "baseline", n, args.seed, base_frames, args.baseline_budget_s or None
+            )
 
     bounded = records["bounded"]
     if bounded.get("crashed"):
@@ -687,7 +708,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         "world": {"rooms": list(ROOMS), "landmarks": LANDMARKS, "simulator": "indoor_sim"},
         "run_digest": digest,
         "method": {
-            "isolation": "each configuration in its own fresh child process (subprocess)",
+            "isolation": "each configuration in its own fresh child process (subprocess)"
+            + (
+                "; records read from " + ", ".join(p.name for p in args.records)
+                if args.records
+                else ""
+            ),
             "timing": "perf_counter around BearingSlam.process(frame, with_covariance=False)",
             "rss": f"current RSS (/proc/self/statm) every {RSS_EVERY} frames; peak = "
             "ru_maxrss, reset at frame N/4 (/proc/self/clear_refs), so it is the peak from "
