@@ -110,3 +110,28 @@ class AppearanceIndex:
         scores = cross[np.arange(len(self)), shift]
         yaw = wrap_angles(2.0 * math.pi * shift / c.columns)
         return AppearanceMatch(scores.astype(np.float64), np.asarray(yaw))
+
+
+def rotation_between(
+    previous: NDArray[np.float32], current: NDArray[np.float32]
+) -> tuple[float, float]:
+    """(yaw change rad, score): how far the robot turned from the panorama whose
+    signature is `previous` to the one whose signature is `current` (current yaw -
+    previous yaw, as AppearanceIndex.match's offset), refined to a fraction of a column
+    by a parabola through the correlation peak and its two neighbours; the score is the
+    normalised cross-correlation at the best whole-column shift, in [-1, 1]. Both
+    signatures ``(bands, columns)`` of one config (a visual compass: a rotation of a
+    panorama is a column shift)."""
+    a = np.asarray(previous, dtype=np.float64)
+    b = np.asarray(current, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(f"signatures of different shapes: {a.shape} and {b.shape}")
+    bands, columns = a.shape
+    spectrum = np.sum(np.fft.rfft(b, axis=1) * np.conj(np.fft.rfft(a, axis=1)), axis=0)
+    cross = np.fft.irfft(spectrum, n=columns) / (bands * columns)
+    k = int(np.argmax(cross))
+    left, mid, right = cross[(k - 1) % columns], cross[k], cross[(k + 1) % columns]
+    curvature = left - 2.0 * mid + right
+    frac = 0.5 * (left - right) / curvature if curvature < 0 else 0.0
+    yaw = float(wrap_angles(np.asarray(2.0 * math.pi * (k + frac) / columns)))
+    return yaw, float(mid)

@@ -198,7 +198,9 @@ class MapVision:
         else:
             features, sig, decode_ms, extract_ms = image.result()
         waited_ms = 1e3 * (time.perf_counter() - t0)
-        result = self.pipeline.submit(frame, features, with_covariance=with_covariance)
+        result = self.pipeline.submit(
+            frame, features, with_covariance=with_covariance, signature=sig
+        )
         timing = {
             "decode": decode_ms,
             "features": extract_ms,

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from frontend.appearance import rotation_between
 from frontend.association import Association, AssociationConfig, Associator
 from frontend.association_state import associator_from_doc, associator_to_doc
 from frontend.features import Features
@@ -36,6 +37,12 @@ from graph.types import FrameInput, Pose2D
 __all__ = ["ImageFrameResult", "ImagePipeline", "parse_state_doc"]
 
 FloatArray = NDArray[np.float64]
+
+COMPASS_GATE = 3.0
+"""Odometry heading sigmas beyond which the visual compass's turn replaces the odometry's
+in the prediction (see ImagePipeline.predict)."""
+COMPASS_MIN_SCORE = 0.6
+"""Correlation two consecutive panoramas' signatures need for the compass to count."""
 
 
 @dataclass(frozen=True)
@@ -85,14 +92,24 @@ class ImagePipeline:
     """One map's front end next to its estimator."""
 
     def __init__(
-        self, slam: BearingSlam, front_end: FrontEnd, *, landmark_covariances: bool = False
+        self,
+        slam: BearingSlam,
+        front_end: FrontEnd,
+        *,
+        landmark_covariances: bool = False,
+        compass: bool = True,
     ) -> None:
         """`landmark_covariances`: gate with the graph's landmark marginals (one joint
-        marginal per frame; costly with many landmarks) instead of a default sigma."""
+        marginal per frame; costly with many landmarks) instead of a default sigma.
+        `compass`: let the panoramas' rotation overrule a wrong odometry turn in the
+        prediction (see `predict`; False: the odometry alone, e.g. to compare)."""
         self.slam = slam
         self.front_end = front_end
         self.landmark_covariances = landmark_covariances
+        self.compass = compass
         self._last: dict[str, tuple[FloatArray, FloatArray]] = {}
+        self._signature: dict[str, NDArray[np.float32]] = {}
+        """Each robot's last panorama signature (the visual compass, see `predict`)."""
 
     @property
     def robots(self) -> frozenset[str]:
@@ -101,13 +118,19 @@ class ImagePipeline:
 
     def state(self) -> dict[str, Any]:
         """What the pipeline carries from frame to frame besides the estimator: the
-        associator (landmark views, candidate tracks) and each robot's last pose and
-        covariance. Picklable; `set_state` puts it back (a snapshot of a camera map)."""
-        return {"associator": self.front_end.associator, "last": self._last}
+        associator (landmark views, candidate tracks), each robot's last pose and
+        covariance, and its last panorama signature. Picklable; `set_state` puts it back
+        (a snapshot of a camera map)."""
+        return {
+            "associator": self.front_end.associator,
+            "last": self._last,
+            "signature": self._signature,
+        }
 
     def set_state(self, state: dict[str, Any]) -> None:
         self.front_end.associator = state["associator"]
         self._last = dict(state["last"])
+        self._signature = dict(state.get("signature", {}))  # older snapshots: none
 
     def state_doc(self) -> dict[str, Any]:
         """The same state as JSON-ready data (a map export): the associator's landmark
@@ -135,9 +158,20 @@ class ImagePipeline:
         `covariance_robot`: (3, 3), x, y in the robot frame (as the estimator reports)."""
         xy_theta = np.array([pose.x, pose.y, pose.theta])
         self._last[robot] = (xy_theta, _rotate_cov(np.asarray(covariance_robot), pose.theta))
+        # The next image's odometry starts here, not at the last image: no compass for it.
+        self._signature.pop(robot, None)
 
-    def predict(self, frame: FrameInput) -> tuple[FloatArray, FloatArray]:
-        """Predicted (pose (3,), covariance (3, 3), map frame) of the frame's robot."""
+    def predict(
+        self, frame: FrameInput, *, compass_rad: float | None = None
+    ) -> tuple[FloatArray, FloatArray]:
+        """Predicted (pose (3,), covariance (3, 3), map frame) of the frame's robot.
+
+        `compass_rad`: the turn since the robot's last image that the panoramas show
+        (frontend.appearance.rotation_between). It replaces the odometry's turn when the
+        two differ by more than `COMPASS_GATE` of the odometry's heading sigma: the
+        odometry is then wrong beyond its noise model (a slipping on-the-spot turn),
+        and a prediction that far off would leave the association matching nothing.
+        The estimator still gets the frame's odometry as it is."""
         cfg = self.slam.config
         last = self._last.get(frame.robot)
         if last is None or frame.odometry is None:
@@ -149,10 +183,16 @@ class ImagePipeline:
         odo = frame.odometry
         c, s = math.cos(pose[2]), math.sin(pose[2])
         dxw, dyw = c * odo.dx - s * odo.dy, s * odo.dx + c * odo.dy
-        new = np.array([pose[0] + dxw, pose[1] + dyw, pose[2] + odo.dtheta])
+        sigmas = odometry_sigmas(odo, cfg)
+        turn = odo.dtheta
+        if compass_rad is not None:
+            gap = math.atan2(math.sin(compass_rad - turn), math.cos(compass_rad - turn))
+            if abs(gap) > COMPASS_GATE * sigmas[2]:
+                turn = compass_rad
+        new = np.array([pose[0] + dxw, pose[1] + dyw, pose[2] + turn])
         new[2] = math.atan2(math.sin(new[2]), math.cos(new[2]))
         jac = np.array([[1.0, 0.0, -dyw], [0.0, 1.0, dxw], [0.0, 0.0, 1.0]])
-        q = _rotate_cov(np.diag(np.square(odometry_sigmas(odo, cfg))), pose[2])
+        q = _rotate_cov(np.diag(np.square(sigmas)), pose[2])
         return new, jac @ cov @ jac.T + q
 
     def submit(
@@ -161,16 +201,29 @@ class ImagePipeline:
         image: bytes | NDArray[np.uint8] | Features,
         *,
         with_covariance: bool = True,
+        signature: NDArray[np.float32] | None = None,
     ) -> ImageFrameResult:
         """Process one frame whose observations come from `image` (its own are ignored).
 
         `image` may be the image's features already extracted (`front_end.features`,
-        e.g. in another thread while the frame was being logged).
+        e.g. in another thread while the frame was being logged). `signature`: the
+        image's appearance signature (frontend.appearance.signature); with the robot's
+        previous one it gives the visual compass of `predict`.
         """
         t0 = time.perf_counter()
         feats = image if isinstance(image, Features) else self.front_end.features(image)
         t1 = time.perf_counter()
-        predicted, cov = self.predict(frame)
+        compass = None
+        previous = self._signature.get(frame.robot)
+        if (
+            self.compass
+            and signature is not None
+            and previous is not None
+            and previous.shape == signature.shape
+        ):
+            yaw, score = rotation_between(previous, signature)
+            compass = yaw if score >= COMPASS_MIN_SCORE else None
+        predicted, cov = self.predict(frame, compass_rad=compass)
         slam = self.slam
         ids = sorted(slam.landmarks)
         labels = [slam.landmarks[i].label for i in ids]
@@ -201,6 +254,8 @@ class ImagePipeline:
         touched = set(association.landmark_matches) | set(association.track_matches)
         positions = {lb: slam.landmark_position(i) for lb, i in live.items() if lb in touched}
         self.front_end.commit(association, pose=pose, live_labels=live, landmark_xy=positions)
+        if signature is not None:
+            self._signature[frame.robot] = signature
         t4 = time.perf_counter()
         return ImageFrameResult(
             outcome=outcome,

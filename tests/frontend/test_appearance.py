@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from frontend.appearance import AppearanceIndex, SignatureConfig, signature
+from frontend.appearance import AppearanceIndex, SignatureConfig, rotation_between, signature
 from frontend.cameras import PanoramaCamera
 from graph.angles import wrap_angle
 from service.datasets.render import render_panorama
@@ -62,3 +62,28 @@ def test_signature_is_normalised_per_band_and_refuses_bad_input() -> None:
         signature(np.zeros((64, 100), dtype=np.uint8))
     with pytest.raises(ValueError):
         AppearanceIndex().add(np.zeros((4, 256), dtype=np.float32))
+
+
+@pytest.mark.parametrize("delta_deg", [0.0, 3.3, 37.0, 90.0, -90.0, 179.0])
+def test_convention_compass_is_current_minus_previous_to_a_fraction_of_a_column(
+    delta_deg: float,
+) -> None:
+    x, y = PLACES[2]
+    theta = 0.4
+    yaw, score = rotation_between(
+        signature(_pano(x, y, theta)), signature(_pano(x, y, theta + math.radians(delta_deg)))
+    )
+    assert score > 0.95
+    column = 360.0 / SignatureConfig().columns
+    assert abs(math.degrees(wrap_angle(yaw - math.radians(delta_deg)))) < 0.5 * column
+
+
+def test_compass_after_a_step_forward_and_a_turn_and_refusing_mixed_shapes() -> None:
+    # 10 cm of parallax on top of a 90-degree turn: still the turn, within a degree.
+    yaw, score = rotation_between(
+        signature(_pano(3.0, 4.5, 0.0)), signature(_pano(3.1, 4.5, math.pi / 2))
+    )
+    assert score > 0.8
+    assert abs(math.degrees(wrap_angle(yaw - math.pi / 2))) < 1.0
+    with pytest.raises(ValueError, match="shapes"):
+        rotation_between(np.zeros((8, 256), np.float32), np.zeros((8, 128), np.float32))
