@@ -283,3 +283,45 @@ def test_a_feature_a_landmark_could_have_been_starts_no_track() -> None:
         assert result.landmark_matches == {}
         started[rule] = sorted(result.unmatched.tolist())
     assert started == {True: [2], False: [0, 1, 2]}
+
+
+def test_two_features_in_one_column_start_one_track() -> None:
+    """The top and bottom corner of a poster edge share a bearing (one 2-D point): only
+    the stronger starts a track, and a feature in the column of a landmark's match starts
+    none; a feature in another column still starts one."""
+    rng = np.random.default_rng(11)
+    descs = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    started = {}
+    for tol in (math.radians(0.25), None):
+        assoc = Associator(AssociationConfig(one_track_per_column_rad=tol))
+        feats = _features([10.0, 10.1, 50.0], descs)
+        feats = Features(
+            feats.u,
+            feats.v,
+            feats.bearing_rad,
+            np.radians([20.0, -20.0, 0.0]),
+            feats.sigma_rad,
+            np.array([1.0, 2.0, 1.0]),
+            feats.octave,
+            feats.descriptors,
+            True,
+        )
+        result = assoc.associate(
+            feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={}
+        )
+        started[tol is not None] = sorted(result.unmatched.tolist())
+    assert started == {True: [1, 2], False: [0, 1, 2]}
+
+    base = rng.integers(0, 256, 32, dtype=np.uint8)
+    assoc = Associator()
+    _learn(assoc, _features([0.0], base[None, :]), {0: "A"})
+    feats = _features([0.0, 0.1, 90.0], np.stack([_flip(base, 2, rng), descs[0], descs[1]]))
+    result = assoc.associate(
+        feats,
+        robot="r2",
+        predicted_pose=(0, 0, 0),
+        pose_cov=np.diag([1e-6, 1e-6, math.radians(0.05) ** 2]),
+        landmarks={"A": (np.array([2.0, 0.0]), None)},
+    )
+    assert result.landmark_matches == {"A": 0}
+    assert result.unmatched.tolist() == [2]
