@@ -69,13 +69,6 @@ class AssociationConfig:
     """Features inside a live landmark's gate and within max_distance of its views, that
     no landmark took, start no track (duplicate landmarks of one corner filled the cap:
     1816 landmarks for 394 corners on a 1000-frame rendered run)."""
-    one_track_per_column_rad: float | None = math.radians(0.25)
-    """A feature within this bearing of a feature already taken this frame (by a landmark
-    or a track), or of a stronger free one, starts no track; None = no such rule. In a
-    2-D map a landmark is a vertical line: the top and bottom corner of a poster's edge
-    share one bearing (their column), so a second track there would grow a second
-    landmark on the same 2-D point, whose bearing errors are those of the first (the
-    edge's column) and which takes a second place under the landmark cap."""
     learn_landmark_sigma: bool = True
     """Without covariances, gate each landmark with a position sigma learnt from its own
     matches: the RMS of their lateral errors (bearing residual after the pose correction
@@ -276,8 +269,6 @@ class Associator:
         tr_matches = self._match_tracks(features, robot, pose, free)
         for c in tr_matches.values():
             free[c] = False
-        if self.config.one_track_per_column_rad is not None:
-            seeds &= self._column_free(features, free & seeds, ~free)
 
         obs: list[BearingObservation] = []
         index: list[int] = []
@@ -309,32 +300,6 @@ class Associator:
             landmark_fit=dict(self._last_fit),
             landmark_lateral_m=dict(self._last_lateral),
         )
-
-    def _column_free(
-        self, features: Features, seeds: NDArray[np.bool_], taken: NDArray[np.bool_]
-    ) -> NDArray[np.bool_]:
-        """(N,) True for the seeds that may start a track: none within
-        `one_track_per_column_rad` of a taken feature or of a stronger seed."""
-        tol = self.config.one_track_per_column_rad
-        assert tol is not None
-        ok = seeds.copy()
-        cand = np.flatnonzero(seeds)
-        if len(cand) == 0:
-            return ok
-        b = features.bearing_rad
-        held = b[taken]
-        if len(held):
-            near = np.abs(wrap_angles(b[cand][:, None] - held[None, :])) <= tol
-            ok[cand[near.any(axis=1)]] = False
-        cand = np.flatnonzero(ok)
-        # Strongest first: a seed is dropped when a stronger kept seed shares its column.
-        cand = cand[np.argsort(-features.response[cand], kind="stable")]
-        close = np.abs(wrap_angles(b[cand][:, None] - b[cand][None, :])) <= tol
-        kept = np.zeros(len(cand), dtype=bool)
-        for i in range(len(cand)):
-            kept[i] = not (close[i, :i] & kept[:i]).any()
-        ok[cand[~kept]] = False
-        return ok
 
     @staticmethod
     def _observation(features: Features, c: int, label: str) -> BearingObservation:
