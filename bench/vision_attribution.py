@@ -17,7 +17,10 @@ while everything else stays the same (the association itself is not re-run):
   the two ends of a poster edge stay two landmarks, as the front end makes them);
 - ``truth_identity``: the same labelled with the corner's 2-D identity (the two ends
   of an edge are one landmark, as for the oracle);
-- ``oracle``: the oracle's observations.
+- ``oracle``: the oracle's observations;
+- ``oracle_shared``: the oracle's observations of the identities the front end also
+  reported (on a corner) in that frame: the oracle's choice of feature per identity,
+  the front end's choice of identities.
 
 Each result also counts the landmarks the estimator created (a landmark marginalised
 and seen again is created anew) and their mean number of bearing observations.
@@ -65,6 +68,9 @@ def variant_observations(
 ) -> tuple[BearingObservation, ...]:
     if name == "oracle":
         return tuple(BearingObservation(b, lb, s) for lb, b, s in frame["oracle"])
+    if name == "oracle_shared":
+        reported = {f"c{identity[c]}" for _, _, _, c, _ in frame["images"] if c >= 0}
+        return tuple(BearingObservation(b, lb, s) for lb, b, s in frame["oracle"] if lb in reported)
     if name in ("truth_corner", "truth_identity"):
         seen: set[str] = set()
         relabelled = []
