@@ -12,7 +12,18 @@ while everything else stays the same (the association itself is not re-run):
 - ``no_untrue``: without the observations that lie on no poster corner;
 - ``clean``: both removed;
 - ``sigma_x``: ``images`` with every bearing sigma scaled by x;
-- ``oracle``: the oracle's observations.
+- ``truth_corner``: the front end's observations that lie on a poster corner,
+  labelled with that corner (perfect association of the front end's own selection;
+  the two ends of a poster edge stay two landmarks, as the front end makes them);
+- ``truth_identity``: the same labelled with the corner's 2-D identity (the two ends
+  of an edge are one landmark, as for the oracle);
+- ``oracle``: the oracle's observations;
+- ``oracle_shared``: the oracle's observations of the identities the front end also
+  reported (on a corner) in that frame: the oracle's choice of feature per identity,
+  the front end's choice of identities.
+
+Each result also counts the landmarks the estimator created (a landmark marginalised
+and seen again is created anew) and their mean number of bearing observations.
 
     python -m bench.vision_attribution RUN.pkl --variants images,no_wrong,oracle
 """
@@ -57,6 +68,20 @@ def variant_observations(
 ) -> tuple[BearingObservation, ...]:
     if name == "oracle":
         return tuple(BearingObservation(b, lb, s) for lb, b, s in frame["oracle"])
+    if name == "oracle_shared":
+        reported = {f"c{identity[c]}" for _, _, _, c, _ in frame["images"] if c >= 0}
+        return tuple(BearingObservation(b, lb, s) for lb, b, s in frame["oracle"] if lb in reported)
+    if name in ("truth_corner", "truth_identity"):
+        seen: set[str] = set()
+        relabelled = []
+        for _, bearing, sigma, c, _ in frame["images"]:
+            if c < 0:
+                continue
+            label = f"k{c}" if name == "truth_corner" else f"c{identity[c]}"
+            if label not in seen:
+                seen.add(label)
+                relabelled.append(BearingObservation(bearing, label, sigma))
+        return tuple(relabelled)
     scale = float(name.split("_", 1)[1]) if name.startswith("sigma_") else 1.0
     out = []
     for label, bearing, sigma, c, _ in frame["images"]:
@@ -76,17 +101,22 @@ def run_variant(
     label_id = label_identities(doc["obs"], identity)
     slam = BearingSlam(config, rng=np.random.default_rng(seed))
     t0 = time.perf_counter()
-    n = 0
+    n = landmark_obs = 0
     for frame, rec in zip(doc["frames"], doc["obs"], strict=False):
         obs = variant_observations(name, rec, identity, label_id)
         n += len(obs)
-        slam.process(replace(frame, observations=obs), with_covariance=False)
+        outcome = slam.process(replace(frame, observations=obs), with_covariance=False)
+        landmark_obs += len(outcome.observed)
+    created = slam.removal_count + len(slam.landmarks)
     rows = slam.trajectory("r1")["r1"]
     est = Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
     return {
         "variant": name,
         "ate_m": ate_rmse(est, truth),
         "observations": n,
+        "landmark_observations": landmark_obs,
+        "landmarks_created": created,
+        "landmark_observations_per_landmark": landmark_obs / max(1, created),
         "seconds": time.perf_counter() - t0,
         "load_average": list(os.getloadavg()),
     }

@@ -360,6 +360,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "speed": speed,
         "live_landmarks_end": len(pipeline.slam.landmarks),
         "oracle_live_landmarks_end": len(oracle.landmarks),
+        # A landmark marginalised and seen again is created anew (both maps).
+        "landmarks_created": pipeline.slam.removal_count + len(pipeline.slam.landmarks),
+        "oracle_landmarks_created": oracle.removal_count + len(oracle.landmarks),
         "feature_ms": [round(t, 3) for t in feature_ms],
         "errors_deg": [round(math.degrees(e), 4) for e in errors],
         "trajectories": {

@@ -97,8 +97,11 @@ class AssociationConfig:
     """A track not matched for more frames than this ends."""
     track_min_length: int = 2
     """Sightings before a track is reported to the estimator."""
-    max_track_observations: int = 60
-    """Most track observations reported per frame (longest tracks first)."""
+    max_track_observations: int = 400
+    """Most track observations reported per frame (longest tracks first). At 60 the limit
+    bound on 91 % of the frames of a 1000-frame rendered run: the longest tracks kept the
+    slots, and a corner was first reported a median of 10 frames after the oracle's first
+    sighting. Without the limit: precision 99.60 -> 99.79 %, ATE 0.0222 -> 0.0213 m."""
     label_prefix: str = "t"
 
 

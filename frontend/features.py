@@ -183,11 +183,14 @@ class FeatureExtractor:
         out = np.zeros((len(u), 32), dtype=np.uint8)
         cu = np.rint(u).astype(np.int64) % w + reach
         cv = np.clip(np.rint(v).astype(np.int64), 0, h - 1)
+        smoothed: dict[int, NDArray[np.uint8]] = {}  # by kernel size: levels 0 and 1 share 5
         for level in np.unique(octave).tolist():
             sel = np.flatnonzero(octave == level)
             scale = cfg.orb_scale**level
             k = 2 * round(2.0 * scale) + 1  # box smoothing: ~5x cheaper than a Gaussian
-            smooth = cv2.blur(padded, (k, k))
+            if k not in smoothed:
+                smoothed[k] = np.asarray(cv2.blur(padded, (k, k)), dtype=np.uint8)
+            smooth = smoothed[k]
             off = np.rint(_BRIEF_PAIRS * scale).astype(np.int64)  # (256, 4)
             flat = smooth.ravel()
             stride = smooth.shape[1]
