@@ -64,19 +64,11 @@ class _Blanket:
         Python arithmetic: an optimiser's step test evaluates every factor's error, and
         for blankets of a few keys numpy's per-call overhead dominated (MRCLAM-6 at cap
         8: ~160 error calls per frame)."""
-        r = values.atPose2(self.reference)
-        rx, ry, rt = r.x(), r.y(), r.theta()
-        rc, rs = math.cos(rt), math.sin(rt)
-        out = _log_between(self._r0, rx, ry, rc, rs)
+        r = _plain(values.atPose2(self.reference))
+        out = _log(_between(self._r0, r))
         for q, k in zip(self._q0, self.poses, strict=True):
-            p = values.atPose2(k)
-            # R^-1 P, then Q0^-1 (R^-1 P)
-            dx, dy = p.x() - rx, p.y() - ry
-            pt = p.theta()
-            pc, ps = math.cos(pt), math.sin(pt)
-            ax, ay = rc * dx + rs * dy, -rs * dx + rc * dy
-            ac, as_ = rc * pc + rs * ps, rc * ps - rs * pc
-            out.extend(_log_between(q, ax, ay, ac, as_))
+            out.extend(_log(_between(q, _between(r, _plain(values.atPose2(k))))))
+        rx, ry, rc, rs = r
         for j, k in enumerate(self.landmarks):
             lx, ly = values.atPoint2(k)
             dx, dy = lx - rx, ly - ry
@@ -151,22 +143,28 @@ class _Blanket:
         return out
 
 
-def _plain(pose: gtsam.Pose2) -> tuple[float, float, float, float]:
+_Plain = tuple[float, float, float, float]
+"""A pose as (x, y, cos theta, sin theta)."""
+
+
+def _plain(pose: gtsam.Pose2) -> _Plain:
     return (pose.x(), pose.y(), math.cos(pose.theta()), math.sin(pose.theta()))
 
 
-def _log_between(
-    a: tuple[float, float, float, float], bx: float, by: float, bc: float, bs: float
-) -> list[float]:
-    """Pose2.Logmap(A^-1 B) for A = (x, y, cos, sin) and B given as x, y, cos, sin."""
+def _between(a: _Plain, b: _Plain) -> _Plain:
+    """A^-1 B."""
     ax, ay, ac, as_ = a
+    bx, by, bc, bs = b
     dx, dy = bx - ax, by - ay
-    x, y = ac * dx + as_ * dy, -as_ * dx + ac * dy
-    c, s = ac * bc + as_ * bs, ac * bs - as_ * bc
+    return (ac * dx + as_ * dy, -as_ * dx + ac * dy, ac * bc + as_ * bs, ac * bs - as_ * bc)
+
+
+def _log(pose: _Plain) -> list[float]:
+    """Pose2.Logmap, written as GTSAM's: V(w)^-1 t for the rotation w."""
+    x, y, c, s = pose
     w = math.atan2(s, c)
     if abs(w) < 1e-10:
         return [x, y, w]
-    # Logmap of SE(2): V(w)^-1 t, written as GTSAM's Pose2::Logmap does.
     c1 = c - 1.0
     det = c1 * c1 + s * s
     ux, uy = c * x + s * y - x, -s * x + c * y - y
