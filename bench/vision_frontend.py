@@ -44,8 +44,13 @@ from graph.angles import wrap_angles
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
 from graph.types import BearingObservation
-from service.datasets.indoor_sim import make_world, simulate
-from service.datasets.render import make_textured_world, render_panorama, visible_corners
+from service.datasets.indoor_sim import SimRun, make_world, simulate
+from service.datasets.render import (
+    TexturedWorld,
+    make_textured_world,
+    render_panorama,
+    visible_corners,
+)
 from service.evaluation import Trajectory, ate_rmse
 from service.vision import ImagePipeline
 
@@ -156,13 +161,18 @@ def speed_test(camera: PanoramaCamera, images: list[np.ndarray]) -> dict[str, An
     return out
 
 
-def speed_only(args: argparse.Namespace) -> dict[str, Any]:
-    """The features speed test alone, on 40 panoramas spread over the run."""
+def _scene(args: argparse.Namespace) -> tuple[TexturedWorld, SimRun, PanoramaCamera]:
+    """The rendered world, the robot's run through it and the camera (from the seed)."""
     rng = np.random.default_rng(args.seed)
     world = make_world(rooms=(3, 3), landmarks=9, rng=rng)
     tw = make_textured_world(world, rng=rng)
     sim = simulate(world, frames=args.frames, rng=rng, door_probability=0.5)
-    camera = PanoramaCamera(args.width, args.width // 4)
+    return tw, sim, PanoramaCamera(args.width, args.width // 4)
+
+
+def speed_only(args: argparse.Namespace) -> dict[str, Any]:
+    """The features speed test alone, on 40 panoramas spread over the run."""
+    tw, sim, camera = _scene(args)
     poses = sim.ground_truth.poses()
     step = max(1, args.frames // 40)
     images = [render_panorama(tw, poses[k], camera)[0] for k in range(0, args.frames, step)]
@@ -170,11 +180,7 @@ def speed_only(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    rng = np.random.default_rng(args.seed)
-    world = make_world(rooms=(3, 3), landmarks=9, rng=rng)
-    tw = make_textured_world(world, rng=rng)
-    sim = simulate(world, frames=args.frames, rng=rng, door_probability=0.5)
-    camera = PanoramaCamera(args.width, args.width // 4)
+    tw, sim, camera = _scene(args)
     identity = corner_identities(tw.corners_xyz)
     config = SlamConfig(
         landmark_cap=args.landmark_cap, policy=args.policy, pose_window=args.pose_window
