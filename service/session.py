@@ -318,6 +318,7 @@ class MapSession:
             capture(self.slam, extra=self.loc),
             keep=self._settings.snapshots_kept,
             frontend=None if self.vision is None else self.vision.state(),
+            prune_images=self._settings.prune_images,
         )
         self.store.prune_events(self._settings.events_kept)
         self._since_snapshot = 0

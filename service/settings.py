@@ -28,6 +28,13 @@ class StoreSettings(BaseModel):
         200, ge=1, description="frames between two snapshots of a map's estimator state"
     )
     snapshots_kept: int = Field(2, ge=1, description="snapshots kept per map (older deleted)")
+    prune_images: bool = Field(
+        True,
+        description="delete a camera map's stored images once every kept snapshot covers "
+        "their frames (the images of the log's tail stay, so any kept snapshot + tail "
+        "reproduces the map; a replay of the whole log takes such frames' observations "
+        "instead). False keeps every image (~155 kB per 2048x512 PNG frame)",
+    )
     events_kept: int = Field(
         20_000, ge=100, description="most recent events kept per map for SSE catch-up"
     )

@@ -17,7 +17,9 @@ frame's encoded image is appended in the same transaction as its log row (table
 ``images``), so replaying the log reproduces the map; a snapshot of a camera map
 carries the front end's state (``frontend_states``, same transaction). The labelled
 observations the front end made of an image are stored with the frame's result
-(``image_observations``): an export carries them instead of the image.
+(``image_observations``): an export carries them instead of the image, and once
+every kept snapshot covers a frame its image may be deleted (``prune_images``), so a
+camera map's file stops growing by an image a frame.
 """
 
 from __future__ import annotations
@@ -368,9 +370,20 @@ class MapStore:
 
     # snapshots
     def save_snapshot(
-        self, upto: int, state: bytes, *, keep: int, frontend: bytes | None = None
+        self,
+        upto: int,
+        state: bytes,
+        *,
+        keep: int,
+        frontend: bytes | None = None,
+        prune_images: bool = False,
     ) -> None:
-        """Store a snapshot (and the front end's state with it); keep the newest `keep`."""
+        """Store a snapshot (and the front end's state with it); keep the newest `keep`.
+
+        `prune_images`: also delete the images of frames that every kept snapshot
+        covers and whose observations are stored (what a replay of such a frame, or
+        an export, uses instead of the image). Deleted pages are reused by later
+        inserts, so the file's size levels off."""
         with transaction(self._conn):
             cur = self._conn.execute(
                 "INSERT INTO snapshots (upto, created, state) VALUES (?, ?, ?)",
@@ -389,6 +402,15 @@ class MapStore:
             self._conn.execute(
                 "DELETE FROM frontend_states WHERE snapshot_id NOT IN (SELECT id FROM snapshots)"
             )
+            if prune_images:
+                self._conn.execute(
+                    "DELETE FROM images WHERE frame_id <= (SELECT min(upto) FROM snapshots) "
+                    "AND frame_id IN (SELECT frame_id FROM image_observations)"
+                )
+
+    def image_count(self) -> int:
+        """Images stored in the log."""
+        return int(self._conn.execute("SELECT count(*) FROM images").fetchone()[0])
 
     def latest_snapshot(self) -> tuple[int, bytes] | None:
         row = self._conn.execute(
