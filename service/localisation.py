@@ -92,12 +92,16 @@ class MapLocalisation:
         """Appearance places of a camera map's image frames."""
         self.reported: dict[str, tuple[int | None, float | None]] = {}
         """(place, confidence) that each robot's last frame result reported."""
+        self.landmark_matches: dict[str, float] = {}
+        """Running average of each camera robot's pose-gated landmark matches per frame
+        (service.camera_localisation: a frame far below it is starved)."""
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         # Snapshots taken before these fields existed lack them.
         state.setdefault("off_graph", OffGraphLog())
         state.setdefault("appearance", AppearancePlaces())
         state.setdefault("reported", {})
+        state.setdefault("landmark_matches", {})
         self.__dict__.update(state)
 
     def localisation(self, robot: str) -> dict[str, Any]:
@@ -121,8 +125,13 @@ class MapLocalisation:
     def landmark_map(slam: BearingSlam) -> dict[str, FloatArray]:
         return {rec.label: slam.landmark_position(lid) for lid, rec in slam.landmarks.items()}
 
-    def process(self, slam: BearingSlam, frame: FrameInput) -> Localised:
-        """One frame of one robot (validated by the caller against `last_accepted`)."""
+    def process(
+        self, slam: BearingSlam, frame: FrameInput, *, landmark_covariances: bool = True
+    ) -> Localised:
+        """One frame of one robot (validated by the caller against `last_accepted`).
+        `landmark_covariances` False: a place learnt here takes a default landmark
+        covariance instead of the graph's joint marginal (a camera map's hundreds of
+        landmarks)."""
         track = self.localiser.robots.get(frame.robot)
         feeds_graph = (track is None or track.status in (TRACKING, RELOCALISED)) and (
             frame.robot in slam.robots or frame.initial_pose is not None
@@ -153,7 +162,9 @@ class MapLocalisation:
             rng=self.rng,
             frame=slam.frame_count,
             stamp=frame.stamp,
-            covariances=lambda: self._landmark_covariances(slam),
+            covariances=(lambda: self._landmark_covariances(slam))
+            if landmark_covariances
+            else None,
             ids={rec.label: lid for lid, rec in slam.landmarks.items()},
         )
         ms = 1e3 * (time.perf_counter() - t0)
