@@ -452,6 +452,7 @@ class MapSession:
         features, sig, timing = self.vision.features_of(pending)
         done = process_image(self.loc, self.slam, self.vision.pipeline, frame, features, sig)
         timing["association"] = done.timing_ms["association"]
+        timing["localise_cpu"] = done.timing_ms["localise_cpu"]
         return done.localised, _observations_json(done.observations), timing
 
     def _result_doc(
