@@ -103,8 +103,6 @@ def process_image(
     prev = loc.last.get(robot)
     odo = frame.odometry
     odometry = None if odo is None or prev is None else (odo.dx, odo.dy, odo.dtheta)
-    landmarks = MapLocalisation.landmark_map(slam)
-    labels_live = sorted(landmarks)
 
     result: ImageFrameResult | None = None
     graph_pose = None
@@ -119,6 +117,7 @@ def process_image(
         assert outcome.covariance is not None
         p = outcome.pose
         graph_pose = (np.array([p.x, p.y, p.theta]), to_map_frame(outcome.covariance, p.theta))
+        landmarks = MapLocalisation.landmark_map(slam)  # with the frame's new ones
         matched = [
             o for o, k in zip(assoc.observations, assoc.kind, strict=True) if k == "landmark"
         ]
@@ -134,18 +133,18 @@ def process_image(
         )
         if starved:
             weighed, quality = pipeline.front_end.associator.match_without_pose(
-                features, labels_live, limit=MAX_FILTER_OBSERVATIONS
+                features, sorted(landmarks), limit=MAX_FILTER_OBSERVATIONS
             )
         else:
             pick = _spread(len(matched), MAX_FILTER_OBSERVATIONS)
             weighed = tuple(matched[i] for i in pick.tolist())
             quality = np.ones(len(weighed))
-        landmarks = MapLocalisation.landmark_map(slam)  # the frame may have added some
         recorded = assoc.observations
         assoc_ms = result.timing_ms["association"] + result.timing_ms["estimator"]
     else:
+        landmarks = MapLocalisation.landmark_map(slam)
         weighed, quality = pipeline.front_end.associator.match_without_pose(
-            features, labels_live, limit=MAX_FILTER_OBSERVATIONS
+            features, sorted(landmarks), limit=MAX_FILTER_OBSERVATIONS
         )
         recorded = weighed
         assoc_ms = 1e3 * (time.perf_counter() - t0)

@@ -5,7 +5,9 @@ it: a robot with an initial pose, or one that is tracking, goes through the grap
 first and then through its particle filter (which watches for disagreement); a
 robot that is initialising or lost only moves its filter, until the filter is
 converged and the graph's chain is anchored at its estimate (``relocalised``).
-The whole object pickles; the session keeps it in its snapshots.
+Image frames take the same path through service.camera_localisation (their
+observations come from the front end). The whole object pickles; the session keeps
+it in its snapshots.
 """
 
 from __future__ import annotations
@@ -209,46 +211,6 @@ class MapLocalisation:
             cov,
             result.learnt,
             ms,
-        )
-
-    def graph_only(
-        self,
-        frame: FrameInput,
-        outcome: FrameOutcome,
-        *,
-        signature: NDArray[np.float32] | None = None,
-    ) -> Localised:
-        """A frame the graph took by another route (an image frame, whose observations
-        come from the front end's association): the filter is not stepped and the
-        robot is reported as tracking. The place localiser runs on labelled frames; an
-        image's appearance `signature` is recognised among (and may become one of) the
-        map's appearance places (service.appearance_places)."""
-        self.last[frame.robot] = (frame.seq, frame.stamp)
-        assert outcome.covariance is not None
-        p = outcome.pose
-        self.off_graph.on_graph(frame.robot, (p.x, p.y, p.theta))
-        place = confidence = None
-        if signature is not None:
-            place, confidence, _ = self.appearance.observe(
-                signature,
-                robot=frame.robot,
-                pose=(p.x, p.y, p.theta),
-                frame=outcome.frame_index,
-                stamp=frame.stamp,
-            )
-        self.reported[frame.robot] = (place, confidence)
-        return Localised(
-            frame.robot,
-            frame.seq,
-            frame.stamp,
-            outcome,
-            TRACKING,
-            place,
-            confidence,
-            outcome.pose,
-            np.asarray(outcome.covariance),
-            None,
-            0.0,
         )
 
     def with_off_graph(

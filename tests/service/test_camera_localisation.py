@@ -105,7 +105,23 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     first = next(f for f in frames if f.robot == "r2")
     observed = session.store.image_observations(first.id) or []
     assert len(observed) >= 10
-    assert all(o["label"] in {rec.label for rec in session.slam.landmarks.values()} for o in observed)
+    assert all(
+        o["label"] in {rec.label for rec in session.slam.landmarks.values()} for o in observed
+    )
+
+    # Export / import: the imported map replays the recorded observations through the
+    # localiser (no images, so no appearance hints): r2 is relocalised at the same frame.
+    doc = json.loads(json.dumps(session.export()))
+    target = _session(tmp_path / "imported.sqlite")
+    target.import_frames(doc["frames"], doc["frontend"])
+    imported = [json.loads(f.result or "{}") for f in target.store.frames_after(0)]
+    assert [r["localisation"]["status"] for r in imported if r["robot"] == "r2"] == statuses
+    moved = [
+        math.hypot(a["x"] - b["x"], a["y"] - b["y"])
+        for a, b in zip(target.trajectory("r2")["r2"], rows, strict=True)
+    ]
+    assert max(moved) < 0.05, moved
+    target.close()
     session.close()
 
 
