@@ -189,7 +189,7 @@ def run_starts(
     tmp: Path,
 ) -> dict[str, Any]:
     """r1 maps; then `starts` new robots each start without a pose (one map)."""
-    session = new_session(tmp, f"starts{seed}")
+    session = new_session(tmp, f"starts{seed}_{offset_m}")
     leg, mapping_rows = map_room(session, world, seed)
     rng = np.random.default_rng([seed, 2])
     out = []
@@ -221,6 +221,7 @@ def run_starts(
     tracked = mapping_rows[10:]
     return {
         "seed": seed,
+        "start_offset_m": offset_m,
         "mapping_lost_frames": sum(r["status"] == LOST for r in mapping_rows),
         "mapping_localise_ms_median": float(np.median([r["localise_ms"] for r in tracked])),
         "mapping_localise_cpu_ms_median": float(np.median([r["localise_cpu_ms"] for r in tracked])),
@@ -283,10 +284,31 @@ def run_kidnap(world: TexturedWorld, *, seed: int, frames: int, tmp: Path) -> di
 
 
 def summary(doc: dict[str, Any]) -> dict[str, Any]:
-    starts = [s for run in doc["start_runs"] for s in run["starts"]]
+    offsets = sorted({run["start_offset_m"] for run in doc["start_runs"]})
+    return {
+        **{
+            f"starts_within_{offset}m": start_summary(
+                [
+                    s
+                    for run in doc["start_runs"]
+                    if run["start_offset_m"] == offset
+                    for s in run["starts"]
+                ]
+            )
+            for offset in offsets
+        },
+        **kidnap_summary(doc),
+    }
+
+
+def start_summary(starts: list[dict[str, Any]]) -> dict[str, Any]:
+    searching = [
+        s["search_localise_cpu_ms_median"]
+        for s in starts
+        if s["search_localise_cpu_ms_median"] is not None
+    ]
     found = [s for s in starts if s["relocalised_frame"] is not None]
     good = [s for s in found if s["error_m"] <= 0.3 and s["error_deg"] <= 10.0]
-    kid = doc["kidnap_runs"]
     return {
         "starts": len(starts),
         "relocalised": len(found),
@@ -298,20 +320,31 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
         "error_m_median": float(np.median([s["error_m"] for s in found])) if found else None,
         "error_m_max": max((s["error_m"] for s in found), default=None),
         "error_deg_max": max((s["error_deg"] for s in found), default=None),
+        "searching_frame_localise_cpu_ms_median": float(np.median(searching))
+        if searching
+        else None,
+    }
+
+
+def kidnap_summary(doc: dict[str, Any]) -> dict[str, Any]:
+    kid = doc["kidnap_runs"]
+    lost = [k["frames_to_lost"] for k in kid if k["frames_to_lost"] is not None]
+    back = [k["frames_to_relocalised"] for k in kid if k["frames_to_relocalised"] is not None]
+    return {
         "kidnaps": len(kid),
         "kidnaps_lost": sum(k["frames_to_lost"] is not None for k in kid),
-        "kidnaps_relocalised": sum(k["frames_to_relocalised"] is not None for k in kid),
+        "kidnaps_relocalised": len(back),
+        "kidnap_frames_to_lost": lost,
+        "kidnap_frames_to_relocalised": back,
+        "kidnap_lost_before_jump": sum(k["lost_before_jump"] for k in kid),
+        "kidnap_error_m_after_max": max(
+            (k["error_m_after_max"] for k in kid if "error_m_after_max" in k), default=None
+        ),
         "tracked_frame_localise_cpu_ms_median": float(
             np.median([r["mapping_localise_cpu_ms_median"] for r in doc["start_runs"]])
         ),
-        "searching_frame_localise_cpu_ms_median": float(
-            np.median(
-                [
-                    s["search_localise_cpu_ms_median"]
-                    for s in starts
-                    if s["search_localise_cpu_ms_median"] is not None
-                ]
-            )
+        "tracked_frame_localise_cpu_ms_p90_max": max(
+            r["mapping_localise_cpu_ms_p90"] for r in doc["start_runs"]
         ),
     }
 
@@ -321,7 +354,13 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     parser.add_argument("--starts", type=int, default=4, help="new robots per seed")
     parser.add_argument("--frames", type=int, default=15, help="frames per new robot")
-    parser.add_argument("--start-offset-m", type=float, default=0.5)
+    parser.add_argument(
+        "--start-offset-m",
+        type=float,
+        nargs="*",
+        default=[0.5, 1.0],
+        help="starts lie within this distance of r1's path (one set of starts per value)",
+    )
     parser.add_argument("--kidnap-frames", type=int, default=30)
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
@@ -337,18 +376,19 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             world = scene(seed)
-            run = run_starts(
-                world,
-                seed=seed,
-                starts=args.starts,
-                frames=args.frames,
-                offset_m=args.start_offset_m,
-                tmp=Path(tmp),
-            )
-            doc["start_runs"].append(run)
-            print(json.dumps({k: v for k, v in run.items() if k != "starts"}))
-            for s in run["starts"]:
-                print(json.dumps({k: v for k, v in s.items() if k != "statuses"}))
+            for offset in args.start_offset_m:
+                run = run_starts(
+                    world,
+                    seed=seed,
+                    starts=args.starts,
+                    frames=args.frames,
+                    offset_m=offset,
+                    tmp=Path(tmp),
+                )
+                doc["start_runs"].append(run)
+                print(json.dumps({k: v for k, v in run.items() if k != "starts"}))
+                for s in run["starts"]:
+                    print(json.dumps({k: v for k, v in s.items() if k != "statuses"}))
             kid = run_kidnap(world, seed=seed, frames=args.kidnap_frames, tmp=Path(tmp))
             doc["kidnap_runs"].append(kid)
             print(json.dumps({k: v for k, v in kid.items() if k != "statuses"}))

@@ -1,12 +1,12 @@
 """Places of a camera map recognised by appearance (frontend.appearance).
 
-A camera map's frames do not go through the place localiser (their observations come
-from the front end's association). Their panoramas still say where the robot is: the
-map keeps an appearance place -- the panorama's signature at the robot's graph pose --
-whenever the robot is `learn_distance_m` from every such place, and every image frame
-is matched against all of them (yaw-invariant: a rotation is a column shift). The
-frame result reports the best place whose score reaches `min_score`, and the score
-as its confidence.
+A camera map's panoramas say where the robot is: the map keeps an appearance place --
+the panorama's signature at the robot's graph pose -- whenever the robot is
+`learn_distance_m` from every such place, and every image frame is matched against all
+of them (yaw-invariant: a rotation is a column shift). The frame result reports the best
+place whose score reaches `min_score`, and the score as its confidence; the best places
+(`hints`) are where a camera robot's particle filter injects its proposals
+(service.camera_localisation).
 """
 
 from __future__ import annotations
