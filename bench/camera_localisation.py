@@ -7,7 +7,8 @@ spin of bench.turns (70 frames). Then:
 - **start**: robot r2 (a new robot, no ``initial_pose``) starts at a random pose
   within `--start-offset-m` of a pose on r1's path, any heading, and drives
   straight ahead in 5 cm steps; per start: the frames until its status is
-  ``relocalised`` and the pose error at that frame (and 5 frames later);
+  ``relocalised`` and the pose error at that frame (and 5 frames later). Two more
+  robots start in the second room, which r1 never saw: they must not be relocalised;
 - **kidnap**: r1 goes on from the end of its path, is carried to another pose of
   the room (a jump without odometry) and drives on; the frames until ``lost`` and
   until ``relocalised`` after the jump, and the pose error then.
@@ -217,6 +218,22 @@ def run_starts(
             float(np.median([row["localise_cpu_ms"] for row in search])) if search else None
         )
         out.append(item)
+    unmapped = []
+    for i in range(2):  # in the second room, which r1 never saw: nothing to find
+        start = np.array([rng.uniform(1.5, 4.5), rng.uniform(7.5, 10.5), rng.uniform(-3, 3)])
+        r = render_leg(
+            world, straight(start, frames), robot=f"u{i}", rng=np.random.default_rng([seed, 6, i])
+        )
+        rows = post(session, r)
+        k = first(rows, RELOCALISED)
+        unmapped.append(
+            {
+                "start": start.tolist(),
+                "relocalised_frame": None if k is None else k + 1,
+                "error_m": None if k is None else rows[k]["error_m"],
+                "statuses": [row["status"] for row in rows],
+            }
+        )
     session.close()
     tracked = mapping_rows[10:]
     return {
@@ -231,6 +248,7 @@ def run_starts(
         "mapping_frame_cpu_ms_median": float(np.median([r["frame_cpu_ms"] for r in tracked])),
         "mapping_error_m_max": max(r["error_m"] for r in mapping_rows),
         "starts": out,
+        "unmapped_starts": unmapped,
     }
 
 
@@ -297,6 +315,12 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
             )
             for offset in offsets
         },
+        "unmapped_starts": sum(len(run["unmapped_starts"]) for run in doc["start_runs"]),
+        "unmapped_starts_relocalised_falsely": sum(
+            s["relocalised_frame"] is not None
+            for run in doc["start_runs"]
+            for s in run["unmapped_starts"]
+        ),
         **kidnap_summary(doc),
     }
 

@@ -264,6 +264,7 @@ class Localiser:
         ids: Mapping[str, int] | None = None,
         sigmas_rad: Sequence[float | None] | None = None,
         hints: Sequence[tuple[FloatArray, float]] | None = None,
+        verify: Callable[[FilterEstimate], bool] | None = None,
     ) -> StepResult:
         """One frame of one robot.
 
@@ -273,7 +274,9 @@ class Localiser:
         lost). `ids` maps labels to landmark ids; `covariances` gives the landmarks'
         (2, 2) covariances when a place is learnt (computed only then); `sigmas_rad`
         each observation's own bearing sigma (None: not stated); `hints` places
-        recognised by another route for the injection proposal (see `proposal`).
+        recognised by another route for the injection proposal (see `proposal`);
+        `verify` checks a converged estimate before the robot is relocalised at it (False:
+        the filter starts a fresh search instead).
         """
         cfg = self.config
         known = [i for i, label in enumerate(labels) if label in landmarks]
@@ -354,10 +357,18 @@ class Localiser:
                 track.converged_frames = 0
             elif len(z):
                 track.converged_frames += 1
-            if track.converged_frames >= cfg.confirm_frames:
+            if track.converged_frames >= cfg.confirm_frames and (verify is None or verify(est)):
                 track.status = RELOCALISED
                 track.converged_frames = 0
                 anchor = True
+            elif track.converged_frames >= cfg.confirm_frames:
+                # The caller's check refused the pose (the observations fit it only by
+                # chance): search afresh rather than converge on it again.
+                track.converged_frames = 0
+                track.pf = ParticleFilter.from_poses(
+                    injector(cfg.filter.max_particles, rng), cfg.filter
+                )
+                est = track.pf.estimate()
 
         place, confidence = recognition.best, recognition.best_score
         learnt = None

@@ -158,6 +158,14 @@ def test_a_kidnapped_camera_robot_goes_lost_and_recovers(
         e_m, e_deg = error(r["pose"], t)
         assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
     assert session.loc.localiser.robots["r1"].lost_count == 1
+
+    # A robot in the second room, which nobody mapped: its pose-free matches are
+    # look-alikes; it must stay initialising rather than be relocalised somewhere wrong.
+    unmapped = render_leg(
+        world, straight(np.array([3.0, 9.0, 0.3]), 12), robot="u", rng=np.random.default_rng(1)
+    )
+    statuses = [r["localisation"]["status"] for r in _post(session, unmapped)]
+    assert set(statuses) == {INITIALISING}, statuses
     session.close()
 
 
