@@ -115,6 +115,18 @@ def _spread(n: int, limit: int) -> NDArray[np.int64]:
     return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
 
 
+def _starved(loc: MapLocalisation, robot: str, matches: int) -> bool:
+    """Whether a tracked frame with `matches` pose-gated landmark matches is starved
+    (see STARVED_SHARE); the robot's running average takes the frame in."""
+    average = loc.landmark_matches.get(robot)
+    starved = (
+        average is not None and average >= STARVED_MIN_AVERAGE and matches < STARVED_SHARE * average
+    )
+    n = float(matches)
+    loc.landmark_matches[robot] = n if average is None else average + AVERAGE_RATE * (n - average)
+    return starved
+
+
 def process_image(
     loc: MapLocalisation,
     slam: BearingSlam,
@@ -154,17 +166,7 @@ def process_image(
         matched = [
             o for o, k in zip(assoc.observations, assoc.kind, strict=True) if k == "landmark"
         ]
-        average = loc.landmark_matches.get(robot)
-        starved = (
-            average is not None
-            and average >= STARVED_MIN_AVERAGE
-            and len(matched) < STARVED_SHARE * average
-        )
-        n = float(len(matched))
-        loc.landmark_matches[robot] = (
-            n if average is None else average + AVERAGE_RATE * (n - average)
-        )
-        if starved:
+        if _starved(loc, robot, len(matched)):
             weighed, quality = pipeline.front_end.associator.match_without_pose(
                 features, sorted(landmarks), limit=MAX_FILTER_OBSERVATIONS
             )
