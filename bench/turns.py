@@ -13,9 +13,9 @@ Per frame: the status the frame result reports; the status of a watch filter (th
 place localiser's particle filter stepped on the association's labelled observations
 and the graph's pose, exactly as the service runs it on labelled frames: it goes `lost`
 when the filter and the graph disagree, or the observations stop fitting the map; the
-service does not step the filter on image frames, so their reported status is
-`tracking` by construction); the position and heading error of the reported pose; the
-landmarks the frame observed.
+service now steps its own filter on image frames too (service.camera_localisation), on
+the landmark matches only, so the two can differ); the position and heading error of the
+reported pose; the landmarks the frame observed.
 
     python -m bench.turns [--turn-frames 1] [--out bench/results]
 """

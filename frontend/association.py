@@ -32,7 +32,7 @@ bearings as in graph.types (rad, CCW from forward, wrapped to (-pi, pi]).
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from frontend.features import Features
+from frontend.global_match import match_without_pose
 from graph.angles import wrap_angles
 from graph.types import BearingObservation
 
@@ -239,6 +240,41 @@ class Associator:
 
     def track_count(self, robot: str) -> int:
         return len(self._tracks.get(robot, []))
+
+    def has_views(self) -> bool:
+        """Some landmark has a stored descriptor (a pose-free match can find it)."""
+        return any(lm.descriptors for lm in self._landmarks.values())
+
+    def views_of(self, labels: Sequence[str]) -> list[NDArray[Any]]:
+        """``(V, D)`` stored descriptor views of each label (``(0, 0)`` for a label the
+        associator holds no view of)."""
+        out: list[NDArray[Any]] = []
+        for label in labels:
+            lm = self._landmarks.get(label)
+            out.append(np.stack(lm.descriptors) if lm and lm.descriptors else np.zeros((0, 0)))
+        return out
+
+    def forget_tracks(self, robot: str) -> None:
+        """Drop `robot`'s candidate tracks (its chain was re-anchored: the rays of the
+        tracks were taken from poses it no longer believes)."""
+        self._tracks.pop(robot, None)
+
+    def match_without_pose(
+        self, features: Features, labels: Sequence[str], *, limit: int | None = None
+    ) -> tuple[tuple[BearingObservation, ...], FloatArray]:
+        """Observations of `features` labelled with the landmarks (among `labels`) their
+        descriptors match without a pose prior (frontend.global_match), and ``(K,)`` the
+        match qualities in [0, 1]; best first, at most `limit`."""
+        cfg = self.config
+        limit_d = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
+        found = match_without_pose(
+            features, self.views_of(labels), max_distance=limit_d, ratio=cfg.ratio, limit=limit
+        )
+        obs = tuple(
+            self._observation(features, int(c), labels[int(r)])
+            for c, r in zip(found.feature_index, found.landmark_index, strict=True)
+        )
+        return obs, found.quality
 
     # ------------------------------------------------------------------ associate
     def associate(

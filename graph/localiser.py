@@ -28,7 +28,8 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,6 +81,16 @@ class LocaliserConfig:
     directions at a time; the floor keeps places spread over all directions)."""
     learn_places: bool = True
     """Learn a place automatically when far from every place or recognition is weak."""
+    # New fields go last: a pickled config is the tuple of its field values, in order.
+    hint_heading_sigma_rad: float = 0.1
+    """Heading spread of proposals around a hint (see Localiser.proposal)."""
+
+    def __setstate__(self, state: tuple[Any, ...]) -> None:
+        # A config pickled before later fields existed: those take their defaults.
+        for f, value in zip(fields(self), state, strict=False):
+            object.__setattr__(self, f.name, value)
+        for f in fields(self)[len(state) :]:
+            object.__setattr__(self, f.name, f.default)
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,10 +143,19 @@ class Localiser:
         landmarks_xy: FloatArray,
         bearings_rad: FloatArray,
         bounds: Sequence[float],
+        hints: Sequence[tuple[FloatArray, float]] | None = None,
     ) -> Injector:
         """Poses around the top-ranked places (and over the map extent), each heading
-        such that one observed landmark lies at its observed bearing."""
+        such that one observed landmark lies at its observed bearing.
+
+        `hints`: (pose (3,), weight > 0) of places recognised by another route (a camera
+        map's appearance places: position and heading, the place's heading turned by the
+        recognised yaw offset); they replace the labelled places' ranking, and their
+        draws keep the hint's heading (a pose-free match may be wrong; the appearance
+        yaw is not)."""
         cfg = self.config
+        if hints:
+            return self._hinted_proposal(hints, landmarks_xy, bearings_rad, bounds)
         # A place draws proposals by how much better it scores than a typical place (the
         # median): a frame that every place explains alike (one landmark seen, which many
         # places hold) says nothing about where the robot is, and the proposal stays
@@ -188,6 +208,43 @@ class Localiser:
 
         return draw
 
+    def _hinted_proposal(
+        self,
+        hints: Sequence[tuple[FloatArray, float]],
+        landmarks_xy: FloatArray,
+        bearings_rad: FloatArray,
+        bounds: Sequence[float],
+    ) -> Injector:
+        cfg = self.config
+        refs = np.array([np.asarray(p, dtype=np.float64) for p, _ in hints]).reshape(-1, 3)
+        weights = np.array([max(float(w), 0.0) for _, w in hints])
+        share = 1.0 - cfg.uniform_share if weights.sum() > 0 else 0.0
+        p = weights / weights.sum() if weights.sum() > 0 else None
+        lo = np.array(bounds[:2], dtype=np.float64)
+        hi = np.array(bounds[2:], dtype=np.float64)
+
+        def draw(n: int, rng: np.random.Generator) -> FloatArray:
+            out = np.empty((n, 3))
+            n_hint = round(n * share)
+            out[n_hint:, :2] = lo + rng.random((n - n_hint, 2)) * (hi - lo)
+            out[n_hint:, 2] = rng.uniform(-math.pi, math.pi, n - n_hint)
+            if len(bearings_rad) and n > n_hint:
+                j = rng.integers(0, len(bearings_rad), n - n_hint)
+                d = landmarks_xy[j] - out[n_hint:, :2]
+                out[n_hint:, 2] = (
+                    np.arctan2(d[:, 1], d[:, 0])
+                    - bearings_rad[j]
+                    + rng.normal(0, cfg.heading_sigma_rad, n - n_hint)
+                )
+            if n_hint:
+                ref = refs[rng.choice(len(refs), size=n_hint, p=p)]
+                out[:n_hint, :2] = ref[:, :2] + rng.normal(0, cfg.place_sigma_m, (n_hint, 2))
+                out[:n_hint, 2] = ref[:, 2] + rng.normal(0, cfg.hint_heading_sigma_rad, n_hint)
+            out[:, 2] = wrap_angles(out[:, 2])
+            return out
+
+        return draw
+
     # ------------------------------------------------------------ the step
     def step(
         self,
@@ -206,6 +263,8 @@ class Localiser:
         covariances: Callable[[], Mapping[str, FloatArray]] | None = None,
         ids: Mapping[str, int] | None = None,
         sigmas_rad: Sequence[float | None] | None = None,
+        hints: Sequence[tuple[FloatArray, float]] | None = None,
+        verify: Callable[[FilterEstimate], bool] | None = None,
     ) -> StepResult:
         """One frame of one robot.
 
@@ -214,7 +273,10 @@ class Localiser:
         for this frame, or None while the graph does not track the robot (initialising,
         lost). `ids` maps labels to landmark ids; `covariances` gives the landmarks'
         (2, 2) covariances when a place is learnt (computed only then); `sigmas_rad`
-        each observation's own bearing sigma (None: not stated).
+        each observation's own bearing sigma (None: not stated); `hints` places
+        recognised by another route for the injection proposal (see `proposal`);
+        `verify` checks a converged estimate before the robot is relocalised at it (False:
+        the filter starts a fresh search instead).
         """
         cfg = self.config
         known = [i for i, label in enumerate(labels) if label in landmarks]
@@ -233,7 +295,7 @@ class Localiser:
             current=current,
         )  # fmt: skip
         bounds = _bounds(landmarks, cfg.map_margin_m)
-        injector = self.proposal(recognition, lm_xy, z, bounds)
+        injector = self.proposal(recognition, lm_xy, z, bounds, hints)
         if track is None:
             if graph_pose is not None:
                 pf = ParticleFilter.around(
@@ -295,10 +357,18 @@ class Localiser:
                 track.converged_frames = 0
             elif len(z):
                 track.converged_frames += 1
-            if track.converged_frames >= cfg.confirm_frames:
+            if track.converged_frames >= cfg.confirm_frames and (verify is None or verify(est)):
                 track.status = RELOCALISED
                 track.converged_frames = 0
                 anchor = True
+            elif track.converged_frames >= cfg.confirm_frames:
+                # The caller's check refused the pose (the observations fit it only by
+                # chance): search afresh rather than converge on it again.
+                track.converged_frames = 0
+                track.pf = ParticleFilter.from_poses(
+                    injector(cfg.filter.max_particles, rng), cfg.filter
+                )
+                est = track.pf.estimate()
 
         place, confidence = recognition.best, recognition.best_score
         learnt = None

@@ -45,7 +45,7 @@ from graph.slam import BearingSlam
 from graph.types import FrameInput
 from service.errors import ServiceError
 from service.mapconfig import camera_model
-from service.vision import ImageFrameResult, ImagePipeline
+from service.vision import ImagePipeline
 
 __all__ = ["MapVision", "image_digest", "image_refused"]
 
@@ -144,11 +144,21 @@ class MapVision:
                 "meta.observations",
                 "must be absent in an image frame: the image's features are the observations",
             )
-        if frame.initial_pose is None and frame.robot not in self.pipeline.robots:
+
+    def check_localisable(self, frame: FrameInput, *, known: bool) -> None:
+        """A robot the map does not know yet (`known` False) without initial_pose is
+        localised by matching its images to the landmarks' stored views: refused while
+        the map holds none."""
+        if (
+            frame.initial_pose is None
+            and not known
+            and not self.pipeline.front_end.associator.has_views()
+        ):
             raise InvalidFrame(
                 "meta.initial_pose",
-                f"robot {frame.robot!r} has sent no image frame to this map yet; its first "
-                "image frame needs initial_pose",
+                f"robot {frame.robot!r} has sent no frame to this map yet, and the map has "
+                "no landmarks to localise it against; its first image frame needs "
+                "initial_pose",
             )
 
     def extract(self, image: bytes) -> Pending:
@@ -183,28 +193,20 @@ class MapVision:
         with self._lock:
             return self._prefetched.pop(image, None)
 
-    def process(
-        self, frame: FrameInput, image: Pending | bytes, *, with_covariance: bool
-    ) -> tuple[ImageFrameResult, dict[str, float], NDArray[np.float32]]:
-        """Associate the image's features and run the estimator; (result, timings ms,
-        the image's appearance signature).
-
-        Raises ImageError for a refused image (nothing changed), and whatever the
-        estimator raises (InvalidFrame, EstimationError; the front end unchanged).
-        """
+    def features_of(
+        self, image: Pending | bytes
+    ) -> tuple[Features, NDArray[np.float32], dict[str, float]]:
+        """(features, appearance signature, timings ms: decode, features, features_wait)
+        of an image (extracted now, or by `extract` / `prefetch`). Raises ImageError for
+        a refused image."""
         t0 = time.perf_counter()
         if isinstance(image, bytes):
             features, sig, decode_ms, extract_ms = self._features(image)
         else:
             features, sig, decode_ms, extract_ms = image.result()
         waited_ms = 1e3 * (time.perf_counter() - t0)
-        result = self.pipeline.submit(
-            frame, features, with_covariance=with_covariance, signature=sig
+        return (
+            features,
+            sig,
+            {"decode": decode_ms, "features": extract_ms, "features_wait": waited_ms},
         )
-        timing = {
-            "decode": decode_ms,
-            "features": extract_ms,
-            "features_wait": waited_ms,
-            "association": result.timing_ms["association"],
-        }
-        return result, timing, sig

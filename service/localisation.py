@@ -5,7 +5,9 @@ it: a robot with an initial pose, or one that is tracking, goes through the grap
 first and then through its particle filter (which watches for disagreement); a
 robot that is initialising or lost only moves its filter, until the filter is
 converged and the graph's chain is anchored at its estimate (``relocalised``).
-The whole object pickles; the session keeps it in its snapshots.
+Image frames take the same path through service.camera_localisation (their
+observations come from the front end). The whole object pickles; the session keeps
+it in its snapshots.
 """
 
 from __future__ import annotations
@@ -92,12 +94,16 @@ class MapLocalisation:
         """Appearance places of a camera map's image frames."""
         self.reported: dict[str, tuple[int | None, float | None]] = {}
         """(place, confidence) that each robot's last frame result reported."""
+        self.landmark_matches: dict[str, float] = {}
+        """Running average of each camera robot's pose-gated landmark matches per frame
+        (service.camera_localisation: a frame far below it is starved)."""
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         # Snapshots taken before these fields existed lack them.
         state.setdefault("off_graph", OffGraphLog())
         state.setdefault("appearance", AppearancePlaces())
         state.setdefault("reported", {})
+        state.setdefault("landmark_matches", {})
         self.__dict__.update(state)
 
     def localisation(self, robot: str) -> dict[str, Any]:
@@ -121,8 +127,13 @@ class MapLocalisation:
     def landmark_map(slam: BearingSlam) -> dict[str, FloatArray]:
         return {rec.label: slam.landmark_position(lid) for lid, rec in slam.landmarks.items()}
 
-    def process(self, slam: BearingSlam, frame: FrameInput) -> Localised:
-        """One frame of one robot (validated by the caller against `last_accepted`)."""
+    def process(
+        self, slam: BearingSlam, frame: FrameInput, *, landmark_covariances: bool = True
+    ) -> Localised:
+        """One frame of one robot (validated by the caller against `last_accepted`).
+        `landmark_covariances` False: a place learnt here takes a default landmark
+        covariance instead of the graph's joint marginal (a camera map's hundreds of
+        landmarks)."""
         track = self.localiser.robots.get(frame.robot)
         feeds_graph = (track is None or track.status in (TRACKING, RELOCALISED)) and (
             frame.robot in slam.robots or frame.initial_pose is not None
@@ -153,7 +164,9 @@ class MapLocalisation:
             rng=self.rng,
             frame=slam.frame_count,
             stamp=frame.stamp,
-            covariances=lambda: self._landmark_covariances(slam),
+            covariances=(lambda: self._landmark_covariances(slam))
+            if landmark_covariances
+            else None,
             ids={rec.label: lid for lid, rec in slam.landmarks.items()},
         )
         ms = 1e3 * (time.perf_counter() - t0)
@@ -198,46 +211,6 @@ class MapLocalisation:
             cov,
             result.learnt,
             ms,
-        )
-
-    def graph_only(
-        self,
-        frame: FrameInput,
-        outcome: FrameOutcome,
-        *,
-        signature: NDArray[np.float32] | None = None,
-    ) -> Localised:
-        """A frame the graph took by another route (an image frame, whose observations
-        come from the front end's association): the filter is not stepped and the
-        robot is reported as tracking. The place localiser runs on labelled frames; an
-        image's appearance `signature` is recognised among (and may become one of) the
-        map's appearance places (service.appearance_places)."""
-        self.last[frame.robot] = (frame.seq, frame.stamp)
-        assert outcome.covariance is not None
-        p = outcome.pose
-        self.off_graph.on_graph(frame.robot, (p.x, p.y, p.theta))
-        place = confidence = None
-        if signature is not None:
-            place, confidence, _ = self.appearance.observe(
-                signature,
-                robot=frame.robot,
-                pose=(p.x, p.y, p.theta),
-                frame=outcome.frame_index,
-                stamp=frame.stamp,
-            )
-        self.reported[frame.robot] = (place, confidence)
-        return Localised(
-            frame.robot,
-            frame.seq,
-            frame.stamp,
-            outcome,
-            TRACKING,
-            place,
-            confidence,
-            outcome.pose,
-            np.asarray(outcome.covariance),
-            None,
-            0.0,
         )
 
     def with_off_graph(

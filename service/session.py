@@ -19,14 +19,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
-from graph.slam import BearingSlam, FrameOutcome, RemovalRecord
+from graph.slam import BearingSlam, RemovalRecord
 from graph.snapshot import SnapshotError, capture, restore_with_extra
 from graph.types import FrameInput
 from graph.validation import validate_frame
+from service.camera_localisation import process_image
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.frames_io import frame_from_dict, frame_to_dict
@@ -242,8 +242,7 @@ class MapSession:
         observations = None
         try:
             if "image" in doc:
-                outcome, observations, sig = self._replay_image(slam, stored.id, frame)
-                localised = loc.graph_only(frame, outcome, signature=sig)
+                localised, observations = self._replay_image(slam, loc, stored.id, frame)
             else:
                 localised = loc.process(slam, frame)
                 self._note_json_frame(localised)
@@ -264,12 +263,12 @@ class MapSession:
             self._complete(slam, stored.id, json.dumps(result), localised, removals, observations)
 
     def _replay_image(
-        self, slam: BearingSlam, log_id: int, frame: FrameInput
-    ) -> tuple[FrameOutcome, str | None, NDArray[np.float32] | None]:
+        self, slam: BearingSlam, loc: MapLocalisation, log_id: int, frame: FrameInput
+    ) -> tuple[Localised, str | None]:
         """A logged image frame again: through the front end from its image, or (an
         imported frame, no image) from the observations its image gave. Returns the
-        outcome, the observations as JSON text and the appearance signature (None for
-        an imported frame)."""
+        frame through the localiser and the observations as JSON text (None for an
+        imported frame)."""
         if self.vision is None:
             raise InvalidFrame("image", f"log frame {log_id}: the map has no camera")
         image = self.store.frame_image(log_id)
@@ -278,19 +277,22 @@ class MapSession:
             if observations is None:
                 raise InvalidFrame("image", f"log frame {log_id}: image and observations missing")
             observed = frame_from_dict({**frame_to_dict(frame), "observations": observations})
-            return self._process_observed(slam, observed), None, None
-        result, _, sig = self.vision.process(frame, image, with_covariance=True)
-        return result.outcome, _observations_json(result.association.observations), sig
+            return self._process_observed(slam, loc, observed), None
+        features, sig, _ = self.vision.features_of(image)
+        done = process_image(loc, slam, self.vision.pipeline, frame, features, sig)
+        return done.localised, _observations_json(done.observations)
 
-    def _process_observed(self, slam: BearingSlam, frame: FrameInput) -> FrameOutcome:
-        """An imported image frame: the observations its image gave, straight to the
-        estimator (as the image route does: no place localiser), and the front end
-        learns the robot's pose."""
+    def _process_observed(
+        self, slam: BearingSlam, loc: MapLocalisation, frame: FrameInput
+    ) -> Localised:
+        """An imported image frame: the observations its image gave (the association's
+        when the graph took it, the pose-free matches its filter weighed otherwise) go
+        through the place localiser as labelled bearings do, and the front end learns
+        the robot's pose."""
         assert self.vision is not None
-        outcome = slam.process(frame, with_covariance=True)
-        assert outcome.covariance is not None
-        self.vision.pipeline.note_pose(frame.robot, outcome.pose, outcome.covariance)
-        return outcome
+        localised = loc.process(slam, frame, landmark_covariances=False)
+        self._note_json_frame(localised)
+        return localised
 
     def _note_json_frame(self, localised: Localised) -> None:
         """A JSON frame in a camera map moved the robot in the graph: its next image
@@ -385,13 +387,12 @@ class MapSession:
         vision_ms: dict[str, float] = {}
         try:
             if imported:
-                localised = self.loc.graph_only(frame, self._process_observed(self.slam, frame))
+                localised = self._process_observed(self.slam, self.loc, frame)
             elif pending is None:
                 localised = self.loc.process(self.slam, frame)
                 self._note_json_frame(localised)
             else:
-                outcome, observations, vision_ms, sig = self._process_image(frame, pending)
-                localised = self.loc.graph_only(frame, outcome, signature=sig)
+                localised, observations, vision_ms = self._process_image(frame, pending)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -438,22 +439,22 @@ class MapSession:
             raise no_camera(self.record.id)
         try:
             self.vision.check(frame)
+            known = frame.robot in self.loc.last_accepted(self.slam)
+            self.vision.check_localisable(frame, known=known)
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
 
     def _process_image(
         self, frame: Any, pending: Pending
-    ) -> tuple[FrameOutcome, str, dict[str, float], NDArray[np.float32]]:
-        """(outcome, the observations the image gave as JSON text, timings ms, the
-        image's appearance signature)."""
+    ) -> tuple[Localised, str, dict[str, float]]:
+        """(the frame through the front end and the localiser, the observations it is
+        recorded with as JSON text, timings ms)."""
         assert self.vision is not None
-        result, timing, sig = self.vision.process(frame, pending, with_covariance=True)
-        return (
-            result.outcome,
-            _observations_json(result.association.observations),
-            timing,
-            sig,
-        )
+        features, sig, timing = self.vision.features_of(pending)
+        done = process_image(self.loc, self.slam, self.vision.pipeline, frame, features, sig)
+        timing["association"] = done.timing_ms["association"]
+        timing["localise_cpu"] = done.timing_ms["localise_cpu"]
+        return done.localised, _observations_json(done.observations), timing
 
     def _result_doc(
         self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]

@@ -202,13 +202,17 @@ class ImagePipeline:
         *,
         with_covariance: bool = True,
         signature: NDArray[np.float32] | None = None,
+        anchor: tuple[Pose2D, FloatArray] | None = None,
     ) -> ImageFrameResult:
         """Process one frame whose observations come from `image` (its own are ignored).
 
         `image` may be the image's features already extracted (`front_end.features`,
         e.g. in another thread while the frame was being logged). `signature`: the
         image's appearance signature (frontend.appearance.signature); with the robot's
-        previous one it gives the visual compass of `predict`.
+        previous one it gives the visual compass of `predict`. `anchor`: (pose, (3, 3)
+        map-frame covariance) from the place localiser: the robot's chain is anchored
+        there (BearingSlam.process), the prediction starts from it, and the robot's
+        candidate tracks (rays from poses it no longer believes) are dropped.
         """
         t0 = time.perf_counter()
         feats = image if isinstance(image, Features) else self.front_end.features(image)
@@ -223,7 +227,12 @@ class ImagePipeline:
         ):
             yaw, score = rotation_between(previous, signature)
             compass = yaw if score >= COMPASS_MIN_SCORE else None
-        predicted, cov = self.predict(frame, compass_rad=compass)
+        if anchor is None:
+            predicted, cov = self.predict(frame, compass_rad=compass)
+        else:
+            p = anchor[0]
+            predicted, cov = np.array([p.x, p.y, p.theta]), np.asarray(anchor[1], np.float64)
+            self.front_end.associator.forget_tracks(frame.robot)
         slam = self.slam
         ids = sorted(slam.landmarks)
         labels = [slam.landmarks[i].label for i in ids]
@@ -240,7 +249,9 @@ class ImagePipeline:
         )
         t2 = time.perf_counter()
         outcome = slam.process(
-            replace(frame, observations=association.observations), with_covariance=with_covariance
+            replace(frame, observations=association.observations),
+            with_covariance=with_covariance,
+            anchor=anchor,
         )
         t3 = time.perf_counter()
         pose = np.array([outcome.pose.x, outcome.pose.y, outcome.pose.theta])

@@ -1,0 +1,428 @@
+"""Camera robots through the place localiser: start without a pose, and a kidnap.
+
+A rendered two-room world (`indoor_sim` + `render`, 1024x256 panoramas). Robot r1
+maps the first room with images, starting from its true pose: the staircase and
+spin of bench.turns (70 frames). Then:
+
+- **start**: robot r2 (a new robot, no ``initial_pose``) starts at a random pose
+  within `--start-offset-m` of a pose on r1's path, any heading, and drives
+  straight ahead in 5 cm steps; per start: the frames until its status is
+  ``relocalised`` and the pose error at that frame (and 5 frames later). Two more
+  robots start in the second room, which r1 never saw: they must not be relocalised;
+- **kidnap**: r1 goes on from the end of its path, is carried to another pose of
+  the room (a jump without odometry) and drives on; the frames until ``lost`` and
+  until ``relocalised`` after the jump, and the pose error then.
+
+Each run records the CPU time the localiser step adds to a tracked frame (the
+filter on the frame's landmark matches) and to a frame of a robot searching (pose-free
+matching and the filter), with the load average.
+
+    python -m bench.camera_localisation [--seeds 0 1 2] [--starts 4] [--out bench/results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from bench.turns import CAMERA, CONFIG, turn_path
+from graph.angles import wrap_angle
+from graph.localiser import INITIALISING, LOST, RELOCALISED
+from service.datasets.indoor_sim import make_world
+from service.datasets.mrclam import relative_motion
+from service.datasets.render import TexturedWorld, make_textured_world, render_panorama
+from service.session import MapSession
+from service.settings import StoreSettings
+from service.store import MapRecord
+
+FloatArray = NDArray[np.float64]
+ODOMETRY_NOISE = (0.02, 0.02, 0.02)
+"""Odometry sigmas (kx, ky per metre, kt per (metre + radian))."""
+STEP_M = 0.05
+"""A searching robot's step per frame."""
+
+
+@dataclass(frozen=True)
+class Leg:
+    """Frames of one robot: (meta, PNG bytes) each, and the true poses (F, 3)."""
+
+    frames: list[tuple[dict[str, Any], bytes]]
+    truth: FloatArray
+
+
+def scene(seed: int) -> TexturedWorld:
+    rng = np.random.default_rng(seed)
+    return make_textured_world(make_world(rooms=(1, 2), landmarks=2, rng=rng), rng=rng)
+
+
+def render_leg(
+    world: TexturedWorld,
+    truth: FloatArray,
+    *,
+    robot: str,
+    rng: np.random.Generator,
+    first_seq: int = 0,
+    initial_pose: bool = False,
+    moved_before: bool = False,
+    jumps: frozenset[int] = frozenset(),
+) -> Leg:
+    """Frames along `truth` ``(F, 3)``: odometry = true motion + noise (none across a
+    frame in `jumps`: the robot was carried there); the first frame has odometry only if
+    `moved_before` (zero motion), and the true pose as initial_pose if `initial_pose`."""
+    motion = relative_motion(truth)
+    kx, ky, kt = ODOMETRY_NOISE
+    frames = []
+    for k, pose in enumerate(truth):
+        image, _ = render_panorama(world, pose, CAMERA)
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise RuntimeError("could not encode a panorama")
+        seq = first_seq + k
+        meta: dict[str, Any] = {"robot": robot, "seq": seq, "stamp": 0.1 * seq}
+        if k == 0:
+            if initial_pose:
+                meta["initial_pose"] = {"x": pose[0], "y": pose[1], "theta": pose[2]}
+            if moved_before:
+                meta["odometry"] = {"dx": 0.0, "dy": 0.0, "dtheta": 0.0}
+        else:
+            m = motion[k - 1]
+            if k in jumps:
+                m = np.zeros(3)
+            d = float(np.hypot(m[0], m[1]))
+            sig = np.array([kx * d, ky * d, kt * (d + abs(m[2]))])
+            dx, dy, dth = m + rng.normal(0.0, 1.0, 3) * sig
+            meta["odometry"] = {"dx": float(dx), "dy": float(dy), "dtheta": float(dth)}
+        frames.append((meta, png.tobytes()))
+    return Leg(frames, np.asarray(truth, dtype=np.float64))
+
+
+def straight(start: FloatArray, frames: int, step_m: float = STEP_M) -> FloatArray:
+    """``(frames, 3)`` poses driving straight ahead from `start`."""
+    k = np.arange(frames)[:, None]
+    heading = np.array([math.cos(start[2]), math.sin(start[2]), 0.0])
+    return np.asarray(start, dtype=np.float64)[None, :] + k * step_m * heading[None, :]
+
+
+def mapping_path() -> FloatArray:
+    poses, _ = turn_path(legs=6, turn_frames=1, spin_turns=4)
+    return poses
+
+
+def start_pose(path: FloatArray, rng: np.random.Generator, offset_m: float) -> FloatArray:
+    """A pose within `offset_m` of a random pose of `path`, heading towards the room's
+    middle (3, 3) within +-60 degrees (room to drive straight ahead)."""
+    p = path[rng.integers(len(path))]
+    r, a = offset_m * math.sqrt(rng.random()), rng.uniform(-math.pi, math.pi)
+    x, y = p[0] + r * math.cos(a), p[1] + r * math.sin(a)
+    heading = math.atan2(3.0 - y, 3.0 - x) + rng.uniform(-math.pi / 3, math.pi / 3)
+    return np.array([x, y, wrap_angle(heading)])
+
+
+def error(pose: dict[str, float], truth: FloatArray) -> tuple[float, float]:
+    """(position error m, heading error deg) of a result pose against the truth."""
+    return (
+        float(math.hypot(pose["x"] - truth[0], pose["y"] - truth[1])),
+        math.degrees(abs(wrap_angle(pose["theta"] - truth[2]))),
+    )
+
+
+def new_session(tmp: Path, name: str) -> MapSession:
+    record = MapRecord(name, name, "mapping", CONFIG, time.time())
+    return MapSession.create(tmp / f"{name}.sqlite", record, StoreSettings(snapshot_every=10**6))
+
+
+def post(session: MapSession, leg: Leg) -> list[dict[str, Any]]:
+    """Post every frame; rows of (status, errors, localise CPU ms) per frame."""
+    rows = []
+    for (meta, image), truth in zip(leg.frames, leg.truth, strict=True):
+        c0 = time.process_time()
+        result = json.loads(session.submit(dict(meta), image)["result_json"])
+        cpu_ms = 1e3 * (time.process_time() - c0)
+        err_m, err_deg = error(result["pose"], truth)
+        rows.append(
+            {
+                "seq": meta["seq"],
+                "status": result["localisation"]["status"],
+                "error_m": err_m,
+                "error_deg": err_deg,
+                "observed": len(result["landmarks"]["observed"]),
+                "localise_ms": result["timing_ms"]["localise"],
+                "localise_cpu_ms": result["timing_ms"].get("localise_cpu", 0.0),
+                "association_ms": result["timing_ms"].get("association", 0.0),
+                "frame_cpu_ms": cpu_ms,
+            }
+        )
+    return rows
+
+
+def first(rows: list[dict[str, Any]], status: str, start: int = 0) -> int | None:
+    """Index of the first row from `start` on with `status`."""
+    return next((k for k in range(start, len(rows)) if rows[k]["status"] == status), None)
+
+
+def map_room(session: MapSession, world: TexturedWorld, seed: int) -> tuple[Leg, list[dict]]:
+    path = mapping_path()
+    leg = render_leg(
+        world, path, robot="r1", rng=np.random.default_rng([seed, 1]), initial_pose=True
+    )
+    return leg, post(session, leg)
+
+
+def run_starts(
+    world: TexturedWorld,
+    *,
+    seed: int,
+    starts: int,
+    frames: int,
+    offset_m: float,
+    tmp: Path,
+) -> dict[str, Any]:
+    """r1 maps; then `starts` new robots each start without a pose (one map)."""
+    session = new_session(tmp, f"starts{seed}_{offset_m}")
+    leg, mapping_rows = map_room(session, world, seed)
+    rng = np.random.default_rng([seed, 2])
+    out = []
+    for i in range(starts):
+        start = start_pose(leg.truth, rng, offset_m)
+        truth = straight(start, frames)
+        r = render_leg(world, truth, robot=f"s{i}", rng=np.random.default_rng([seed, 3, i]))
+        rows = post(session, r)
+        k = first(rows, RELOCALISED)
+        item: dict[str, Any] = {
+            "start": start.tolist(),
+            "relocalised_frame": None if k is None else k + 1,
+            "statuses": [row["status"] for row in rows],
+        }
+        if k is not None:
+            item["error_m"], item["error_deg"] = rows[k]["error_m"], rows[k]["error_deg"]
+            later = min(k + 5, len(rows) - 1)
+            item["error_m_5_later"] = rows[later]["error_m"]
+            item["error_deg_5_later"] = rows[later]["error_deg"]
+        search = [row for row in rows if row["status"] == INITIALISING]
+        item["search_frame_cpu_ms_median"] = (
+            float(np.median([row["frame_cpu_ms"] for row in search])) if search else None
+        )
+        item["search_localise_cpu_ms_median"] = (
+            float(np.median([row["localise_cpu_ms"] for row in search])) if search else None
+        )
+        out.append(item)
+    unmapped = []
+    for i in range(2):  # in the second room, which r1 never saw: nothing to find
+        start = np.array([rng.uniform(1.5, 4.5), rng.uniform(7.5, 10.5), rng.uniform(-3, 3)])
+        r = render_leg(
+            world, straight(start, frames), robot=f"u{i}", rng=np.random.default_rng([seed, 6, i])
+        )
+        rows = post(session, r)
+        k = first(rows, RELOCALISED)
+        unmapped.append(
+            {
+                "start": start.tolist(),
+                "relocalised_frame": None if k is None else k + 1,
+                "error_m": None if k is None else rows[k]["error_m"],
+                "statuses": [row["status"] for row in rows],
+            }
+        )
+    session.close()
+    tracked = mapping_rows[10:]
+    return {
+        "seed": seed,
+        "start_offset_m": offset_m,
+        "mapping_lost_frames": sum(r["status"] == LOST for r in mapping_rows),
+        "mapping_localise_ms_median": float(np.median([r["localise_ms"] for r in tracked])),
+        "mapping_localise_cpu_ms_median": float(np.median([r["localise_cpu_ms"] for r in tracked])),
+        "mapping_localise_cpu_ms_p90": float(
+            np.percentile([r["localise_cpu_ms"] for r in tracked], 90)
+        ),
+        "mapping_frame_cpu_ms_median": float(np.median([r["frame_cpu_ms"] for r in tracked])),
+        "mapping_error_m_max": max(r["error_m"] for r in mapping_rows),
+        "starts": out,
+        "unmapped_starts": unmapped,
+    }
+
+
+def run_kidnap(world: TexturedWorld, *, seed: int, frames: int, tmp: Path) -> dict[str, Any]:
+    """r1 maps, drives on 10 frames, is carried to another pose of its path, drives on."""
+    session = new_session(tmp, f"kidnap{seed}")
+    leg, _ = map_room(session, world, seed)
+    rng = np.random.default_rng([seed, 4])
+    end = leg.truth[-1]
+    before = straight(end, 10)
+    target = leg.truth[rng.integers(5, len(leg.truth) // 2)].copy()
+    target[2] = wrap_angle(target[2] + rng.uniform(-math.pi, math.pi))
+    # Head towards the middle of the room within +-60 deg.
+    target[2] = wrap_angle(
+        math.atan2(3.0 - target[1], 3.0 - target[0]) + rng.uniform(-math.pi / 3, math.pi / 3)
+    )
+    after = straight(target, frames)
+    truth = np.vstack([before, after])
+    first_seq = len(leg.frames)
+    r = render_leg(
+        world,
+        truth,
+        robot="r1",
+        rng=np.random.default_rng([seed, 5]),
+        first_seq=first_seq,
+        moved_before=True,
+        jumps=frozenset({len(before)}),
+    )
+    # The first frame of this leg continues r1's chain: its odometry is the motion since
+    # r1's last mapping frame (zero: it stands where the spin ended).
+    rows = post(session, r)
+    session.close()
+    jump = len(before)
+    lost = first(rows, LOST, jump)
+    back = None if lost is None else first(rows, RELOCALISED, lost)
+    out: dict[str, Any] = {
+        "seed": seed,
+        "jump_m": float(math.hypot(*(target[:2] - before[-1][:2]))),
+        "jump_deg": math.degrees(abs(wrap_angle(target[2] - before[-1][2]))),
+        "lost_before_jump": sum(row["status"] == LOST for row in rows[:jump]),
+        "frames_to_lost": None if lost is None else lost - jump + 1,
+        "frames_to_relocalised": None if back is None else back - jump + 1,
+        "statuses": [row["status"] for row in rows],
+    }
+    if back is not None:
+        out["error_m"], out["error_deg"] = rows[back]["error_m"], rows[back]["error_deg"]
+        tail = rows[back:]
+        out["error_m_after_median"] = float(np.median([row["error_m"] for row in tail]))
+        out["error_m_after_max"] = max(row["error_m"] for row in tail)
+    return out
+
+
+def summary(doc: dict[str, Any]) -> dict[str, Any]:
+    offsets = sorted({run["start_offset_m"] for run in doc["start_runs"]})
+    return {
+        **{
+            f"starts_within_{offset}m": start_summary(
+                [
+                    s
+                    for run in doc["start_runs"]
+                    if run["start_offset_m"] == offset
+                    for s in run["starts"]
+                ]
+            )
+            for offset in offsets
+        },
+        "unmapped_starts": sum(len(run["unmapped_starts"]) for run in doc["start_runs"]),
+        "unmapped_starts_relocalised_falsely": sum(
+            s["relocalised_frame"] is not None
+            for run in doc["start_runs"]
+            for s in run["unmapped_starts"]
+        ),
+        **kidnap_summary(doc),
+    }
+
+
+def start_summary(starts: list[dict[str, Any]]) -> dict[str, Any]:
+    searching = [
+        s["search_localise_cpu_ms_median"]
+        for s in starts
+        if s["search_localise_cpu_ms_median"] is not None
+    ]
+    found = [s for s in starts if s["relocalised_frame"] is not None]
+    good = [s for s in found if s["error_m"] <= 0.3 and s["error_deg"] <= 10.0]
+    return {
+        "starts": len(starts),
+        "relocalised": len(found),
+        "relocalised_within_0.3m_10deg": len(good),
+        "frames_to_relocalise_median": float(np.median([s["relocalised_frame"] for s in found]))
+        if found
+        else None,
+        "frames_to_relocalise_max": max((s["relocalised_frame"] for s in found), default=None),
+        "error_m_median": float(np.median([s["error_m"] for s in found])) if found else None,
+        "error_m_max": max((s["error_m"] for s in found), default=None),
+        "error_deg_max": max((s["error_deg"] for s in found), default=None),
+        "searching_frame_localise_cpu_ms_median": float(np.median(searching))
+        if searching
+        else None,
+    }
+
+
+def kidnap_summary(doc: dict[str, Any]) -> dict[str, Any]:
+    kid = doc["kidnap_runs"]
+    lost = [k["frames_to_lost"] for k in kid if k["frames_to_lost"] is not None]
+    back = [k["frames_to_relocalised"] for k in kid if k["frames_to_relocalised"] is not None]
+    return {
+        "kidnaps": len(kid),
+        "kidnaps_lost": sum(k["frames_to_lost"] is not None for k in kid),
+        "kidnaps_relocalised": len(back),
+        "kidnap_frames_to_lost": lost,
+        "kidnap_frames_to_relocalised": back,
+        "kidnap_lost_before_jump": sum(k["lost_before_jump"] for k in kid),
+        "kidnap_error_m_after_max": max(
+            (k["error_m_after_max"] for k in kid if "error_m_after_max" in k), default=None
+        ),
+        "tracked_frame_localise_cpu_ms_median": float(
+            np.median([r["mapping_localise_cpu_ms_median"] for r in doc["start_runs"]])
+        ),
+        "tracked_frame_localise_cpu_ms_p90_max": max(
+            r["mapping_localise_cpu_ms_p90"] for r in doc["start_runs"]
+        ),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
+    parser.add_argument("--starts", type=int, default=4, help="new robots per seed")
+    parser.add_argument("--frames", type=int, default=15, help="frames per new robot")
+    parser.add_argument(
+        "--start-offset-m",
+        type=float,
+        nargs="*",
+        default=[0.5, 1.0],
+        help="starts lie within this distance of r1's path (one set of starts per value)",
+    )
+    parser.add_argument("--kidnap-frames", type=int, default=30)
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = parser.parse_args()
+    doc: dict[str, Any] = {
+        "when": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "load_average_start": [round(v, 2) for v in os.getloadavg()],
+        "camera": f"panorama {CAMERA.width}x{CAMERA.height}",
+        "args": {k: str(v) for k, v in vars(args).items()},
+        "start_runs": [],
+        "kidnap_runs": [],
+    }
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in args.seeds:
+            world = scene(seed)
+            for offset in args.start_offset_m:
+                run = run_starts(
+                    world,
+                    seed=seed,
+                    starts=args.starts,
+                    frames=args.frames,
+                    offset_m=offset,
+                    tmp=Path(tmp),
+                )
+                doc["start_runs"].append(run)
+                print(json.dumps({k: v for k, v in run.items() if k != "starts"}))
+                for s in run["starts"]:
+                    print(json.dumps({k: v for k, v in s.items() if k != "statuses"}))
+            kid = run_kidnap(world, seed=seed, frames=args.kidnap_frames, tmp=Path(tmp))
+            doc["kidnap_runs"].append(kid)
+            print(json.dumps({k: v for k, v in kid.items() if k != "statuses"}))
+    doc["seconds"] = time.perf_counter() - t0
+    doc["load_average_end"] = [round(v, 2) for v in os.getloadavg()]
+    doc["summary"] = summary(doc)
+    print(json.dumps(doc["summary"], indent=1))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "camera_localisation.json").write_text(json.dumps(doc, indent=1))
+
+
+if __name__ == "__main__":
+    main()
