@@ -326,23 +326,19 @@ class Associator:
         labels = [lb for lb in landmarks if lb in self._landmarks]
         if not labels or len(features) == 0:
             return {}
-        xy = np.array([np.asarray(landmarks[lb][0], dtype=np.float64) for lb in labels])
-        lcov = np.array(
-            [
-                self._prior_cov(lb)
-                if landmarks[lb][1] is None
-                else np.asarray(landmarks[lb][1], dtype=np.float64)
-                for lb in labels
-            ]
-        )
+        xy = np.array([landmarks[lb][0] for lb in labels], dtype=np.float64).reshape(-1, 2)
+        records = [self._landmarks[lb] for lb in labels]
+        lcov = self._prior_covs(records)
+        for i, lb in enumerate(labels):
+            given = landmarks[lb][1]
+            if given is not None:
+                lcov[i] = np.asarray(given, dtype=np.float64)
         heights = np.array(
-            [
-                np.nan if self._landmarks[lb].height_m is None else self._landmarks[lb].height_m
-                for lb in labels
-            ]
+            [np.nan if lm.height_m is None else lm.height_m for lm in records], dtype=np.float64
         )
+        views = self._view_stack(records)
         picked, resid, jp, var_l = self._gate_and_pick(
-            features, labels, xy, lcov, heights, pose, cov
+            features, views, xy, lcov, heights, pose, cov
         )
         post = cov
         if len(picked) >= cfg.min_matches_for_pose:
@@ -353,7 +349,7 @@ class Associator:
             delta, post = _robust_pose_step(jp[rows], r, s2, cov)
             pose = pose + delta
             picked, resid, jp, var_l = self._gate_and_pick(
-                features, labels, xy, lcov, heights, pose, post
+                features, views, xy, lcov, heights, pose, post
             )
         # Normalised residual of each match without the landmark's own uncertainty:
         # only close fits may add a view to a landmark (a look-alike must not).
@@ -366,22 +362,24 @@ class Associator:
             self._last_lateral[labels[r]] = abs(float(resid[r, c])) * rng_m
         return {labels[r]: c for r, c in picked}
 
-    def _prior_cov(self, label: str) -> FloatArray:
-        """(2, 2) position covariance of a landmark the caller gave none for: the default
-        sigma, or (learn_landmark_sigma) the one its close matches suggest."""
+    def _prior_covs(self, records: list[_Landmark]) -> FloatArray:
+        """(L, 2, 2) position covariances of landmarks the caller gave none for: the
+        default sigma, or (learn_landmark_sigma) the one their close matches suggest."""
         cfg = self.config
-        var = cfg.default_landmark_sigma_m**2
-        lm = self._landmarks[label]
-        if cfg.learn_landmark_sigma and lm.lateral_n > 0:
+        var0 = cfg.default_landmark_sigma_m**2
+        var = np.full(len(records), var0)
+        if cfg.learn_landmark_sigma:
+            m2 = np.array([lm.lateral_m2 for lm in records], dtype=np.float64)
+            n = np.array([lm.lateral_n for lm in records], dtype=np.float64)
             n0 = cfg.landmark_sigma_prior_n
-            var = (n0 * var + lm.lateral_m2) / (n0 + lm.lateral_n)
-            var = max(var, cfg.min_landmark_sigma_m**2)
-        return var * np.eye(2)
+            learnt = np.maximum((n0 * var0 + m2) / (n0 + n), cfg.min_landmark_sigma_m**2)
+            var = np.where(n > 0, learnt, var)
+        return var[:, None, None] * np.eye(2)[None, :, :]
 
     def _gate_and_pick(
         self,
         features: Features,
-        labels: list[str],
+        views: tuple[NDArray[Any], IntArray],
         xy: FloatArray,
         lcov: FloatArray,
         heights: FloatArray,
@@ -396,7 +394,7 @@ class Associator:
         predicted = wrap_angles(np.arctan2(dy, dx) - pose[2])
         # d(bearing)/d(landmark xy) = (-dy, dx) / r^2; d/d(pose) = (dy/r^2, -dx/r^2, -1).
         jl = np.column_stack([-dy, dx]) / r2[:, None]
-        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(labels))])
+        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(xy))])
         var_l = np.einsum("li,lij,lj->l", jl, lcov, jl)
         var = np.einsum("li,ij,lj->l", jp, cov, jp) + var_l
         resid = wrap_angles(features.bearing_rad[None, :] - predicted[:, None])
@@ -414,8 +412,8 @@ class Associator:
             self._last_contested = np.zeros(0, dtype=np.int64)
             return [], resid, jp, var_l
         # Distance to each stored view; keep the smallest per pair.
-        views, counts = self._view_stack(labels, np.unique(li))
-        pair_views = views[li]  # (P, K, D)
+        stack, counts = views
+        pair_views = stack[li]  # (P, K, D)
         k = pair_views.shape[1]
         d = _distances(
             pair_views.reshape(len(li) * k, -1),
@@ -428,17 +426,19 @@ class Associator:
         self._last_contested = fi[dist <= limit]
         return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
 
-    def _view_stack(self, labels: list[str], rows: IntArray) -> tuple[NDArray[Any], IntArray]:
-        """(L, K, D) stored views of the landmarks (zero-padded; only `rows` filled) and
-        (L,) their counts."""
+    def _view_stack(self, records: list[_Landmark]) -> tuple[NDArray[Any], IntArray]:
+        """(L, K, D) stored views of the landmarks (zero-padded) and (L,) their counts."""
         k = self.config.views_per_landmark
-        sample = self._landmarks[labels[int(rows[0])]].descriptors[0]
-        views = np.zeros((len(labels), k, sample.shape[-1]), dtype=sample.dtype)
-        counts = np.zeros(len(labels), dtype=np.int64)
-        for r in rows.tolist():
-            descs = self._landmarks[labels[r]].descriptors[:k]
-            views[r, : len(descs)] = np.stack(descs)
-            counts[r] = len(descs)
+        descs = [lm.descriptors[:k] for lm in records]
+        counts = np.array([len(d) for d in descs], dtype=np.int64)
+        flat = [d for ds in descs for d in ds]
+        if not flat:
+            return np.zeros((len(records), k, 32), dtype=np.uint8), counts
+        stacked = np.stack(flat)
+        views = np.zeros((len(records), k, stacked.shape[-1]), dtype=stacked.dtype)
+        rows = np.repeat(np.arange(len(records)), counts)
+        slots = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+        views[rows, slots] = stacked
         return views, counts
 
     def _match_tracks(

@@ -65,6 +65,8 @@ class IncrementalGraph:
         self._factors: dict[int, gtsam.NonlinearFactor] = {}
         self._key_factors: dict[int, set[int]] = {}
         self._estimate: gtsam.Values | None = None
+        self._points: dict[int, NDArray[np.float64]] | None = None
+        """Every Point2 of `_estimate` by key (built on the first `points` call)."""
         self.marginal_keys: list[tuple[int, ...]] = []
         """Keys of every marginal factor added since the caller last cleared this."""
 
@@ -98,6 +100,18 @@ class IncrementalGraph:
 
     def point(self, key: int) -> NDArray[np.float64]:
         return np.asarray(self.estimate().atPoint2(key), dtype=np.float64)
+
+    def points(self, keys: Sequence[int]) -> NDArray[np.float64]:
+        """(N, 2) current estimates of Point2 variables: one pass over the estimate
+        (gtsam.utilities.extractPoint2) instead of one lookup per key."""
+        if self._points is None:
+            estimate = self.estimate()
+            xy = np.asarray(gtsam.utilities.extractPoint2(estimate), dtype=np.float64)
+            point_keys = [k for k in estimate.keys() if is_landmark_key(k)]
+            self._points = dict(zip(point_keys, xy, strict=True))
+        if not keys:
+            return np.zeros((0, 2))
+        return np.array([self._points[k] for k in keys], dtype=np.float64)
 
     def pose_covariance(self, key: int) -> NDArray[np.float64]:
         """(3, 3) marginal covariance of a pose (x, y, theta in its own frame)."""
@@ -147,6 +161,7 @@ class IncrementalGraph:
         # delta behind the MAP. A stale cache here made a restored map (rebuilt with a
         # full step) diverge from the original by centimetres.
         self._estimate = None
+        self._points = None
         for index in remove:
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]

@@ -187,6 +187,10 @@ class BearingSlam:
     def landmark_position(self, landmark_id: int) -> NDArray[np.float64]:
         return self._graph.point(landmark_key(landmark_id))
 
+    def landmark_positions(self, ids: list[int]) -> NDArray[np.float64]:
+        """(N, 2) positions of live landmarks, metres (one pass over the estimate)."""
+        return self._graph.points([landmark_key(i) for i in ids])
+
     def landmark_covariances(self, ids: list[int]) -> NDArray[np.float64]:
         """(N, 2, 2) marginal covariances of live landmarks, m^2."""
         return self._graph.landmark_covariances([landmark_key(i) for i in ids])

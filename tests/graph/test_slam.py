@@ -154,3 +154,22 @@ def test_marginalised_frames_follow_their_keyframe() -> None:
     gap = np.hypot(*(traj[:, 2:4] - reference[:, 2:4]).T)
     assert np.median(gap) < 0.05
     assert _rmse(traj, truth) < 1.5 * _rmse(reference, truth) + 0.02
+
+
+def test_landmark_positions_agree_with_one_by_one_lookups() -> None:
+    """The batched lookup (one pass over the estimate) equals landmark_position per id,
+    in the order asked, before and after a budget removal changed the estimate."""
+    frames, _, _ = circle_frames(60, seed=3)
+    slam = BearingSlam(SlamConfig(landmark_cap=12), rng=np.random.default_rng(0))
+    checked = 0
+    for k, frame in enumerate(frames):
+        slam.process(frame, with_covariance=False)
+        if k % 20 == 19:
+            ids = sorted(slam.landmarks, reverse=True)
+            assert len(ids) > 3
+            batch = slam.landmark_positions(ids)
+            one = np.array([slam.landmark_position(i) for i in ids])
+            np.testing.assert_array_equal(batch, one)
+            checked += 1
+    assert checked == 3
+    assert slam.landmark_positions([]).shape == (0, 2)
