@@ -67,6 +67,8 @@ class IncrementalGraph:
         self._estimate: gtsam.Values | None = None
         self._points: dict[int, NDArray[np.float64]] | None = None
         """Every Point2 of `_estimate` by key (built on the first `points` call)."""
+        self._poses: dict[int, NDArray[np.float64]] | None = None
+        """Every Pose2 of `_estimate` by key as (x, y, theta) (built by `poses_xyt`)."""
         self.marginal_keys: list[tuple[int, ...]] = []
         """Keys of every marginal factor added since the caller last cleared this."""
 
@@ -112,6 +114,18 @@ class IncrementalGraph:
         if not keys:
             return np.zeros((0, 2))
         return np.array([self._points[k] for k in keys], dtype=np.float64)
+
+    def poses_xyt(self, keys: Sequence[int]) -> NDArray[np.float64]:
+        """(N, 3) current estimates (x, y, theta) of Pose2 variables, from one pass over
+        the estimate (gtsam.utilities.extractPose2)."""
+        if self._poses is None:
+            estimate = self.estimate()
+            xyt = np.asarray(gtsam.utilities.extractPose2(estimate), dtype=np.float64)
+            pose_keys = [k for k in estimate.keys() if not is_landmark_key(k)]
+            self._poses = dict(zip(pose_keys, xyt.reshape(-1, 3), strict=True))
+        if not keys:
+            return np.zeros((0, 3))
+        return np.array([self._poses[k] for k in keys], dtype=np.float64)
 
     def pose_covariance(self, key: int) -> NDArray[np.float64]:
         """(3, 3) marginal covariance of a pose (x, y, theta in its own frame)."""
@@ -162,6 +176,7 @@ class IncrementalGraph:
         # full step) diverge from the original by centimetres.
         self._estimate = None
         self._points = None
+        self._poses = None
         for index in remove:
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]

@@ -173,3 +173,49 @@ def test_landmark_positions_agree_with_one_by_one_lookups() -> None:
             checked += 1
     assert checked == 3
     assert slam.landmark_positions([]).shape == (0, 2)
+
+
+def test_max_landmark_factors_bounds_factors_and_rotates_over_landmarks() -> None:
+    """At most `max_landmark_factors` bearing factors on live landmarks per frame; every
+    landmark still counts as observed, and the ones left out get their factor first in
+    the next frames (none waits longer than ceil(observed / bound) frames)."""
+    bound = 4
+    frames, _, _ = circle_frames(80, seed=5, n_landmarks=40)
+    slam = BearingSlam(
+        SlamConfig(landmark_cap=None, max_landmark_factors=bound), rng=np.random.default_rng(0)
+    )
+    waits: dict[int, int] = {}
+    worst = 0
+    bounded_frames = 0
+    for frame in frames:
+        before = slam.graph.num_factors
+        live_before = set(slam.landmarks)
+        outcome = slam.process(frame, with_covariance=False)
+        seen = [lid for lid in outcome.observed if lid in live_before]
+        new_factors = slam.graph.num_factors - before
+        added_rays = sum(slam.landmarks[lid].count for lid in outcome.added)
+        # odometry + landmark factors + each new landmark's rays and prior
+        landmark_factors = new_factors - 1 - added_rays - len(outcome.added)
+        assert landmark_factors == min(bound, len(seen))
+        if len(seen) > bound:
+            bounded_frames += 1
+        factored = {lid for lid, k in slam._last_factor.items() if k == outcome.frame_index}
+        for lid in seen:
+            waits[lid] = 0 if lid in factored else waits.get(lid, 0) + 1
+            worst = max(worst, waits[lid])
+        for lid in set(waits) - set(seen):
+            del waits[lid]
+    assert bounded_frames > 20
+    assert 0 < worst <= 40 // bound
+
+
+def test_max_landmark_factors_none_is_one_factor_per_observation() -> None:
+    frames, _, _ = circle_frames(40, seed=5)
+    slam = BearingSlam(SlamConfig(landmark_cap=None), rng=np.random.default_rng(0))
+    for frame in frames:
+        live_before = set(slam.landmarks)
+        before = slam.graph.num_factors
+        outcome = slam.process(frame, with_covariance=False)
+        seen = sum(1 for lid in outcome.observed if lid in live_before)
+        added_rays = sum(slam.landmarks[lid].count for lid in outcome.added)
+        assert slam.graph.num_factors - before == 1 + seen + added_rays + len(outcome.added)
