@@ -184,6 +184,29 @@ def _robust_pose_step(
     return delta, np.asarray(np.linalg.inv(info), dtype=np.float64)
 
 
+def _pairs_within(
+    predicted: FloatArray, bearings: FloatArray, half_width: float
+) -> tuple[IntArray, IntArray]:
+    """(landmark row, feature) pairs whose wrapped bearing difference may be within
+    `half_width` (a superset by 1e-9 rad; the caller tests exactly), sorted by row then
+    feature as np.nonzero of the full (L, N) test would give them."""
+    order = np.argsort(bearings, kind="stable")
+    sb = bearings[order]
+    # Copies shifted by -2 pi and +2 pi handle the seam (bearings in (-pi, pi]).
+    ext = np.concatenate([sb - 2.0 * np.pi, sb, sb + 2.0 * np.pi])
+    ext_index = np.concatenate([order, order, order])
+    margin = half_width + 1e-9
+    lo = np.searchsorted(ext, predicted - margin, side="left")
+    hi = np.searchsorted(ext, predicted + margin, side="right")
+    counts = hi - lo
+    rows = np.repeat(np.arange(len(predicted)), counts)
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    cols = ext_index[starts + np.arange(len(rows))]
+    # One feature per row only once (a half-width near pi could reach a copy twice).
+    keyed = np.unique(rows.astype(np.int64) * max(len(bearings), 1) + cols)
+    return keyed // max(len(bearings), 1), keyed % max(len(bearings), 1)
+
+
 def _best_two(
     keys: IntArray, dist: FloatArray
 ) -> tuple[IntArray, FloatArray, FloatArray, IntArray]:
@@ -344,9 +367,9 @@ class Associator:
         if len(picked) >= cfg.min_matches_for_pose:
             rows = np.array([r for r, _ in picked])
             cols = np.array([c for _, c in picked])
-            r = resid[rows, cols]
+            res = np.array([resid[pair] for pair in picked])
             s2 = var_l[rows] + features.sigma_rad[cols] ** 2
-            delta, post = _robust_pose_step(jp[rows], r, s2, cov)
+            delta, post = _robust_pose_step(jp[rows], res, s2, cov)
             pose = pose + delta
             picked, resid, jp, var_l = self._gate_and_pick(
                 features, views, xy, lcov, heights, pose, post
@@ -357,9 +380,9 @@ class Associator:
         self._last_lateral = {}
         for r, c in picked:
             sd = math.sqrt(float(jp[r] @ post @ jp[r]) + float(features.sigma_rad[c]) ** 2)
-            self._last_fit[labels[r]] = abs(float(resid[r, c])) / sd
+            self._last_fit[labels[r]] = abs(resid[r, c]) / sd
             rng_m = math.hypot(xy[r, 0] - pose[0], xy[r, 1] - pose[1])
-            self._last_lateral[labels[r]] = abs(float(resid[r, c])) * rng_m
+            self._last_lateral[labels[r]] = abs(resid[r, c]) * rng_m
         return {labels[r]: c for r, c in picked}
 
     def _prior_covs(self, records: list[_Landmark]) -> FloatArray:
@@ -385,9 +408,9 @@ class Associator:
         heights: FloatArray,
         pose: FloatArray,
         cov: FloatArray,
-    ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray]:
-        """Matches (landmark row, feature) plus (L, N) residuals, (L, 3) pose Jacobians and
-        (L,) landmark-only bearing variances."""
+    ) -> tuple[list[tuple[int, int]], dict[tuple[int, int], float], FloatArray, FloatArray]:
+        """Matches (landmark row, feature) plus the bearing residual of each gated pair,
+        (L, 3) pose Jacobians and (L,) landmark-only bearing variances."""
         cfg = self.config
         dx, dy = xy[:, 0] - pose[0], xy[:, 1] - pose[1]
         r2 = np.maximum(dx * dx + dy * dy, 1e-6)
@@ -397,20 +420,26 @@ class Associator:
         jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(xy))])
         var_l = np.einsum("li,lij,lj->l", jl, lcov, jl)
         var = np.einsum("li,ij,lj->l", jp, cov, jp) + var_l
-        resid = wrap_angles(features.bearing_rad[None, :] - predicted[:, None])
-        sd = np.sqrt(var[:, None] + features.sigma_rad[None, :] ** 2)
+        # Only pairs within the widest gate can pass: find them by bisection on the sorted
+        # bearings (with the seam's wrap) instead of testing every landmark x feature.
+        li, fi = _pairs_within(predicted, features.bearing_rad, cfg.max_gate_rad)
+        resid = wrap_angles(features.bearing_rad[fi] - predicted[li])
+        sd = np.sqrt(var[li] + features.sigma_rad[fi] ** 2)
         gate = np.clip(cfg.gate_sigmas * sd, cfg.min_gate_rad, cfg.max_gate_rad)
         inside = np.abs(resid) <= gate
         known = np.isfinite(heights)
         if known.any():
             elev = np.arctan2(np.where(known, heights, 0.0), np.sqrt(r2))
-            de = np.abs(features.elevation_rad[None, :] - elev[:, None])
-            tol = cfg.elevation_gate_rad + cfg.gate_sigmas * features.sigma_rad[None, :]
-            inside &= ~known[:, None] | (de <= 2.0 * tol)
-        li, fi = np.nonzero(inside)
+            de = np.abs(features.elevation_rad[fi] - elev[li])
+            tol = cfg.elevation_gate_rad + cfg.gate_sigmas * features.sigma_rad[fi]
+            inside &= ~known[li] | (de <= 2.0 * tol)
+        li, fi, resid = li[inside], fi[inside], resid[inside]
+        residuals = dict(
+            zip(zip(li.tolist(), fi.tolist(), strict=True), resid.tolist(), strict=True)
+        )
         if len(li) == 0:
             self._last_contested = np.zeros(0, dtype=np.int64)
-            return [], resid, jp, var_l
+            return [], residuals, jp, var_l
         # Distance to each stored view; keep the smallest per pair.
         stack, counts = views
         pair_views = stack[li]  # (P, K, D)
@@ -424,7 +453,7 @@ class Associator:
         dist = d.min(axis=1)
         limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
         self._last_contested = fi[dist <= limit]
-        return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
+        return _pick(li, fi, dist, limit, cfg.ratio), residuals, jp, var_l
 
     def _view_stack(self, records: list[_Landmark]) -> tuple[NDArray[Any], IntArray]:
         """(L, K, D) stored views of the landmarks (zero-padded) and (L,) their counts."""
