@@ -79,6 +79,12 @@ class SlamConfig:
     over the bearings); the others still count as observed. A camera sees ~100 live
     landmarks a frame, and each factor makes iSAM2 re-eliminate that landmark with all
     its earlier factors: the update's cost grows with factors per frame x per landmark."""
+    drop_window_observations: bool = False
+    """A pose that leaves the window without becoming a keyframe loses its landmark
+    observations instead of having them marginalised: only its odometry is folded into
+    the next pose, so no dense marginal over every landmark it saw builds up (keyframes
+    keep theirs). Information is thrown away: less accurate, much cheaper with many
+    landmarks per frame."""
     allow_new_landmarks: bool = True
     """False freezes the map (localisation mode): no candidates become landmarks."""
 

@@ -87,6 +87,12 @@ class IncrementalGraph:
     def factors_of(self, key: int) -> list[int]:
         return sorted(self._key_factors.get(key, ()))
 
+    def is_bearing(self, index: int) -> bool:
+        return isinstance(self._factors[index], gtsam.BearingFactor2D)
+
+    def factor_keys(self, index: int) -> tuple[int, ...]:
+        return tuple(self._factors[index].keys())
+
     def neighbourhoods(self, key: int) -> list[tuple[int, ...]]:
         """The keys of every factor that touches `key`."""
         return [tuple(self._factors[i].keys()) for i in self.factors_of(key)]
@@ -155,13 +161,18 @@ class IncrementalGraph:
         values: gtsam.Values | None = None,
         *,
         marginalise: Sequence[int] = (),
+        drop: Sequence[int] = (),
     ) -> None:
-        """Add factors (and new variables' initial values) and marginalise keys, in one step."""
+        """Add factors (and new variables' initial values) and marginalise keys, in one step.
+
+        `drop`: indices of factors removed without keeping their information (the
+        marginalisation of `marginalise` does not see them)."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
-        remove: list[int] = []
+        remove: list[int] = sorted(set(drop))
         if marginalise:
-            remove, marginals = self._schur_complement(marginalise)
+            indices, marginals = self._schur_complement(marginalise, exclude=set(drop))
+            remove = sorted(set(remove) | set(indices))
             added.extend(marginals)
             self.marginal_keys.extend(tuple(m.keys()) for m in marginals)
         for factor in added:
@@ -189,13 +200,13 @@ class IncrementalGraph:
                 self._key_factors.setdefault(key, set()).add(index)
 
     def _schur_complement(
-        self, keys: Sequence[int]
+        self, keys: Sequence[int], exclude: set[int] | None = None
     ) -> tuple[list[int], list[gtsam.NonlinearFactor]]:
         """Factor indices touching `keys`, and the marginal factors that replace them."""
         missing = [k for k in keys if k not in self._key_factors]
         if missing:
             raise KeyError(f"cannot marginalise {[gtsam.DefaultKeyFormatter(k) for k in missing]}")
-        indices = sorted({i for k in keys for i in self._key_factors[k]})
+        indices = sorted({i for k in keys for i in self._key_factors[k]} - (exclude or set()))
         theta = self._isam.getLinearizationPoint()
         local = gtsam.NonlinearFactorGraph()
         for index in indices:

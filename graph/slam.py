@@ -27,6 +27,7 @@ from graph.factors import (
     anchor_prior_factor,
     bearing_factor,
     from_pose2,
+    is_landmark_key,
     landmark_key,
     landmark_prior_factor,
     odometry_factor,
@@ -266,6 +267,7 @@ class BearingSlam:
             plan.factors,
             plan.values,
             marginalise=[k for k, _ in plan.leaving],
+            drop=self._dropped_observations(plan),
         )
         t2 = time.perf_counter()
         robot = self._commit(frame, robot, plan, before)
@@ -425,6 +427,19 @@ class BearingSlam:
             key=lambda i: (self._last_factor.get(observed[i][0], -1), spread[i]),
         )
         return sorted(order[:bound])
+
+    def _dropped_observations(self, plan: _Plan) -> list[int]:
+        """Factor indices of the landmark observations of a pose leaving the window
+        without becoming a keyframe, when `drop_window_observations` is set."""
+        if not self.config.drop_window_observations or plan.exiting is None or plan.promoted:
+            return []
+        key = plan.exiting[0]
+        return [
+            i
+            for i in self._graph.factors_of(key)
+            if self._graph.is_bearing(i)
+            and any(is_landmark_key(k) for k in self._graph.factor_keys(i))
+        ]
 
     def _window_exit(
         self, robot: _Robot, exiting: tuple[int, int] | None

@@ -181,6 +181,12 @@ class MapConfig(BaseModel):
         f"observation. Omitted: {CAMERA_LANDMARK_FACTORS} for a map with a camera (a "
         "panorama matches ~100 landmarks a frame), null otherwise",
     )
+    drop_window_observations: bool = Field(
+        False,
+        description="a pose leaving the window without becoming a keyframe loses its "
+        "landmark observations instead of having them marginalised (cheaper with many "
+        "landmarks per frame, throws information away; see the README)",
+    )
     seed: int = Field(0, ge=0, description="seed of the map's random choices (policy, k-means)")
 
     @model_validator(mode="after")
@@ -234,6 +240,7 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         initial_pose_sigma=cfg.noise.initial_pose_sigma,
         optimizer=cfg.optimizer,
         max_landmark_factors=cfg.max_landmark_factors,
+        drop_window_observations=cfg.drop_window_observations,
         allow_new_landmarks=mode == "mapping",
     )
 

@@ -219,3 +219,32 @@ def test_max_landmark_factors_none_is_one_factor_per_observation() -> None:
         seen = sum(1 for lid in outcome.observed if lid in live_before)
         added_rays = sum(slam.landmarks[lid].count for lid in outcome.added)
         assert slam.graph.num_factors - before == 1 + seen + added_rays + len(outcome.added)
+
+
+@pytest.mark.parametrize("drop", [True, False])
+def test_drop_window_observations_leaves_no_marginal_on_landmarks(drop: bool) -> None:
+    """With drop_window_observations (and no keyframes), a pose leaving the window takes
+    its bearing factors with it: the only factors on landmarks are bearings of window
+    poses and the landmarks' own priors, and the trajectory stays close to the truth.
+    Without it, the exiting poses' marginals link landmarks."""
+    frames, truth, _ = circle_frames(120, seed=4)
+    slam = BearingSlam(
+        SlamConfig(
+            landmark_cap=None, pose_window=15, max_keyframes=0, drop_window_observations=drop
+        ),
+        rng=np.random.default_rng(0),
+    )
+    for frame in frames:
+        slam.process(frame, with_covariance=False)
+    graph = slam.graph.nonlinear_graph()
+    on_landmarks = [
+        graph.at(i)
+        for i in range(graph.size())
+        if any(gtsam.Symbol(k).chr() == ord("l") for k in graph.at(i).keys())
+    ]
+    others = [
+        f for f in on_landmarks if not isinstance(f, gtsam.BearingFactor2D) and len(f.keys()) > 1
+    ]
+    assert (others == []) == drop
+    xy = slam.trajectory()["r1"][:, 2:4]
+    assert float(np.sqrt(np.mean(np.sum((xy - truth[:, :2]) ** 2, axis=1)))) < 0.2

@@ -29,3 +29,9 @@ def test_map_without_camera_has_no_bound_and_explicit_values_are_kept() -> None:
 def test_max_landmark_factors_must_be_positive() -> None:
     with pytest.raises(ValidationError, match="max_landmark_factors"):
         MapConfig.model_validate({"camera": "panorama", "max_landmark_factors": 0})
+
+
+def test_drop_window_observations_reaches_the_estimator() -> None:
+    stored = MapConfig.model_validate({"drop_window_observations": True}).model_dump(mode="json")
+    assert slam_config(stored, "mapping").drop_window_observations is True
+    assert slam_config({}, "mapping").drop_window_observations is False
