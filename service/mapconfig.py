@@ -135,7 +135,7 @@ class OmniCameraConfig(BaseModel):
 CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discriminator="model")]
 
 
-CAMERA_LANDMARK_FACTORS = 30
+CAMERA_LANDMARK_FACTORS = 60
 """Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
 
 
