@@ -33,6 +33,7 @@ estimator), the load average, and writes
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import signal
@@ -125,6 +126,24 @@ def _parts(meta: dict[str, Any], image: bytes, robot: str | None = None) -> dict
     }
 
 
+def _tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of a process and all its descendants (Linux /proc)."""
+    total = 0.0
+    tick = os.sysconf("SC_CLK_TCK")
+    pending = [pid]
+    while pending:
+        p = pending.pop()
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick
+            for task in os.listdir(f"/proc/{p}/task"):
+                kids = Path(f"/proc/{p}/task/{task}/children").read_text().split()
+                pending.extend(int(k) for k in kids)
+        except OSError:  # a process that ended meanwhile
+            continue
+    return total
+
+
 def _post(client: httpx.Client, map_id: str, parts: dict[str, Any]) -> dict[str, Any]:
     r = client.post(f"/v1/maps/{map_id}/frames", **parts)
     if r.status_code != 200:
@@ -158,6 +177,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "pose_window": 100,
         "camera": camera.as_config(),
     }
+    if args.optimizer is not None:
+        config["optimizer"] = args.optimizer
     load_start = os.getloadavg()
     print(f"{len(frames)} frames, load average {load_start[0]:.1f}, config {config}")
     pipeline = ImagePipeline(
@@ -179,6 +200,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 r = client.post("/v1/maps", json={"name": "images", "config": config})
                 assert r.status_code == 201, r.text
                 map_id = r.json()["id"]
+                server_cpu = [_tree_cpu_s(proc.pid)]
                 for k, (meta, image) in enumerate(frames):
                     t0 = time.perf_counter()
                     res = pipeline.submit(frame_from_dict(meta), image)
@@ -194,6 +216,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     session_stages.append(reply["timing_ms"])
                     http_stages.append(result["timing_ms"])
                     if (k + 1) % 50 == 0:
+                        server_cpu.append(_tree_cpu_s(proc.pid))
                         print(
                             f"frame {k + 1}: pipeline {np.mean(pipe_ms[-50:]):.1f} ms, "
                             f"session {np.mean(session_ms[-50:]):.1f} ms, "
@@ -230,6 +253,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "read_ahead": WorkerSettings().read_ahead,
         "live_landmarks_end": live,
         "http_minus_session_ms_median": float(np.median(np.subtract(http_ms, session_ms))),
+        "server_cpu_ms_per_frame_by_50": [
+            1e3 * (b - a) / 50 for a, b in itertools.pairwise(server_cpu)
+        ],
         "http_without_estimator": _stats(
             [h - st["total"] for h, st in zip(http_ms, http_stages, strict=True)]
         ),
@@ -322,17 +348,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--landmark-cap", type=int, default=200)
     p.add_argument("--policy", default="oldest")
     p.add_argument(
+        "--optimizer",
+        choices=["dogleg", "gauss_newton"],
+        default=None,
+        help="the map config's iSAM2 step (default: the service's, dogleg); results go to "
+        "http_images_<optimizer>.json",
+    )
+    p.add_argument(
         "--render-dir",
         type=Path,
         default=Path(tempfile.gettempdir()) / "covslam-bench-render",
         help="rendered run (made once, reused)",
     )
+    p.add_argument("--name", help="results file name without suffix (default http_images)")
     p.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     args = p.parse_args(argv)
     doc = run(args)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "http_images.json").write_text(json.dumps(doc))
-    plot(doc, args.out / "http_images.png")
+    name = args.name or (
+        "http_images" if args.optimizer is None else f"http_images_{args.optimizer}"
+    )
+    (args.out / f"{name}.json").write_text(json.dumps(doc))
+    plot(doc, args.out / f"{name}.png")
     for name in ("pipeline", "session", "http", "http_2_robots", "http_2_robots_read_ahead_off"):
         s = doc[name]
         print(f"{name:>28}: {s['frames_per_s']:.1f} frames/s, p50 {s['p50_ms']:.1f} ms, "
@@ -344,6 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         f"(p50 {s['p50_ms']:.1f} ms); HTTP - session p50 "
         f"{doc['http_minus_session_ms_median']:.1f} ms"
     )
+    cpu = ", ".join(f"{c:.1f}" for c in doc["server_cpu_ms_per_frame_by_50"])
+    print(f"service CPU (API + workers) per frame, by 50 frames: {cpu} ms")
     print(f"load average start {doc['load_average_at_start']}, end {doc['load_average_at_end']}")
     return 0
 

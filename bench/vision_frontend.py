@@ -52,6 +52,7 @@ from service.datasets.render import (
     visible_corners,
 )
 from service.evaluation import Trajectory, ate_rmse
+from service.mapconfig import CAMERA_LANDMARK_FACTORS
 from service.vision import ImagePipeline
 
 log = logging.getLogger("bench.vision_frontend")
@@ -183,7 +184,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     tw, sim, camera = _scene(args)
     identity = corner_identities(tw.corners_xyz)
     config = SlamConfig(
-        landmark_cap=args.landmark_cap, policy=args.policy, pose_window=args.pose_window
+        landmark_cap=args.landmark_cap,
+        policy=args.policy,
+        pose_window=args.pose_window,
+        max_landmark_factors=args.max_landmark_factors or None,
     )
 
     pipeline = ImagePipeline(
@@ -341,6 +345,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "landmark_cap": args.landmark_cap,
             "policy": args.policy,
             "pose_window": args.pose_window,
+            "max_landmark_factors": args.max_landmark_factors or None,
         },
         "truth_px": args.truth_px,
         "matched_observations": len(matched),
@@ -418,6 +423,12 @@ def main() -> None:
     p.add_argument("--landmark-cap", type=int, default=None)
     p.add_argument("--policy", default="oldest")
     p.add_argument("--pose-window", type=int, default=100)
+    p.add_argument(
+        "--max-landmark-factors",
+        type=int,
+        default=CAMERA_LANDMARK_FACTORS,
+        help="bearing factors on live landmarks per frame, both maps (0: one per observation)",
+    )
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle map (diagnosis)")

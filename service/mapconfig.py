@@ -135,6 +135,10 @@ class OmniCameraConfig(BaseModel):
 CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discriminator="model")]
 
 
+CAMERA_LANDMARK_FACTORS = 60
+"""Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
+
+
 class MapConfig(BaseModel):
     """How a map estimates. Omitted fields take the service's defaults."""
 
@@ -169,7 +173,27 @@ class MapConfig(BaseModel):
         "'gauss_newton' (undamped, partial updates: 2 ms/frame there, but a poorly "
         "linearised landmark can throw the estimate off for good)",
     )
+    max_landmark_factors: int | None = Field(
+        None,
+        ge=1,
+        description="most bearing factors on live landmarks per frame (those whose last "
+        "factor is oldest first; the rest still count as observed); null = one per "
+        f"observation. Omitted: {CAMERA_LANDMARK_FACTORS} for a map with a camera (a "
+        "panorama matches ~100 landmarks a frame), null otherwise",
+    )
+    drop_window_observations: bool = Field(
+        False,
+        description="a pose leaving the window without becoming a keyframe loses its "
+        "landmark observations instead of having them marginalised (cheaper with many "
+        "landmarks per frame, throws information away; see the README)",
+    )
     seed: int = Field(0, ge=0, description="seed of the map's random choices (policy, k-means)")
+
+    @model_validator(mode="after")
+    def _camera_factor_bound(self) -> MapConfig:
+        if "max_landmark_factors" not in self.model_fields_set and self.camera is not None:
+            self.max_landmark_factors = CAMERA_LANDMARK_FACTORS
+        return self
 
     @field_validator("camera", mode="before")
     @classmethod
@@ -215,6 +239,8 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         odometry_sigma_per_sqrt_second=cfg.noise.odometry_sigma_per_sqrt_second,
         initial_pose_sigma=cfg.noise.initial_pose_sigma,
         optimizer=cfg.optimizer,
+        max_landmark_factors=cfg.max_landmark_factors,
+        drop_window_observations=cfg.drop_window_observations,
         allow_new_landmarks=mode == "mapping",
     )
 

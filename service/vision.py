@@ -236,7 +236,7 @@ class ImagePipeline:
         slam = self.slam
         ids = sorted(slam.landmarks)
         labels = [slam.landmarks[i].label for i in ids]
-        xy = [slam.landmark_position(i) for i in ids]
+        xy = list(slam.landmark_positions(ids))
         covs: list[FloatArray | None] = [None] * len(ids)
         if self.landmark_covariances and ids:
             covs = list(slam.landmark_covariances(ids))
@@ -263,7 +263,9 @@ class ImagePipeline:
         self._last[frame.robot] = (pose, pose_cov)
         live = {rec.label: rec.id for rec in slam.landmarks.values()}
         touched = set(association.landmark_matches) | set(association.track_matches)
-        positions = {lb: slam.landmark_position(i) for lb, i in live.items() if lb in touched}
+        near = [(lb, i) for lb, i in live.items() if lb in touched]
+        xy_near = slam.landmark_positions([i for _, i in near])
+        positions = {lb: p for (lb, _), p in zip(near, xy_near, strict=True)}
         self.front_end.commit(association, pose=pose, live_labels=live, landmark_xy=positions)
         if signature is not None:
             self._signature[frame.robot] = signature

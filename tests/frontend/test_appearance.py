@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -87,3 +88,16 @@ def test_compass_after_a_step_forward_and_a_turn_and_refusing_mixed_shapes() -> 
     assert abs(math.degrees(wrap_angle(yaw - math.pi / 2))) < 1.0
     with pytest.raises(ValueError, match="shapes"):
         rotation_between(np.zeros((8, 256), np.float32), np.zeros((8, 128), np.float32))
+
+
+def test_signature_lookup_table_equals_log1p() -> None:
+    """The signature's log via a lookup table is exactly float32 log1p of each pixel."""
+    rng = np.random.default_rng(5)
+    pano = rng.integers(0, 256, size=(64, 512), dtype=np.uint8)
+    log_i = np.log1p(pano.astype(np.float32))
+    small = cv2.resize(log_i, (256, 8), interpolation=cv2.INTER_AREA)
+    small -= small.mean(axis=1, keepdims=True)
+    expected = small / small.std(axis=1, keepdims=True)
+    np.testing.assert_array_equal(signature(pano), expected)
+    with pytest.raises(ValueError, match="8-bit"):
+        signature(pano.astype(np.float32))

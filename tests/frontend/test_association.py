@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 
-from frontend.association import AssociationConfig, Associator
+from frontend.association import AssociationConfig, Associator, _pairs_within
 from frontend.features import Features
+from graph.angles import wrap_angles
 
 
 def _features(bearings_deg: list[float], descriptors: np.ndarray, v: float = 100.0) -> Features:
@@ -283,3 +284,22 @@ def test_a_feature_a_landmark_could_have_been_starts_no_track() -> None:
         assert result.landmark_matches == {}
         started[rule] = sorted(result.unmatched.tolist())
     assert started == {True: [2], False: [0, 1, 2]}
+
+
+def test_pairs_within_equals_the_full_gate_test_across_the_seam() -> None:
+    """The bisection over sorted bearings finds exactly the pairs a full (L, N) test
+    finds, in np.nonzero's order, also for bearings on both sides of +-pi."""
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        predicted = wrap_angles(rng.uniform(-np.pi, np.pi, 40))
+        bearings = wrap_angles(
+            np.concatenate([rng.uniform(-np.pi, np.pi, 300), [np.pi, -np.pi + 1e-12, 3.14]])
+        )
+        half = np.radians(5.0)
+        li, fi = _pairs_within(predicted, bearings, half)
+        full = np.abs(wrap_angles(bearings[None, :] - predicted[:, None])) <= half
+        want_l, want_f = np.nonzero(full)
+        exact = np.abs(wrap_angles(bearings[fi] - predicted[li])) <= half
+        np.testing.assert_array_equal(li[exact], want_l)
+        np.testing.assert_array_equal(fi[exact], want_f)
+        assert len(want_l) > 0

@@ -154,3 +154,97 @@ def test_marginalised_frames_follow_their_keyframe() -> None:
     gap = np.hypot(*(traj[:, 2:4] - reference[:, 2:4]).T)
     assert np.median(gap) < 0.05
     assert _rmse(traj, truth) < 1.5 * _rmse(reference, truth) + 0.02
+
+
+def test_landmark_positions_agree_with_one_by_one_lookups() -> None:
+    """The batched lookup (one pass over the estimate) equals landmark_position per id,
+    in the order asked, before and after a budget removal changed the estimate."""
+    frames, _, _ = circle_frames(60, seed=3)
+    slam = BearingSlam(SlamConfig(landmark_cap=12), rng=np.random.default_rng(0))
+    checked = 0
+    for k, frame in enumerate(frames):
+        slam.process(frame, with_covariance=False)
+        if k % 20 == 19:
+            ids = sorted(slam.landmarks, reverse=True)
+            assert len(ids) > 3
+            batch = slam.landmark_positions(ids)
+            one = np.array([slam.landmark_position(i) for i in ids])
+            np.testing.assert_array_equal(batch, one)
+            checked += 1
+    assert checked == 3
+    assert slam.landmark_positions([]).shape == (0, 2)
+
+
+def test_max_landmark_factors_bounds_factors_and_rotates_over_landmarks() -> None:
+    """At most `max_landmark_factors` bearing factors on live landmarks per frame; every
+    landmark still counts as observed, and the ones left out get their factor first in
+    the next frames (none waits longer than ceil(observed / bound) frames)."""
+    bound = 4
+    frames, _, _ = circle_frames(80, seed=5, n_landmarks=40)
+    slam = BearingSlam(
+        SlamConfig(landmark_cap=None, max_landmark_factors=bound), rng=np.random.default_rng(0)
+    )
+    waits: dict[int, int] = {}
+    worst = 0
+    bounded_frames = 0
+    for frame in frames:
+        before = slam.graph.num_factors
+        live_before = set(slam.landmarks)
+        outcome = slam.process(frame, with_covariance=False)
+        seen = [lid for lid in outcome.observed if lid in live_before]
+        new_factors = slam.graph.num_factors - before
+        added_rays = sum(slam.landmarks[lid].count for lid in outcome.added)
+        # odometry + landmark factors + each new landmark's rays and prior
+        landmark_factors = new_factors - 1 - added_rays - len(outcome.added)
+        assert landmark_factors == min(bound, len(seen))
+        if len(seen) > bound:
+            bounded_frames += 1
+        factored = {lid for lid, k in slam._last_factor.items() if k == outcome.frame_index}
+        for lid in seen:
+            waits[lid] = 0 if lid in factored else waits.get(lid, 0) + 1
+            worst = max(worst, waits[lid])
+        for lid in set(waits) - set(seen):
+            del waits[lid]
+    assert bounded_frames > 20
+    assert 0 < worst <= 40 // bound
+
+
+def test_max_landmark_factors_none_is_one_factor_per_observation() -> None:
+    frames, _, _ = circle_frames(40, seed=5)
+    slam = BearingSlam(SlamConfig(landmark_cap=None), rng=np.random.default_rng(0))
+    for frame in frames:
+        live_before = set(slam.landmarks)
+        before = slam.graph.num_factors
+        outcome = slam.process(frame, with_covariance=False)
+        seen = sum(1 for lid in outcome.observed if lid in live_before)
+        added_rays = sum(slam.landmarks[lid].count for lid in outcome.added)
+        assert slam.graph.num_factors - before == 1 + seen + added_rays + len(outcome.added)
+
+
+@pytest.mark.parametrize("drop", [True, False])
+def test_drop_window_observations_leaves_no_marginal_on_landmarks(drop: bool) -> None:
+    """With drop_window_observations (and no keyframes), a pose leaving the window takes
+    its bearing factors with it: the only factors on landmarks are bearings of window
+    poses and the landmarks' own priors, and the trajectory stays close to the truth.
+    Without it, the exiting poses' marginals link landmarks."""
+    frames, truth, _ = circle_frames(120, seed=4)
+    slam = BearingSlam(
+        SlamConfig(
+            landmark_cap=None, pose_window=15, max_keyframes=0, drop_window_observations=drop
+        ),
+        rng=np.random.default_rng(0),
+    )
+    for frame in frames:
+        slam.process(frame, with_covariance=False)
+    graph = slam.graph.nonlinear_graph()
+    on_landmarks = [
+        graph.at(i)
+        for i in range(graph.size())
+        if any(gtsam.Symbol(k).chr() == ord("l") for k in graph.at(i).keys())
+    ]
+    others = [
+        f for f in on_landmarks if not isinstance(f, gtsam.BearingFactor2D) and len(f.keys()) > 1
+    ]
+    assert (others == []) == drop
+    xy = slam.trajectory()["r1"][:, 2:4]
+    assert float(np.sqrt(np.mean(np.sum((xy - truth[:, :2]) ** 2, axis=1)))) < 0.2
