@@ -43,7 +43,7 @@ from graph.localiser import RELOCALISED, TRACKING
 from graph.particles import FilterEstimate
 from graph.slam import BearingSlam
 from graph.types import BearingObservation, FrameInput, Pose2D
-from service.localisation import Localised, MapLocalisation, to_map_frame, to_robot_frame
+from service.localisation import Localised, MapLocalisation, to_map_frame
 from service.vision import ImageFrameResult, ImagePipeline
 
 __all__ = ["CameraFrame", "process_image"]
@@ -237,20 +237,7 @@ def process_image(
         else:
             place, confidence = loc.appearance.best(found)
     else:
-        kept = loc.off_graph.off_graph(
-            robot,
-            seq=frame.seq,
-            stamp=frame.stamp,
-            odometry=odometry,
-            filter_pose=(
-                float(est.pose_xytheta[0]),
-                float(est.pose_xytheta[1]),
-                float(est.pose_xytheta[2]),
-            ),
-            converged=est.converged,
-        )
-        pose = Pose2D(*kept.pose)
-        cov = to_robot_frame(est.covariance, pose.theta)
+        pose, cov = loc.keep_off_graph(frame, odometry, est)
         place, confidence = loc.appearance.best(found)
         if confidence is not None:
             confidence = min(confidence, float(est.converged))

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
-from graph.particles import FilterConfig
+from graph.particles import FilterConfig, FilterEstimate
 from graph.places import Place
 from graph.slam import BearingSlam, FrameOutcome
 from graph.snapshot import last_accepted, latest_pose_keys
@@ -185,20 +185,7 @@ class MapLocalisation:
                 self.off_graph.anchor(frame.robot, seq=frame.seq, odometry=odometry)
             self.off_graph.on_graph(frame.robot, (pose.x, pose.y, pose.theta))
         else:
-            kept = self.off_graph.off_graph(
-                frame.robot,
-                seq=frame.seq,
-                stamp=frame.stamp,
-                odometry=odometry,
-                filter_pose=(
-                    float(est.pose_xytheta[0]),
-                    float(est.pose_xytheta[1]),
-                    float(est.pose_xytheta[2]),
-                ),
-                converged=est.converged,
-            )
-            pose = Pose2D(*kept.pose)
-            cov = to_robot_frame(est.covariance, pose.theta)
+            pose, cov = self.keep_off_graph(frame, odometry, est)
         return Localised(
             frame.robot,
             frame.seq,
@@ -212,6 +199,27 @@ class MapLocalisation:
             result.learnt,
             ms,
         )
+
+    def keep_off_graph(
+        self,
+        frame: FrameInput,
+        odometry: tuple[float, float, float] | None,
+        est: FilterEstimate,
+    ) -> tuple[Pose2D, FloatArray]:
+        """A frame the graph did not take (its robot initialising or lost), kept with the
+        best pose then available (service.offgraph): that pose, and the filter's
+        covariance in the robot frame."""
+        x, y, theta = (float(v) for v in est.pose_xytheta)
+        kept = self.off_graph.off_graph(
+            frame.robot,
+            seq=frame.seq,
+            stamp=frame.stamp,
+            odometry=odometry,
+            filter_pose=(x, y, theta),
+            converged=est.converged,
+        )
+        pose = Pose2D(*kept.pose)
+        return pose, to_robot_frame(est.covariance, pose.theta)
 
     def with_off_graph(
         self, rows: dict[str, list[dict[str, Any]]], robot: str | None = None
