@@ -78,7 +78,7 @@ def _run(frames: list[tuple[dict[str, Any], bytes]], path: Path, prune: bool) ->
         if session.snapshot_due:
             session.snapshot()
         if i % 100 == 0:
-            session.store._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            session.store.checkpoint()
             sizes.append(
                 {
                     "frame": i,

@@ -47,6 +47,31 @@ LOST = "lost"
 RELOCALISED = "relocalised"
 
 
+def _uniform_poses(n: int, lo: FloatArray, hi: FloatArray, rng: np.random.Generator) -> FloatArray:
+    """(n, 3) poses uniform over the box [lo, hi] (x, y) and over all headings."""
+    out = np.empty((n, 3))
+    out[:, :2] = lo + rng.random((n, 2)) * (hi - lo)
+    out[:, 2] = rng.uniform(-math.pi, math.pi, n)
+    return out
+
+
+def _aimed_headings(
+    xy: FloatArray,
+    landmarks_xy: FloatArray,
+    bearings_rad: FloatArray,
+    sigma_rad: float,
+    rng: np.random.Generator,
+) -> FloatArray:
+    """(n,) headings (unwrapped) that put one observed landmark, drawn per position, at
+    its observed bearing from each position of `xy` (n, 2), with N(0, sigma) noise."""
+    j = rng.integers(0, len(bearings_rad), len(xy))
+    d = landmarks_xy[j] - xy
+    heading: FloatArray = (
+        np.arctan2(d[:, 1], d[:, 0]) - bearings_rad[j] + rng.normal(0, sigma_rad, len(xy))
+    )
+    return heading
+
+
 @dataclass(frozen=True, slots=True)
 class LocaliserConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
@@ -182,8 +207,7 @@ class Localiser:
         def draw(n: int, rng: np.random.Generator) -> FloatArray:
             out = np.empty((n, 3))
             n_place = round(n * place_share) if ranked else 0
-            out[n_place:, :2] = lo + rng.random((n - n_place, 2)) * (hi - lo)
-            out[n_place:, 2] = rng.uniform(-math.pi, math.pi, n - n_place)
+            out[n_place:] = _uniform_poses(n - n_place, lo, hi, rng)
             if n_place:
                 scores = np.array([s for _, s, _ in ranked])
                 pick = rng.choice(len(ranked), size=n_place, p=scores / scores.sum())
@@ -196,12 +220,8 @@ class Localiser:
                 out[:n_place, :2] = ref[:, :2] + rng.normal(0, cfg.place_sigma_m, (n_place, 2))
                 out[:n_place, 2] = ref[:, 2] + rng.normal(0, 0.3, n_place)
             if len(bearings_rad):
-                j = rng.integers(0, len(bearings_rad), n)
-                d = landmarks_xy[j] - out[:, :2]
-                out[:, 2] = (
-                    np.arctan2(d[:, 1], d[:, 0])
-                    - bearings_rad[j]
-                    + rng.normal(0, cfg.heading_sigma_rad, n)
+                out[:, 2] = _aimed_headings(
+                    out[:, :2], landmarks_xy, bearings_rad, cfg.heading_sigma_rad, rng
                 )
             out[:, 2] = wrap_angles(out[:, 2])
             return out
@@ -226,15 +246,10 @@ class Localiser:
         def draw(n: int, rng: np.random.Generator) -> FloatArray:
             out = np.empty((n, 3))
             n_hint = round(n * share)
-            out[n_hint:, :2] = lo + rng.random((n - n_hint, 2)) * (hi - lo)
-            out[n_hint:, 2] = rng.uniform(-math.pi, math.pi, n - n_hint)
+            out[n_hint:] = _uniform_poses(n - n_hint, lo, hi, rng)
             if len(bearings_rad) and n > n_hint:
-                j = rng.integers(0, len(bearings_rad), n - n_hint)
-                d = landmarks_xy[j] - out[n_hint:, :2]
-                out[n_hint:, 2] = (
-                    np.arctan2(d[:, 1], d[:, 0])
-                    - bearings_rad[j]
-                    + rng.normal(0, cfg.heading_sigma_rad, n - n_hint)
+                out[n_hint:, 2] = _aimed_headings(
+                    out[n_hint:, :2], landmarks_xy, bearings_rad, cfg.heading_sigma_rad, rng
                 )
             if n_hint:
                 ref = refs[rng.choice(len(refs), size=n_hint, p=p)]

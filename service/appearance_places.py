@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontend.appearance import AppearanceIndex, AppearanceMatch
+from graph.angles import wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -70,10 +71,7 @@ class AppearancePlaces:
             if score < self.min_score or score <= baseline:
                 continue
             x, y, theta = self.places[i].pose
-            yaw = math.atan2(
-                math.sin(theta + float(found.yaw_offsets_rad[i])),
-                math.cos(theta + float(found.yaw_offsets_rad[i])),
-            )
+            yaw = wrap_angle(theta + float(found.yaw_offsets_rad[i]))
             out.append((np.array([x, y, yaw]), score - baseline))
         return out
 

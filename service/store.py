@@ -408,6 +408,10 @@ class MapStore:
                     "AND frame_id IN (SELECT frame_id FROM image_observations)"
                 )
 
+    def checkpoint(self) -> None:
+        """Fold the WAL into the database file (so its size on disk says what it holds)."""
+        self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+
     def image_count(self) -> int:
         """Images stored in the log."""
         return int(self._conn.execute("SELECT count(*) FROM images").fetchone()[0])
