@@ -44,7 +44,8 @@ class _Blanket:
         self.reference = reference
         self.poses = [k for k in keys if k != reference and not is_landmark_key(k)]
         self.landmarks = [k for k in keys if is_landmark_key(k)]
-        self.keys = [reference, *self.poses, *self.landmarks]
+        self.pose_keys = [reference, *self.poses]
+        self.keys = [*self.pose_keys, *self.landmarks]
         self.dims = [3] + [3] * len(self.poses) + [2] * len(self.landmarks)
         self.offsets = np.concatenate([[0], np.cumsum(self.dims)]).astype(int)
         self.r0 = theta.atPose2(reference)
@@ -59,19 +60,31 @@ class _Blanket:
         self._q0 = [_plain(q) for q in self.q0]
         self._l0 = [float(c) for c in self.l0.ravel()]
 
-    def coordinates(self, values: gtsam.Values) -> FloatArray:
-        """y(values), the same numbers as ``evaluate(values, False)[0]`` but in plain
-        Python arithmetic: an optimiser's step test evaluates every factor's error, and
-        for blankets of a few keys numpy's per-call overhead dominated (MRCLAM-6 at cap
-        8: ~160 error calls per frame)."""
-        r = _plain(values.atPose2(self.reference))
+    def read(self, values: gtsam.Values) -> tuple[float, ...]:
+        """The blanket's variables in `values` as plain floats: (x, y, theta) of the
+        reference and of every other pose, then (x, y) of every landmark."""
+        out: list[float] = []
+        for k in self.pose_keys:
+            p = values.atPose2(k)
+            out += (p.x(), p.y(), p.theta())
+        for k in self.landmarks:
+            out.extend(values.atPoint2(k).tolist())
+        return tuple(out)
+
+    def coordinates(self, raw: Sequence[float]) -> FloatArray:
+        """y at the variables `raw` (as `read` gives them), the same numbers as
+        ``evaluate(values, False)[0]`` but in plain Python arithmetic: an optimiser's
+        step test evaluates every factor's error, and for blankets of a few keys numpy's
+        per-call overhead dominated (MRCLAM-6 at cap 8: ~160 error calls per frame)."""
+        r = _from_xyt(raw[0], raw[1], raw[2])
         out = _log(_between(self._r0, r))
-        for q, k in zip(self._q0, self.poses, strict=True):
-            out.extend(_log(_between(q, _between(r, _plain(values.atPose2(k))))))
+        for j, q in enumerate(self._q0, start=1):
+            p = _from_xyt(raw[3 * j], raw[3 * j + 1], raw[3 * j + 2])
+            out.extend(_log(_between(q, _between(r, p))))
         rx, ry, rc, rs = r
-        for j, k in enumerate(self.landmarks):
-            lx, ly = values.atPoint2(k)
-            dx, dy = lx - rx, ly - ry
+        base = 3 * len(self.pose_keys)
+        for j in range(len(self.landmarks)):
+            dx, dy = raw[base + 2 * j] - rx, raw[base + 2 * j + 1] - ry
             out.append(rc * dx + rs * dy - self._l0[2 * j])
             out.append(-rs * dx + rc * dy - self._l0[2 * j + 1])
         return np.array(out)
@@ -148,7 +161,11 @@ _Plain = tuple[float, float, float, float]
 
 
 def _plain(pose: gtsam.Pose2) -> _Plain:
-    return (pose.x(), pose.y(), math.cos(pose.theta()), math.sin(pose.theta()))
+    return _from_xyt(pose.x(), pose.y(), pose.theta())
+
+
+def _from_xyt(x: float, y: float, theta: float) -> _Plain:
+    return (x, y, math.cos(theta), math.sin(theta))
 
 
 def _between(a: _Plain, b: _Plain) -> _Plain:
@@ -212,6 +229,13 @@ class RelativeSpec:
         return values
 
 
+_RECENT_ERRORS = 8
+"""Residuals a relative marginal remembers, by the exact values of its variables. An
+iSAM2 dogleg step evaluates the whole graph's error at the linearisation point and at
+trial points; most of a factor's variables keep their values from frame to frame, so
+on MRCLAM-6 (cap 8) about half of the error calls repeat one of the last 8 inputs."""
+
+
 class RelativeMarginalFactor(gtsam.CustomFactor):
     """The nonlinear factor of a `RelativeSpec` (see the module docstring)."""
 
@@ -220,11 +244,19 @@ class RelativeMarginalFactor(gtsam.CustomFactor):
         m, b = spec.m, spec.b
         offsets = blanket.offsets
 
+        recent: dict[tuple[float, ...], FloatArray] = {}
+
         def error(
             _factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
         ) -> FloatArray:
             if jacobians is None:
-                return m @ blanket.coordinates(values) - b
+                raw = blanket.read(values)
+                cached = recent.get(raw)
+                if cached is None:
+                    cached = recent[raw] = m @ blanket.coordinates(raw) - b
+                    if len(recent) > _RECENT_ERRORS:
+                        del recent[next(iter(recent))]  # the oldest
+                return cached
             y, column, diagonal = blanket.evaluate(values, with_jacobians=True)
             residual: FloatArray = m @ y - b
             if jacobians is not None:

@@ -184,4 +184,6 @@ def test_plain_arithmetic_coordinates_match_gtsam(seed: int) -> None:
             step = rng.normal(scale=[1.0, 1.0, 3.0])
         moved.insert(key, pose.retract(step))
     expected, _, _ = blanket.evaluate(moved, with_jacobians=False)
-    np.testing.assert_allclose(blanket.coordinates(moved), expected, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        blanket.coordinates(blanket.read(moved)), expected, rtol=1e-9, atol=1e-12
+    )
