@@ -12,7 +12,13 @@ import pytest
 
 from graph.config import SlamConfig
 from graph.factors import bearing_factor, landmark_key, odometry_factor, pose_key
-from graph.relative import RelativeMarginalFactor, choose_reference, relative_marginal
+from graph.relative import (
+    RelativeMarginalFactor,
+    RelativeSpec,
+    _Blanket,
+    choose_reference,
+    relative_marginal,
+)
 from graph.types import Odometry
 
 KEYS = [pose_key(0, 5), landmark_key(1), pose_key(0, 9), landmark_key(2)]
@@ -187,3 +193,80 @@ def test_plain_arithmetic_coordinates_match_gtsam(seed: int) -> None:
     np.testing.assert_allclose(
         blanket.coordinates(blanket.read(moved)), expected, rtol=1e-9, atol=1e-12
     )
+
+
+def _odometry_marginal(prior: bool) -> tuple[gtsam.GaussianFactor, gtsam.Values]:
+    """Odometry x0-x1-x2 whose measurements disagree with theta (so b != 0); x1
+    eliminated. With `prior`, x0 also has a prior (absolute information)."""
+    cfg = SlamConfig(huber_k=None)
+    x = [pose_key(0, k) for k in range(3)]
+    poses = [gtsam.Pose2(0.5, -1.0, 0.3), gtsam.Pose2(1.4, -0.6, 0.5), gtsam.Pose2(2.1, 0.2, 0.9)]
+    theta = gtsam.Values()
+    for k, p in zip(x, poses, strict=True):
+        theta.insert(k, p)
+    graph = gtsam.NonlinearFactorGraph()
+    for a, b, wrong in ((0, 1, (0.05, -0.02, 0.03)), (1, 2, (-0.03, 0.04, -0.02))):
+        rel = poses[a].between(poses[b])
+        odo = Odometry(rel.x() + wrong[0], rel.y() + wrong[1], rel.theta() + wrong[2])
+        graph.add(odometry_factor(x[a], x[b], odo, cfg))
+    if prior:
+        graph.add(gtsam.PriorFactorPose2(x[0], poses[0], gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    _, remaining = graph.linearize(theta).eliminatePartialSequential(gtsam.Ordering([x[1]]))
+    return gtsam.JacobianFactor(remaining), theta
+
+
+def test_a_pose_only_gauge_free_marginal_becomes_a_between_factor() -> None:
+    """Two poses, information on their relative pose only: a C++ BetweenFactorPose2 with
+    the same Gaussian at the linearisation point (Hessian and gradient), unchanged by a
+    rigid motion of the map, and within second order of the relative factor nearby."""
+    factor, theta = _odometry_marginal(prior=False)
+    reference = choose_reference(list(factor.keys()), [pose_key(0, 1)])
+    between = relative_marginal(factor, theta, reference)
+    assert isinstance(between, gtsam.BetweenFactorPose2)
+    order = list(factor.keys())
+    expected = _augmented_hessian(factor, order)
+    got = _augmented_hessian(between.linearize(theta), order)
+    # [[H, -g], [-g^T, c]]: all but the constant c, which no optimiser sees
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(got[:-1], expected[:-1], atol=1e-9 * scale)
+    np.testing.assert_allclose(got[:, :-1], expected[:, :-1], atol=1e-9 * scale)
+
+    moved = gtsam.Values()
+    g = gtsam.Pose2(-3.0, 2.0, -2.5)
+    for key in factor.keys():
+        moved.insert(key, g.compose(theta.atPose2(key)))
+    assert between.error(moved) == pytest.approx(between.error(theta), rel=1e-9)
+
+    # The relative factor of the same Gaussian, for comparison near theta: their errors
+    # agree up to a constant (taken out at theta) to within second order of the step.
+    blanket = _Blanket(reference, order, theta)
+    a, b = gtsam.JacobianFactor(factor).jacobian()
+    keyed = np.hstack([a[:, 3 * order.index(k) : 3 * order.index(k) + 3] for k in blanket.keys])
+    spec = RelativeSpec(reference, tuple(blanket.keys), _at(theta, blanket.keys),
+                        blanket.right_divide(keyed, theta), np.asarray(b))  # fmt: skip
+    relative = RelativeMarginalFactor(spec)
+    offset = relative.error(theta) - between.error(theta)
+    rng = np.random.default_rng(3)
+    for step in (1e-2, 1e-3):
+        at = gtsam.Values(theta)
+        for key in order:
+            _retract(at, key, rng.normal(scale=step, size=3))
+        change = abs(relative.error(at) - relative.error(theta))
+        assert abs(relative.error(at) - between.error(at) - offset) <= 0.05 * change + 1e-12
+
+
+def test_a_marginal_with_absolute_information_or_a_landmark_stays_relative() -> None:
+    factor, theta = _odometry_marginal(prior=True)
+    reference = choose_reference(list(factor.keys()), [pose_key(0, 1)])
+    assert isinstance(relative_marginal(factor, theta, reference), RelativeMarginalFactor)
+    landmark, theta = _gauge_free_marginal()
+    reference = choose_reference(list(landmark.keys()), [pose_key(0, 0)])
+    assert isinstance(relative_marginal(landmark, theta, reference), RelativeMarginalFactor)
+
+
+def _at(values: gtsam.Values, keys: list[int]) -> tuple[tuple[float, ...], ...]:
+    out = []
+    for key in keys:
+        p = values.atPose2(key)
+        out.append((p.x(), p.y(), p.theta()))
+    return tuple(out)
