@@ -12,8 +12,11 @@
    robot N from its initial pose; 60 s of its frames are cut out (the robot jumps,
    without odometry for the gap). Frames from the cut until `relocalised`, and the
    ATE of the reported poses afterwards.
+4. Tracking (``--parts tracking``): each robot's whole run, no kidnap, through the same
+   pipeline; every `lost` there is a false alarm.
 
-    python -m bench.localisation [--starts 50] [--out bench/results]
+    python -m bench.localisation [--starts 50] [--parts pf global kidnap tracking]
+                                 [--out bench/results]
 """
 
 from __future__ import annotations
@@ -353,6 +356,23 @@ def _after_cut(results: list[dict], cut: int, gt: Any) -> dict[str, Any]:
     }
 
 
+def tracking_service(directory: Path, robot: int) -> dict[str, Any]:
+    """One robot's whole run, no kidnap, through a fresh MapSession: a `lost` here is a
+    false alarm (the robot was never moved)."""
+    frames, gt = mrclam_frames(load_mrclam(directory, robot))
+    results, _ = _run_session("tracking", frames, robot)
+    statuses = [r["localisation"]["status"] for r in results]
+    return {
+        "robot": robot,
+        "frames": len(frames),
+        "lost_events": sum(
+            1 for k in range(1, len(statuses)) if statuses[k] == "lost" != statuses[k - 1]
+        ),
+        "lost_frames": statuses.count("lost"),
+        "ate_m": _ate_of_results(results, gt),
+    }
+
+
 def kidnap_shared(
     directory: Path, robot: int, before_s: float, cut_s: float, after_s: float
 ) -> dict[str, Any]:
@@ -532,7 +552,7 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="*",
-        choices=["pf", "global", "study", "kidnap"],
+        choices=["pf", "global", "study", "kidnap", "tracking"],
         default=["pf", "global", "kidnap"],
         help="parts to run; the others keep their figures from an existing localisation.json",
     )
@@ -587,6 +607,11 @@ def main() -> None:
             kidnap_shared(directory, r, 120.0, 60.0, 120.0) for r in args.kidnap_robots
         ]
         for row in doc["kidnap_shared_map"]:
+            print(row)
+    if "tracking" in args.parts:
+        doc["runs_of_parts"]["tracking"] = _stamp()
+        doc["tracking_service"] = [tracking_service(directory, r) for r in args.kidnap_robots]
+        for row in doc["tracking_service"]:
             print(row)
     args.out.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=1))

@@ -339,6 +339,18 @@ class Localiser:
             track.status = TRACKING
         if track.status == TRACKING and len(z):
             weak = track.pf.w_fast < cfg.lost_likelihood_ratio * track.pf.w_slow
+            if (
+                weak
+                and graph_pose is not None
+                and track.pf.fit(graph_pose[0], lm_xy, z, q, sigmas_rad=sig)
+                >= cfg.lost_likelihood_ratio * track.pf.w_slow
+            ):
+                # The graph's pose explains what the robot sees: the filter, not the
+                # robot, has lost track (e.g. one bearing a frame while turning on the
+                # spot). It starts again around the graph's estimate.
+                track.pf = self._around_graph(track.pf, graph_pose, rng)
+                est = track.pf.estimate()
+                weak = False
             track.weak_frames = track.weak_frames + 1 if weak else 0
         if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
             # The belief no longer explains what the robot sees: search afresh.
@@ -359,7 +371,11 @@ class Localiser:
                 + np.diag(np.square(cfg.lost_sigma_floor))
             )
             d2 = float(e @ np.linalg.solve(s, e))
-            track.disagree_frames = track.disagree_frames + 1 if d2 > cfg.lost_gate else 0
+            # Only a converged filter disagrees: one whose weight is split between modes
+            # (injected hypotheses that a single bearing cannot tell apart) has no pose to
+            # disagree with, and its main mode can flip between frames.
+            beyond = d2 > cfg.lost_gate and est.converged
+            track.disagree_frames = track.disagree_frames + 1 if beyond else 0
             if track.disagree_frames >= cfg.lost_frames:
                 track.status = LOST
                 track.lost_reason = "graph and filter disagree"
@@ -409,6 +425,24 @@ class Localiser:
         if track.status in (INITIALISING, LOST):
             confidence = min(confidence, float(est.converged))
         return StepResult(track.status, est, place, confidence, anchor, learnt)
+
+    def _around_graph(
+        self,
+        pf: ParticleFilter,
+        graph_pose: tuple[FloatArray, FloatArray],
+        rng: np.random.Generator,
+    ) -> ParticleFilter:
+        """A fresh filter of the minimum size around the graph's pose, spread by the
+        graph's marginal sigmas (at least 5 cm and 2 degrees)."""
+        spread = np.sqrt(np.clip(np.diag(np.asarray(graph_pose[1], dtype=np.float64)), 0, None))
+        sigmas = np.maximum(spread, (0.05, 0.05, math.radians(2.0)))
+        return ParticleFilter.around(
+            np.asarray(graph_pose[0], dtype=np.float64),
+            (float(sigmas[0]), float(sigmas[1]), float(sigmas[2])),
+            pf.config,
+            rng=rng,
+            n=pf.config.min_particles,
+        )
 
     def learn(
         self,

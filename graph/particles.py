@@ -387,16 +387,10 @@ class ParticleFilter:
             )
 
         loglik = likelihood(self.particles)
-        # Mean per-landmark likelihood relative to its peak, in (0, 1]: comparable
-        # between frames that see different numbers of landmarks.
-        peaks = np.log(
-            cfg.outlier_fraction / TWO_PI
-            + (1.0 - cfg.outlier_fraction) / (math.sqrt(TWO_PI) * sigma)
-        )
         q_sum = float(q.sum())
         if q_sum > 0:
             # sum_i w_i exp((loglik_i - sum_j q_j peak_j) / q_sum), in one pass
-            per_landmark = (loglik - float(q @ peaks)) / q_sum
+            per_landmark = self._per_landmark_log(loglik, q, sigma)
             per_landmark += self.log_weights
             w_avg = float(np.exp(per_landmark, out=per_landmark).sum())
             if self.w_slow == 0.0:
@@ -415,6 +409,45 @@ class ParticleFilter:
         w = np.exp(self.log_weights)
         if inject > 0.0 or 1.0 / float(w @ w) < cfg.resample_ess_fraction * self.size:
             self.resample(rng=rng, injector=injector, inject_fraction=inject)
+
+    def _per_landmark_log(self, loglik: FloatArray, q: FloatArray, sigma: FloatArray) -> FloatArray:
+        """Log of the mean per-landmark likelihood relative to its peak (in (0, 1] once
+        exponentiated; comparable between frames that see different numbers of
+        landmarks), for log-likelihoods ``(N,)`` of observations of quality q."""
+        cfg = self.config
+        peaks = np.log(
+            cfg.outlier_fraction / TWO_PI
+            + (1.0 - cfg.outlier_fraction) / (math.sqrt(TWO_PI) * sigma)
+        )
+        return np.asarray((loglik - float(q @ peaks)) / float(q.sum()))
+
+    def fit(
+        self,
+        pose_xytheta: FloatArray,
+        landmarks_xy: FloatArray,
+        bearings_rad: FloatArray,
+        quality: FloatArray | None = None,
+        *,
+        sigmas_rad: FloatArray | None = None,
+    ) -> float:
+        """How well one pose ``(3,)`` explains the observed bearings: the mean
+        per-landmark likelihood relative to its peak, the quantity whose weighted
+        average over the particles `w_fast` and `w_slow` follow. 1.0 if nothing was
+        observed."""
+        m = len(bearings_rad)
+        q = np.ones(m) if quality is None else np.clip(np.asarray(quality, np.float64), 0, 1)
+        if m == 0 or float(q.sum()) <= 0:
+            return 1.0
+        sigma = self.bearing_sigmas(m, sigmas_rad)
+        loglik = bearing_log_likelihood(
+            np.asarray(pose_xytheta, dtype=np.float64).reshape(1, 3),
+            np.asarray(landmarks_xy, dtype=np.float64).reshape(-1, 2),
+            np.asarray(bearings_rad, dtype=np.float64),
+            q,
+            sigma_rad=sigma,
+            outlier_fraction=self.config.outlier_fraction,
+        )
+        return float(np.exp(self._per_landmark_log(loglik, q, sigma))[0])
 
     def bearing_sigmas(self, m: int, sigmas_rad: FloatArray | None = None) -> FloatArray:
         """``(m,)`` sensor-model sigmas: each observation's own sigma (NaN or None: the

@@ -96,3 +96,99 @@ def test_proposal_favours_places_only_as_far_as_recognition_tells_them_apart() -
     uniform = math.pi / 64.0  # a 1 m disc's share of the 8 m x 8 m extent
     assert near[0] == pytest.approx(uniform, abs=0.02)
     assert near[1] > 0.3  # 0.63 of the draws around place 0 (sigma 0.75 m): ~0.39
+
+
+def _tracked(rng: np.random.Generator) -> tuple[Localiser, np.ndarray, list[str], list[float]]:
+    """A localiser tracking robot "r" at the graph's pose (first frame of the circle)."""
+    loc = Localiser()
+    truth = _circle_pose(0)
+    labels, z = _frame(truth, np.random.default_rng(7))
+    result = loc.step(
+        "r",
+        odometry=None,
+        dt_s=0.0,
+        labels=labels,
+        bearings_rad=z,
+        landmarks=WORLD,
+        graph_pose=(truth, np.diag([0.01, 0.01, 0.001])),
+        rng=rng,
+    )
+    assert result.status == TRACKING
+    return loc, truth, labels, z
+
+
+def _statuses(
+    loc: Localiser,
+    graph: np.ndarray,
+    frames: int,
+    rng: np.random.Generator,
+    labels: list[str] | None = None,
+    z: list[float] | None = None,
+) -> list[str]:
+    out = []
+    for _ in range(frames):
+        result = loc.step(
+            "r",
+            odometry=None,
+            dt_s=0.2,
+            labels=labels or [],
+            bearings_rad=z or [],
+            landmarks=WORLD,
+            graph_pose=(graph, np.diag([0.01, 0.01, 0.001])),
+            rng=rng,
+        )
+        out.append(result.status)
+    return out
+
+
+def _cloud(rng: np.random.Generator, *parts: tuple[np.ndarray, int]) -> np.ndarray:
+    return np.vstack([pose + rng.normal(0.0, (0.02, 0.02, 0.01), (n, 3)) for pose, n in parts])
+
+
+def test_a_filter_split_between_hypotheses_does_not_make_a_tracked_robot_lost() -> None:
+    """Graph and filter disagree only when the filter has converged elsewhere: a belief
+    whose weight is split (injected hypotheses that one bearing cannot tell apart; its
+    main mode may flip from frame to frame) has no pose to disagree with. The same
+    far-away mode holding all the weight does make the robot lost."""
+    from graph.particles import ParticleFilter
+
+    rng = np.random.default_rng(0)
+    far = _circle_pose(0) + np.array([3.0, 0.0, 0.5])
+    loc, graph, _, _ = _tracked(rng)
+    cfg = loc.config.filter
+    loc.robots["r"].pf = ParticleFilter.from_poses(_cloud(rng, (far, 600), (graph, 400)), cfg)
+    assert not loc.robots["r"].pf.estimate().converged
+    assert np.hypot(*(loc.robots["r"].pf.estimate().pose_xytheta[:2] - far[:2])) < 0.1
+    assert set(_statuses(loc, graph, 8, rng)) == {TRACKING}
+
+    loc, graph, _, _ = _tracked(rng)
+    loc.robots["r"].pf = ParticleFilter.from_poses(_cloud(rng, (far, 1000)), cfg)
+    assert loc.robots["r"].pf.estimate().converged
+    statuses = _statuses(loc, graph, 8, rng)
+    assert statuses.index(LOST) == loc.config.lost_frames - 1
+
+
+def test_a_weak_filter_is_started_again_where_the_graph_explains_the_observations() -> None:
+    """A tracked robot whose filter no longer explains what it sees (its fast likelihood
+    average below lost_likelihood_ratio of the slow one) counts a weak frame, towards
+    `lost`, only if the graph's pose does not explain the observations either. If it
+    does, the filter, not the robot, has lost track (MRCLAM-6 robots turning on the spot
+    with one bearing a frame went `lost` this way while their graph was right): the
+    filter starts again around the graph's pose."""
+    from graph.particles import ParticleFilter, uniform_injector
+    from tests.graph.test_particles import BOUNDS
+
+    rng = np.random.default_rng(1)
+    for graph_offset, weak in ((np.zeros(3), False), (np.array([1.5, -1.0, 0.8]), True)):
+        loc, truth, labels, z = _tracked(rng)
+        track = loc.robots["r"]
+        spread = ParticleFilter.from_poses(uniform_injector(BOUNDS)(3000, rng), loc.config.filter)
+        spread.w_slow, spread.w_fast = track.pf.w_slow, 0.0  # it has been failing
+        track.pf = spread
+        graph = truth + graph_offset
+        assert _statuses(loc, graph, 1, rng, labels[:1], z[:1]) == [TRACKING]
+        track = loc.robots["r"]
+        assert track.weak_frames == int(weak)
+        est = track.pf.estimate().pose_xytheta
+        near = np.hypot(*(est[:2] - graph[:2])) < 0.2 and abs(wrap_angle(est[2] - graph[2])) < 0.1
+        assert near == (not weak)
