@@ -103,17 +103,7 @@ def _tracked(rng: np.random.Generator) -> tuple[Localiser, np.ndarray, list[str]
     loc = Localiser()
     truth = _circle_pose(0)
     labels, z = _frame(truth, np.random.default_rng(7))
-    result = loc.step(
-        "r",
-        odometry=None,
-        dt_s=0.0,
-        labels=labels,
-        bearings_rad=z,
-        landmarks=WORLD,
-        graph_pose=(truth, np.diag([0.01, 0.01, 0.001])),
-        rng=rng,
-    )
-    assert result.status == TRACKING
+    assert _statuses(loc, truth, 1, rng, labels, z) == [TRACKING]
     return loc, truth, labels, z
 
 
