@@ -348,7 +348,7 @@ class Localiser:
                 # The graph's pose explains what the robot sees: the filter, not the
                 # robot, has lost track (e.g. one bearing a frame while turning on the
                 # spot). It starts again around the graph's estimate.
-                track.pf = self._around_graph(track.pf, graph_pose, rng)
+                track.pf = _around_graph(graph_pose, cfg.filter, rng)
                 est = track.pf.estimate()
                 weak = False
             track.weak_frames = track.weak_frames + 1 if weak else 0
@@ -426,24 +426,6 @@ class Localiser:
             confidence = min(confidence, float(est.converged))
         return StepResult(track.status, est, place, confidence, anchor, learnt)
 
-    def _around_graph(
-        self,
-        pf: ParticleFilter,
-        graph_pose: tuple[FloatArray, FloatArray],
-        rng: np.random.Generator,
-    ) -> ParticleFilter:
-        """A fresh filter of the minimum size around the graph's pose, spread by the
-        graph's marginal sigmas (at least 5 cm and 2 degrees)."""
-        spread = np.sqrt(np.clip(np.diag(np.asarray(graph_pose[1], dtype=np.float64)), 0, None))
-        sigmas = np.maximum(spread, (0.05, 0.05, math.radians(2.0)))
-        return ParticleFilter.around(
-            np.asarray(graph_pose[0], dtype=np.float64),
-            (float(sigmas[0]), float(sigmas[1]), float(sigmas[2])),
-            pf.config,
-            rng=rng,
-            n=pf.config.min_particles,
-        )
-
     def learn(
         self,
         robot: str,
@@ -485,3 +467,19 @@ class Localiser:
 
     def forget_robot(self, robot: str) -> None:
         self.robots.pop(robot, None)
+
+
+def _around_graph(
+    graph_pose: tuple[FloatArray, FloatArray], config: FilterConfig, rng: np.random.Generator
+) -> ParticleFilter:
+    """A fresh filter of the minimum size around the graph's pose ``(3,)``, spread by the
+    graph's marginal sigmas (its ``(3, 3)`` covariance; at least 5 cm and 2 degrees)."""
+    spread = np.sqrt(np.clip(np.diag(np.asarray(graph_pose[1], dtype=np.float64)), 0, None))
+    sigmas = np.maximum(spread, (0.05, 0.05, math.radians(2.0)))
+    return ParticleFilter.around(
+        np.asarray(graph_pose[0], dtype=np.float64),
+        (float(sigmas[0]), float(sigmas[1]), float(sigmas[2])),
+        config,
+        rng=rng,
+        n=config.min_particles,
+    )

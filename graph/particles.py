@@ -367,14 +367,10 @@ class ParticleFilter:
         MCL bookkeeping, resampling (KLD-sized) when the ESS is low, and injection.
         ``sigmas_rad`` ``(M,)``: each observation's own sigma (NaN: none stated)."""
         cfg = self.config
-        m = len(bearings_rad)
         self.last_injected = 0
-        if m == 0:
+        if len(bearings_rad) == 0:
             return
-        q = np.ones(m) if quality is None else np.clip(np.asarray(quality, np.float64), 0, 1)
-        sigma = self.bearing_sigmas(m, sigmas_rad)
-        lm = np.asarray(landmarks_xy, dtype=np.float64).reshape(-1, 2)
-        z = np.asarray(bearings_rad, dtype=np.float64)
+        lm, z, q, sigma = self._observations(landmarks_xy, bearings_rad, quality, sigmas_rad)
 
         def likelihood(particles: FloatArray) -> FloatArray:
             return bearing_log_likelihood(
@@ -434,20 +430,36 @@ class ParticleFilter:
         per-landmark likelihood relative to its peak, the quantity whose weighted
         average over the particles `w_fast` and `w_slow` follow. 1.0 if nothing was
         observed."""
-        m = len(bearings_rad)
-        q = np.ones(m) if quality is None else np.clip(np.asarray(quality, np.float64), 0, 1)
-        if m == 0 or float(q.sum()) <= 0:
+        lm, z, q, sigma = self._observations(landmarks_xy, bearings_rad, quality, sigmas_rad)
+        if len(z) == 0 or float(q.sum()) <= 0:
             return 1.0
-        sigma = self.bearing_sigmas(m, sigmas_rad)
         loglik = bearing_log_likelihood(
             np.asarray(pose_xytheta, dtype=np.float64).reshape(1, 3),
-            np.asarray(landmarks_xy, dtype=np.float64).reshape(-1, 2),
-            np.asarray(bearings_rad, dtype=np.float64),
+            lm,
+            z,
             q,
             sigma_rad=sigma,
             outlier_fraction=self.config.outlier_fraction,
         )
         return float(np.exp(self._per_landmark_log(loglik, q, sigma))[0])
+
+    def _observations(
+        self,
+        landmarks_xy: FloatArray,
+        bearings_rad: FloatArray,
+        quality: FloatArray | None,
+        sigmas_rad: FloatArray | None,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Landmarks ``(M, 2)``, bearings ``(M,)``, qualities clipped to [0, 1] (1 if not
+        given) and sensor-model sigmas ``(M,)``, as the sensor model takes them."""
+        m = len(bearings_rad)
+        q = np.ones(m) if quality is None else np.clip(np.asarray(quality, np.float64), 0, 1)
+        return (
+            np.asarray(landmarks_xy, dtype=np.float64).reshape(-1, 2),
+            np.asarray(bearings_rad, dtype=np.float64),
+            q,
+            self.bearing_sigmas(m, sigmas_rad),
+        )
 
     def bearing_sigmas(self, m: int, sigmas_rad: FloatArray | None = None) -> FloatArray:
         """``(m,)`` sensor-model sigmas: each observation's own sigma (NaN or None: the
