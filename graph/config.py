@@ -79,6 +79,14 @@ class SlamConfig:
     over the bearings); the others still count as observed. A camera sees ~100 live
     landmarks a frame, and each factor makes iSAM2 re-eliminate that landmark with all
     its earlier factors: the update's cost grows with factors per frame x per landmark."""
+    keyframe_for_candidate_rays: bool = False
+    """A pose leaving the window stays as a keyframe while it holds the first ray of a
+    candidate track, so that the candidate, once it triangulates, still has its widest
+    baseline and links the poses it was first seen from. Off by default: on MRCLAM-6
+    it fixes robot 3 (ATE 0.65 -> 0.18 m: early rays were lost with their poses and the
+    landmarks initialised from a drifted chain stayed ~1 m off) and robot 1, but robot
+    4 (biased bearings) initialises a landmark 3 m off from rays 130 frames apart and
+    gets worse (0.63 -> 1.64 m); see bench.window_study."""
     drop_window_observations: bool = False
     """A pose that leaves the window without becoming a keyframe loses its landmark
     observations instead of having them marginalised: only its odometry is folded into

@@ -450,7 +450,7 @@ class BearingSlam:
             return False, ()
         if cfg.max_keyframes == 0:
             return False, (exiting,)
-        if robot.keyframes:
+        if robot.keyframes and not self._holds_candidate_ray(exiting[0]):
             last = self._graph.pose(robot.keyframes[-1][0])
             step = last.between(self._graph.pose(exiting[0]))
             far = math.hypot(step.x(), step.y()) >= cfg.keyframe_distance_m
@@ -459,6 +459,12 @@ class BearingSlam:
         if len(robot.keyframes) >= cfg.max_keyframes:
             return True, (robot.keyframes[0],)
         return True, ()
+
+    def _holds_candidate_ray(self, key: int) -> bool:
+        """Does a candidate track hold a ray from pose `key`?"""
+        if not self.config.keyframe_for_candidate_rays:
+            return False
+        return any(c.rays and c.rays[0].pose_key == key for c in self._candidates.values())
 
     def _triangulate(
         self, rays: tuple[Ray, ...], current: int, predicted: gtsam.Pose2

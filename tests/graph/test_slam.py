@@ -248,3 +248,46 @@ def test_drop_window_observations_leaves_no_marginal_on_landmarks(drop: bool) ->
     assert (others == []) == drop
     xy = slam.trajectory()["r1"][:, 2:4]
     assert float(np.sqrt(np.mean(np.sum((xy - truth[:, :2]) ** 2, axis=1)))) < 0.2
+
+
+def _straight_towards_far_landmark(n: int) -> list:
+    """A robot driving 0.1 m a frame along +x, seeing from frame 1 on a landmark 40 m
+    ahead and 1 m aside: parallax stays under 5 degrees, so it remains a candidate."""
+    from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
+
+    frames = []
+    for i in range(n):
+        x = 0.1 * i
+        obs = () if i == 0 else (BearingObservation(float(np.arctan2(1.0, 40.0 - x)), "far"),)
+        frames.append(
+            FrameInput(
+                robot="r1",
+                seq=i,
+                stamp=float(i),
+                odometry=None if i == 0 else Odometry(0.1, 0.0, 0.0),
+                initial_pose=Pose2D(0.0, 0.0, 0.0) if i == 0 else None,
+                observations=obs,
+            )
+        )
+    return frames
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_a_pose_holding_a_candidates_first_ray_stays_as_keyframe(keep: bool) -> None:
+    """With keyframe_for_candidate_rays the pose of a candidate's first ray outlives
+    the window (the candidate keeps its widest baseline); without it, that pose is
+    marginalised like any pose near its keyframe."""
+    from graph.factors import pose_key
+
+    cfg = SlamConfig(
+        landmark_cap=None,
+        pose_window=3,
+        keyframe_distance_m=100.0,
+        keyframe_for_candidate_rays=keep,
+    )
+    slam = _run(_straight_towards_far_landmark(12), cfg)
+    assert slam.candidate_count == 1 and not slam.landmarks
+    first_ray_pose = pose_key(0, 1)
+    assert (first_ray_pose in slam.graph) is keep
+    assert pose_key(0, 2) not in slam.graph  # a later ray's pose goes either way
+    assert len(slam.trajectory()["r1"]) == 12
