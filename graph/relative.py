@@ -325,7 +325,10 @@ def as_between(spec: RelativeSpec, *, tol: float = 1e-9) -> gtsam.BetweenFactorP
     q0 = gtsam.Pose2(*spec.at[0]).between(gtsam.Pose2(*spec.at[1]))
     measured = q0.compose(gtsam.Pose2.Expmap(y_star))
     jacobian = np.asarray(gtsam.Pose2.LogmapDerivative(gtsam.Pose2.Expmap(-y_star)))
-    root = np.linalg.qr(np.linalg.solve(jacobian.T, s.T).T, mode="r")  # upper-triangular
+    upper = np.linalg.qr(np.linalg.solve(jacobian.T, s.T).T, mode="r")
+    # QR leaves the diagonal's signs free; GTSAM reads a diagonal root as 1 / sigmas and
+    # refuses negative ones. Flipping rows keeps root^T root, the information.
+    root = np.where(np.diag(upper) < 0.0, -1.0, 1.0)[:, None] * upper
     noise = gtsam.noiseModel.Gaussian.SqrtInformation(root)
     return gtsam.BetweenFactorPose2(spec.keys[0], spec.keys[1], measured, noise)
 

@@ -294,3 +294,24 @@ def test_python_factors_see_isam2s_own_linearisation_point_not_a_copy() -> None:
     graph.update([prior], values)
     assert seen and all(seen)
     assert graph.linearization_point().atPose2(KEYS[0]).equals(gtsam.Pose2(0.1, -0.2, 0.3), 1e-12)
+
+
+@pytest.mark.parametrize("signs", [(-1.0, 1.0, -1.0), (1.0, -1.0, 1.0), (1.0, 1.0, 1.0)])
+def test_a_diagonal_information_root_with_any_signs_becomes_a_between_factor(
+    signs: tuple[float, float, float],
+) -> None:
+    """A gauge-free pose-pair marginal whose square root QR leaves diagonal with
+    negative entries (MRCLAM-6 replayed from later start frames raised "sigma values
+    must be non-negative" here) is a between factor with the same information."""
+    from graph.relative import as_between
+
+    x0, x1 = pose_key(0, 0), pose_key(0, 1)
+    root = np.diag(np.array(signs) * np.array([2.0, 3.0, 4.0]))
+    spec = RelativeSpec(
+        x0, (x0, x1), ((0.0, 0.0, 0.0), (1.0, 0.5, 0.2)), np.hstack([np.zeros((3, 3)), root]),
+        np.zeros(3),
+    )  # fmt: skip
+    between = as_between(spec)
+    assert isinstance(between, gtsam.BetweenFactorPose2)
+    info = np.asarray(between.noiseModel().R()).T @ np.asarray(between.noiseModel().R())
+    np.testing.assert_allclose(info, root.T @ root, atol=1e-12)
