@@ -32,6 +32,7 @@ in 747 Schur marginalisations; the leaf route's failures by variant).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Sequence
 
 import gtsam
@@ -43,9 +44,14 @@ from graph.errors import EstimationError
 from graph.factors import is_landmark_key
 from graph.relative import choose_reference, relative_marginal
 
+log = logging.getLogger(__name__)
 
-def make_isam(config: SlamConfig) -> gtsam.ISAM2:
+
+def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.ISAM2:
+    """iSAM2 for `config`; `factorization` "CHOLESKY" (iSAM2's default, the faster) or
+    "QR" (see IncrementalGraph.update)."""
     params = gtsam.ISAM2Params()
+    params.setFactorization(factorization)
     if config.optimizer == "dogleg":
         params.setOptimizationParams(gtsam.ISAM2DoglegParams())
     else:
@@ -60,6 +66,7 @@ class IncrementalGraph:
     """An iSAM2 instance plus the index of which factor touches which key."""
 
     def __init__(self, config: SlamConfig) -> None:
+        self._config = config
         self._isam = make_isam(config)
         self._theta: gtsam.Values = self._isam.getLinearizationPoint()
         """iSAM2's own linearisation point, held by a Python wrapper for iSAM2's lifetime.
@@ -187,7 +194,11 @@ class IncrementalGraph:
         try:
             result = self._isam.update(new, values or gtsam.Values(), remove)
         except RuntimeError as exc:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
-            raise EstimationError(str(exc)) from exc
+            qr = self._isam.params().getFactorization() == "QR"
+            if "Indeterminate linear system" not in str(exc) or qr:
+                raise EstimationError(str(exc)) from exc
+            result, added = self._rebuild_with_qr(added, values, remove, exc)
+            remove = []
         # Even a pure marginalisation moves the estimate a little: iSAM2 re-eliminates
         # the cliques it touched, and its partial (wildfire) updates had left their
         # delta behind the MAP. A stale cache here made a restored map (rebuilt with a
@@ -205,6 +216,55 @@ class IncrementalGraph:
             self._factors[index] = factor
             for key in factor.keys():
                 self._key_factors.setdefault(key, set()).add(index)
+
+    def _rebuild_with_qr(
+        self,
+        added: list[gtsam.NonlinearFactor],
+        values: gtsam.Values | None,
+        remove: Sequence[int],
+        cause: RuntimeError,
+    ) -> tuple[gtsam.ISAM2Result, list[gtsam.NonlinearFactor]]:
+        """The update that Cholesky refused, as one batch step of a fresh QR iSAM2 over
+        every factor; the map keeps the QR iSAM2 from then on (until a restore).
+
+        iSAM2's Cholesky can meet a non-positive pivot in a clique of a well-posed but
+        ill-conditioned graph: MRCLAM-6 robot 2 at cap 8 (policy random) refused frame
+        1549 ("Indeterminant linear system") although the graph's Hessian had its
+        smallest eigenvalue at 0.14 (largest 1.4e8) and Levenberg-Marquardt solved it;
+        QR, which never forms the normal equations, takes it. QR costs ~25 % more per
+        frame on the lifelong simulation, so it is the fallback, not the default.
+        Returns the update's result and the factors it added, in order; every factor is
+        new to the fresh iSAM2, so the bookkeeping is rebuilt from them."""
+        kept = [f for i, f in sorted(self._factors.items()) if i not in set(remove)]
+        factors = [*kept, *added]
+        used = {k for f in factors for k in f.keys()}
+        init = gtsam.Values()
+        new_values = values if values is not None else gtsam.Values()
+        for key in sorted(used):
+            # The failed update may have inserted (and relinearised) variables already.
+            source = self._theta if self._theta.exists(key) else new_values
+            if is_landmark_key(key):
+                init.insert(key, source.atPoint2(key))
+            else:
+                init.insert(key, source.atPose2(key))
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in factors:
+            graph.add(factor)
+        isam = make_isam(self._config, factorization="QR")
+        try:
+            result = isam.update(graph, init)
+        except RuntimeError as exc:
+            raise EstimationError(f"{cause} (and with QR: {exc})") from exc
+        log.warning(
+            "iSAM2's Cholesky refused an update (%s); rebuilt with QR over %d factors",
+            " ".join(str(cause).split()[:11]),
+            len(factors),
+        )
+        self._isam = isam
+        self._theta = isam.getLinearizationPoint()
+        self._factors = {}
+        self._key_factors = {}
+        return result, factors
 
     def _schur_complement(
         self, keys: Sequence[int], exclude: set[int] | None = None
