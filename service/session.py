@@ -410,6 +410,14 @@ class MapSession:
                 "Estimation failed",
                 f"the estimator could not take this frame ({exc}); the map is as before",
             ) from exc
+        except Exception:
+            # A bug of ours, half way through the frame: the in-memory map may be half
+            # updated. The frame was never acknowledged; forget it and reload the map as
+            # it was, so that the next frame meets a whole map (the caller gets a 500).
+            self.store.delete_frame(log_id)
+            self._removals.take()
+            self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+            raise
         removals = self._removals.take()
         final = localised.outcome
         result = self._result_doc(

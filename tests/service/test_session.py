@@ -150,3 +150,53 @@ def test_trajectory_stats_agree_with_the_frame_results(tmp_path: Path) -> None:
     # every id the map ever had was counted (ids are never reused)
     assert sorted(ids) == sorted(label)
     assert rows[-1]["uncapped"] < len(ids)  # re-initialised landmarks counted once
+
+
+@pytest.mark.parametrize("failure", ["estimation", "bug"])
+def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: str
+) -> None:
+    """The estimator raising half way through a frame (EstimationError: a 422; any
+    other exception, a bug of ours: re-raised for a 500) leaves no trace: the frame is
+    not in the log, the map is the one before it, and the same frame is then taken as
+    a map that never failed takes it."""
+    from graph.errors import EstimationError
+    from graph.slam import BearingSlam
+
+    clean = _new(tmp_path / "clean.sqlite")
+    expected = [json.loads(clean.submit(f)["result_json"]) for f in FRAMES[:14]]
+
+    session = _new(tmp_path / "m1.sqlite")
+    for f in FRAMES[:12]:
+        session.submit(f)
+    before = session.trajectory()["r1"]
+    real = BearingSlam.process
+
+    failed: list[int] = []
+
+    def half_way(self: BearingSlam, frame, **kwargs):  # type: ignore[no-untyped-def]
+        out = real(self, frame, **kwargs)  # the graph takes the frame, then the step fails
+        if frame.seq != FRAMES[12]["seq"] or failed:
+            return out  # the reload's replay of the log, and the retry, go through
+        failed.append(frame.seq)
+        if failure == "estimation":
+            raise EstimationError("Indeterminate linear system (injected)")
+        raise ValueError("Diagonal noise model: sigma values must be non-negative (injected)")
+
+    monkeypatch.setattr(BearingSlam, "process", half_way)
+    if failure == "estimation":
+        with pytest.raises(ServiceError) as refused:
+            session.submit(FRAMES[12])
+        assert refused.value.status == 422 and refused.value.slug == "estimation-failed"
+    else:
+        with pytest.raises(ValueError, match="injected"):
+            session.submit(FRAMES[12])
+    assert failed
+
+    assert session.store.find_frame("r1", FRAMES[12]["seq"]) is None
+    assert session.slam.frame_count == 12
+    assert session.trajectory()["r1"] == before
+    got = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[12:14]]
+    for a, b in zip(got, expected[12:14], strict=True):
+        assert a["seq"] == b["seq"] and a["localisation"] == b["localisation"]
+        assert abs(a["pose"]["x"] - b["pose"]["x"]) + abs(a["pose"]["y"] - b["pose"]["y"]) < 5e-3
