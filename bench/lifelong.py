@@ -120,6 +120,23 @@ def checkpoint_step(n: int) -> int:
 
 
 # --------------------------------------------------------------------------- child
+_PROBE_MATRIX = np.random.default_rng(0).standard_normal((200, 200))
+_PROBE_SPD = _PROBE_MATRIX @ _PROBE_MATRIX.T + 200.0 * np.eye(200)
+
+
+def speed_probe_ms() -> float:
+    """Wall ms of a fixed workload that allocates nothing lasting: a pure-Python loop
+    and dense Cholesky factorisations, the two kinds of work a frame does (the
+    estimator's Python bookkeeping, GTSAM's dense eliminations). Measured beside the
+    run, it tells the machine's speed from the code's: a core that slows down (another
+    job, its clock) slows the probe too, and a frame whose cost grew does not."""
+    t0 = time.perf_counter()
+    _ = sum(i & 7 for i in range(600_000))
+    for _ in range(150):
+        np.linalg.cholesky(_PROBE_SPD)
+    return 1e3 * (time.perf_counter() - t0)
+
+
 def run_worker(
     name: str, frames: int, seed: int, max_frames: int, budget_s: float | None, out: Path
 ) -> None:
@@ -145,6 +162,7 @@ def run_worker(
     peak_before_reset: float | None = None
     stop = "all requested frames" if max_frames >= frames else "--baseline-frames limit"
     error = None
+    probes: list[tuple[int, float]] = [(0, min(speed_probe_ms() for _ in range(3)))]
     start = time.perf_counter()
     for frame in todo:
         if budget_s is not None and time.perf_counter() - start >= budget_s:
@@ -171,6 +189,7 @@ def run_worker(
         if done % RSS_EVERY == 0:
             result.rss_mb.append((done, current_rss_mb()))
         if done % step == 0:
+            probes.append((done, min(speed_probe_ms() for _ in range(3))))
             print(
                 f"[{name}] frame {done:6d}  median {np.median(frame_ms[-step:]):8.2f} ms"
                 f"  live {outcome.live:4d}  rss {current_rss_mb():7.1f} MiB"
@@ -203,6 +222,7 @@ def run_worker(
         "cpu_ms": cpu_ms.tolist(),
         "stage_ms": {k: v.tolist() for k, v in stages.items()},
         "live_landmarks": live.tolist(),
+        "speed_probe_ms": probes,
         "rss_mb": result.rss_mb,
         "removals": slam.removal_count,
         "first_removal_frame": result.removal_log.first_frame,
@@ -369,6 +389,17 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
     cpu_early = window_median(cpu, *win["early"])
     cpu_late = window_median(cpu, *win["late"])
     cpu_ratio = cpu_late / cpu_early if cpu_early and cpu_late is not None else None
+    # The same ratio with each window's time divided by the speed probe measured at its
+    # two ends (see speed_probe_ms): the frames' cost, the machine's speed taken out.
+    probes = dict(record.get("speed_probe_ms", []))
+
+    def probe(lo: int, hi: int) -> float | None:
+        ends = [probes[k] for k in (lo, hi) if k in probes]
+        return float(np.mean(ends)) if ends else None
+
+    p_early, p_late = probe(*win["early"]), probe(*win["late"])
+    speed_ratio = p_late / p_early if p_early and p_late else None
+    normalised = ratio / speed_ratio if ratio is not None and speed_ratio else None
     quarter = rss_at(record, n // 4)
     peak = record["peak_rss_mb"]
     growth = 100.0 * (peak - quarter[1]) / quarter[1] if quarter else None
@@ -381,6 +412,9 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         "time_ratio_late_over_early": _r(ratio, 4),
         "time_ratio_goal_max": TIME_RATIO_GOAL,
         "time_ratio_goal_met": None if ratio is None else ratio <= TIME_RATIO_GOAL,
+        "speed_probe_ms_early": _r(p_early),
+        "speed_probe_ms_late": _r(p_late),
+        "time_ratio_speed_normalised": _r(normalised, 4),
         "median_cpu_ms_early": _r(cpu_early),
         "median_cpu_ms_late": _r(cpu_late),
         "cpu_time_ratio_late_over_early": _r(cpu_ratio, 4),
@@ -596,6 +630,11 @@ def print_summary(report: dict[str, Any]) -> None:
         f"   late {f['late_window']}: {fmt(f['median_ms_late'])}"
         f"   ratio {fmt(f['time_ratio_late_over_early'])} (goal <= {TIME_RATIO_GOAL})"
         f"{goal(f['time_ratio_goal_met'])}"
+    )
+    print(
+        f"{'':10s} speed probe early {fmt(f.get('speed_probe_ms_early'), ' ms')}"
+        f"   late {fmt(f.get('speed_probe_ms_late'), ' ms')}"
+        f"   ratio with the machine's speed taken out {fmt(f.get('time_ratio_speed_normalised'))}"
     )
     print(
         f"{'':10s} RSS at frame {f['rss_quarter_frame']}: {fmt(f['rss_at_quarter_mb'], ' MiB')}"
