@@ -79,14 +79,25 @@ class SlamConfig:
     over the bearings); the others still count as observed. A camera sees ~100 live
     landmarks a frame, and each factor makes iSAM2 re-eliminate that landmark with all
     its earlier factors: the update's cost grows with factors per frame x per landmark."""
+    max_innovation_rad: float | None = math.radians(90.0)
+    """Innovation gate (see BearingSlam._gate; None: off): an observation of a landmark
+    at least gate_min_age_frames old whose bearing lies more than this from the one
+    predicted at the odometry's pose, in a frame where another observation lies within
+    gate_confirm_rad of its prediction, gets no factor. MRCLAM-6 has 9 observations in
+    17 383 that are 150-172 deg off the truth (robot 3 sees landmark 20 behind it for
+    four frames, robot 5 sees 20 once and 18 for four frames): a robust loss cannot
+    shrug off four in a row, and replayed from frame 500 robot 3's map flipped by 171
+    deg on them."""
+    gate_min_age_frames: int = 100
+    gate_confirm_rad: float = math.radians(20.0)
     keyframe_for_candidate_rays: bool = False
     """A pose leaving the window stays as a keyframe while it holds the first ray of a
     candidate track, so that the candidate, once it triangulates, still has its widest
     baseline and links the poses it was first seen from. Off by default: on MRCLAM-6
     it fixes robot 3 (ATE 0.65 -> 0.18 m: early rays were lost with their poses and the
     landmarks initialised from a drifted chain stayed ~1 m off) and robot 1, but robot
-    4 (biased bearings) initialises a landmark 3 m off from rays 130 frames apart and
-    gets worse (0.63 -> 1.64 m); see bench.window_study."""
+    4 initialises a landmark 3 m off from rays 130 frames apart and gets worse (0.45 ->
+    1.44 m); see bench.window_study."""
     drop_window_observations: bool = False
     """A pose that leaves the window without becoming a keyframe loses its landmark
     observations instead of having them marginalised: only its odometry is folded into

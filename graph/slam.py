@@ -9,6 +9,7 @@ policy picks one and it is marginalised out (Schur complement, see graph.isam).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from array import array
@@ -45,6 +46,8 @@ from graph.validation import validate_frame
 
 _SWEEP_EVERY = 50
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(slots=True)
@@ -154,6 +157,8 @@ class BearingSlam:
         self._candidates: dict[str, CandidateTrack] = {}
         self._next_landmark_id = 0
         self._frames = 0
+        self.gated_observations = 0
+        """Observations of live landmarks refused by the innovation gate, in all."""
         self.removals: deque[RemovalRecord] = deque(maxlen=removal_memory)
         self.removal_count = 0
         self._removal_sink = removal_sink
@@ -367,6 +372,7 @@ class BearingSlam:
                 track = self._candidates.get(obs.label) or CandidateTrack(obs.label)
                 ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, sigma)
                 touched[obs.label] = track.with_ray(ray, cfg.max_rays)
+        observed, sigmas = self._gate(observed, sigmas, predicted)
         chosen = self._factor_choice(observed)
         for i in chosen:
             lid, bearing = observed[i]
@@ -411,6 +417,45 @@ class BearingSlam:
             promoted,
             leaving,
         )
+
+    def _gate(
+        self, observed: list[tuple[int, float]], sigmas: list[float], predicted: gtsam.Pose2
+    ) -> tuple[list[tuple[int, float]], list[float]]:
+        """The observations of live landmarks without the outliers the innovation gate
+        finds (counted in `gated_observations`; they get no factor). An outlier: a bearing
+        more than max_innovation_rad from the one predicted at the odometry's pose, of a
+        landmark at least gate_min_age_frames old, in a frame where another observation
+        lies within gate_confirm_rad of its prediction (that one confirms the pose, so
+        the odd one out is the observation, not the pose). A young landmark's large
+        innovation is more often the landmark's own error, which its observations must
+        be free to correct; a frame with one observation has nothing to confirm it."""
+        cfg = self.config
+        gate = cfg.max_innovation_rad
+        if gate is None or len(observed) < 2:
+            return observed, sigmas
+        xy = self._graph.points([landmark_key(lid) for lid, _ in observed])
+        d = xy - np.array([predicted.x(), predicted.y()])
+        expected = np.arctan2(d[:, 1], d[:, 0]) - predicted.theta()
+        innovation = np.abs(wrap_angles(np.array([z for _, z in observed]) - expected))
+        horizon = self._frames - cfg.gate_min_age_frames
+        outlier = [
+            i
+            for i, (lid, _) in enumerate(observed)
+            if innovation[i] > gate
+            and self._landmarks[lid].added_frame <= horizon
+            and any(innovation[j] <= cfg.gate_confirm_rad for j in range(len(observed)) if j != i)
+        ]
+        if not outlier:
+            return observed, sigmas
+        self.gated_observations += len(outlier)
+        log.debug(
+            "gated %d of %d observations (innovations %s deg)",
+            len(outlier),
+            len(observed),
+            np.round(np.degrees(innovation), 1).tolist(),
+        )
+        keep = [i for i in range(len(observed)) if i not in outlier]
+        return [observed[i] for i in keep], [sigmas[i] for i in keep]
 
     def _factor_choice(self, observed: list[tuple[int, float]]) -> list[int]:
         """Indices of the observations of live landmarks that get a bearing factor: all

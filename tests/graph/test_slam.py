@@ -342,3 +342,54 @@ def test_an_update_cholesky_refuses_is_redone_with_qr(at: int) -> None:
     traj = slam.trajectory()["r1"]
     assert len(traj) == len(frames)
     assert _rmse(traj, truth) < 1.2 * _rmse(clean.trajectory()["r1"], truth) + 0.02
+
+
+def _with_observation(frames: list, k: int, label: str, bearing: float | None) -> list:
+    """`frames` with frame k's observation of `label` given another bearing (None: gone)."""
+    import dataclasses
+
+    obs = tuple(
+        o if o.label != label else dataclasses.replace(o, bearing_rad=bearing)
+        for o in frames[k].observations
+        if o.label != label or bearing is not None
+    )
+    return [*frames[:k], dataclasses.replace(frames[k], observations=obs), *frames[k + 1 :]]
+
+
+def test_the_innovation_gate_refuses_a_confirmed_outlier_and_nothing_else() -> None:
+    """A bearing ~170 deg off its old landmark's prediction, in a frame whose other
+    bearings fit the pose, gets no factor: the run equals the run without that
+    observation. The same bearing on a young landmark, or alone in its frame, is kept."""
+    from graph.angles import wrap_angle
+
+    frames, _, _ = circle_frames(220, seed=3, n_landmarks=40)
+    cfg = SlamConfig(landmark_cap=None, pose_window=30)
+    probe = _run(frames[:180], cfg)
+    k = 180
+    seen = [o.label for o in frames[k].observations if o.label in probe._label_to_id]
+    old = [lb for lb in seen if probe.landmarks[probe._label_to_id[lb]].added_frame <= k - 100]
+    assert len(seen) >= 2 and old
+    label = old[0]
+    bad = wrap_angle(next(o.bearing_rad for o in frames[k].observations if o.label == label) + 3.0)
+    gated = _run(_with_observation(frames, k, label, bad), cfg)
+    without = _run(_with_observation(frames, k, label, None), cfg)
+    assert gated.gated_observations == 1 and without.gated_observations == 0
+    np.testing.assert_array_equal(gated.trajectory()["r1"], without.trajectory()["r1"])
+
+    # Alone in its frame, nothing confirms the pose: kept (the robust loss handles it).
+    import dataclasses
+
+    only = dataclasses.replace(
+        frames[k],
+        observations=tuple(
+            dataclasses.replace(o, bearing_rad=bad) for o in frames[k].observations
+            if o.label == label
+        ),
+    )  # fmt: skip
+    assert _run([*frames[:k], only, *frames[k + 1 :]], cfg).gated_observations == 0
+    # The landmark counted as young (no landmark old enough), or no gate: kept.
+    for other in (
+        SlamConfig(landmark_cap=None, pose_window=30, gate_min_age_frames=10_000),
+        SlamConfig(landmark_cap=None, pose_window=30, max_innovation_rad=None),
+    ):
+        assert _run(_with_observation(frames, k, label, bad), other).gated_observations == 0
