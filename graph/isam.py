@@ -229,13 +229,14 @@ class IncrementalGraph:
 
         iSAM2's Cholesky can meet a non-positive pivot in a clique of a well-posed but
         ill-conditioned graph: MRCLAM-6 robot 2 at cap 8 (policy random) refused frame
-        1549 ("Indeterminant linear system") although the graph's Hessian had its
+        1549 ("Indeterminate linear system") although the graph's Hessian had its
         smallest eigenvalue at 0.14 (largest 1.4e8) and Levenberg-Marquardt solved it;
         QR, which never forms the normal equations, takes it. QR costs ~25 % more per
         frame on the lifelong simulation, so it is the fallback, not the default.
         Returns the update's result and the factors it added, in order; every factor is
         new to the fresh iSAM2, so the bookkeeping is rebuilt from them."""
-        kept = [f for i, f in sorted(self._factors.items()) if i not in set(remove)]
+        removed = set(remove)
+        kept = [f for i, f in sorted(self._factors.items()) if i not in removed]
         factors = [*kept, *added]
         used = {k for f in factors for k in f.keys()}
         init = gtsam.Values()

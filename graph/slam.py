@@ -506,7 +506,7 @@ class BearingSlam:
         return True, ()
 
     def _holds_candidate_ray(self, key: int) -> bool:
-        """Does a candidate track hold a ray from pose `key`?"""
+        """Does a candidate track hold its first ray from pose `key` (and is the option on)?"""
         if not self.config.keyframe_for_candidate_rays:
             return False
         return any(c.rays and c.rays[0].pose_key == key for c in self._candidates.values())

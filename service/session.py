@@ -401,9 +401,7 @@ class MapSession:
             self._removals.take()
             raise invalid_frame(exc.field, exc.detail) from exc
         except EstimationError as exc:
-            self.store.delete_frame(log_id)
-            self._removals.take()
-            self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+            self._forget_frame(log_id)
             raise ServiceError(
                 422,
                 "estimation-failed",
@@ -411,12 +409,8 @@ class MapSession:
                 f"the estimator could not take this frame ({exc}); the map is as before",
             ) from exc
         except Exception:
-            # A bug of ours, half way through the frame: the in-memory map may be half
-            # updated. The frame was never acknowledged; forget it and reload the map as
-            # it was, so that the next frame meets a whole map (the caller gets a 500).
-            self.store.delete_frame(log_id)
-            self._removals.take()
-            self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+            # A bug of ours, half way through the frame (the caller gets a 500).
+            self._forget_frame(log_id)
             raise
         removals = self._removals.take()
         final = localised.outcome
@@ -441,6 +435,14 @@ class MapSession:
             "marginalised": 0 if final is None else len(final.marginalised),
             "store_ms": store_ms,
         }
+
+    def _forget_frame(self, log_id: int) -> None:
+        """Undo a frame the estimator failed on half way: the in-memory map may be half
+        updated. The frame was never acknowledged; it leaves the log and the map is
+        reloaded as it was, so that the next frame meets a whole map."""
+        self.store.delete_frame(log_id)
+        self._removals.take()
+        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
 
     def _check_image_frame(self, frame: Any) -> None:
         if self.vision is None:
