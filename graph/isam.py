@@ -62,6 +62,14 @@ def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.I
     return gtsam.ISAM2(params)
 
 
+def _copy_value(target: gtsam.Values, key: int, source: gtsam.Values) -> None:
+    """Insert `source`'s value of `key` (a Point2 landmark or a Pose2) into `target`."""
+    if is_landmark_key(key):
+        target.insert(key, source.atPoint2(key))
+    else:
+        target.insert(key, source.atPose2(key))
+
+
 class IncrementalGraph:
     """An iSAM2 instance plus the index of which factor touches which key."""
 
@@ -243,11 +251,7 @@ class IncrementalGraph:
         new_values = values if values is not None else gtsam.Values()
         for key in sorted(used):
             # The failed update may have inserted (and relinearised) variables already.
-            source = self._theta if self._theta.exists(key) else new_values
-            if is_landmark_key(key):
-                init.insert(key, source.atPoint2(key))
-            else:
-                init.insert(key, source.atPose2(key))
+            _copy_value(init, key, self._theta if self._theta.exists(key) else new_values)
         graph = gtsam.NonlinearFactorGraph()
         for factor in factors:
             graph.add(factor)
@@ -301,9 +305,6 @@ class IncrementalGraph:
                 continue
             point = gtsam.Values()
             for key in factor.keys():
-                if is_landmark_key(key):
-                    point.insert(key, theta.atPoint2(key))
-                else:
-                    point.insert(key, theta.atPose2(key))
+                _copy_value(point, key, theta)
             marginals.append(gtsam.LinearContainerFactor(factor, point))
         return indices, marginals

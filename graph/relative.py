@@ -258,13 +258,11 @@ class RelativeMarginalFactor(gtsam.CustomFactor):
                         del recent[next(iter(recent))]  # the oldest
                 return cached
             y, column, diagonal = blanket.evaluate(values, with_jacobians=True)
-            residual: FloatArray = m @ y - b
-            if jacobians is not None:
-                jacobians[0] = m @ column
-                for i, block in enumerate(diagonal):
-                    o, e = offsets[1 + i], offsets[2 + i]
-                    jacobians[1 + i] = m[:, o:e] @ block
-            return residual
+            jacobians[0] = m @ column
+            for i, block in enumerate(diagonal):
+                o, e = offsets[1 + i], offsets[2 + i]
+                jacobians[1 + i] = m[:, o:e] @ block
+            return m @ y - b
 
         super().__init__(
             gtsam.noiseModel.Unit.Create(m.shape[0]), gtsam.KeyVector(blanket.keys), error

@@ -34,10 +34,10 @@ _SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng"})
 """BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is
 derived from the config, the removal sink is given again, the rng keeps its state."""
 _GRAPH_SPECIAL = frozenset(
-    {"_isam", "_theta", "_factors", "_key_factors", "_estimate", "_points", "_poses"}
+    {"_isam", "_theta", "_config", "_factors", "_key_factors", "_estimate", "_points", "_poses"}
 )
 """IncrementalGraph attributes rebuilt by re-adding the factors (the estimate cache is
-dropped; the linearisation point is the new iSAM2's)."""
+dropped; the linearisation point is the new iSAM2's; the config is the estimator's)."""
 
 
 class SnapshotError(ValueError):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import gtsam
 import numpy as np
 import pytest
@@ -346,8 +348,6 @@ def test_an_update_cholesky_refuses_is_redone_with_qr(at: int) -> None:
 
 def _with_observation(frames: list, k: int, label: str, bearing: float | None) -> list:
     """`frames` with frame k's observation of `label` given another bearing (None: gone)."""
-    import dataclasses
-
     obs = tuple(
         o if o.label != label else dataclasses.replace(o, bearing_rad=bearing)
         for o in frames[k].observations
@@ -377,8 +377,6 @@ def test_the_innovation_gate_refuses_a_confirmed_outlier_and_nothing_else() -> N
     np.testing.assert_array_equal(gated.trajectory()["r1"], without.trajectory()["r1"])
 
     # Alone in its frame, nothing confirms the pose: kept (the robust loss handles it).
-    import dataclasses
-
     only = dataclasses.replace(
         frames[k],
         observations=tuple(
