@@ -12,6 +12,10 @@
    robot N from its initial pose; 60 s of its frames are cut out (the robot jumps,
    without odometry for the gap). Frames from the cut until `relocalised`, and the
    ATE of the reported poses afterwards.
+2b. Information bound (``--parts bound``): per start of 2, the first frame at which the
+   Cramer-Rao bound of the pose (odometry + labelled bearings, linearised at ground
+   truth) is as tight as the filter's convergence test: no estimator can be that sure
+   sooner on the same frames.
 4. Tracking (``--parts tracking``): each robot's whole run, no kidnap, through the same
    pipeline; every `lost` there is a false alarm.
 
@@ -30,6 +34,7 @@ import os
 import platform
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +42,7 @@ import numpy as np
 
 from graph.angles import wrap_angle
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
-from graph.particles import FilterConfig, ParticleFilter
+from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
 from graph.types import FrameInput, Odometry
 from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.evaluation import Trajectory, interpolate
@@ -166,12 +171,10 @@ def global_localisation(
     base = Localiser(LocaliserConfig(learn_places=False))
     learn_places(base, runs[1][0], runs[1][1], landmarks, span_s=300.0)
     places_blob = base.places
-    rng = np.random.default_rng(seed)
     rows: list[dict[str, Any]] = []
-    for i in range(starts):
-        robot = 1 + i % 5
+    lengths = {r: len(v[0]) for r, v in runs.items()}
+    for i, (robot, k0) in enumerate(_start_frames(lengths, starts, max_frames, seed)):
         frames, gt = runs[robot]
-        k0 = int(rng.integers(0, len(frames) - max_frames - 1))
         cfg = config or LocaliserConfig()
         loc = Localiser(dataclasses.replace(cfg, learn_places=False), places=places_blob)
         loc.places.last_visited.clear()
@@ -289,6 +292,152 @@ _SUMMARY = (
     "median_frames_estimate_within_tolerance",
     "median_error_m",
 )
+
+
+# ------------------------------------------------------------------ 2b. information bound
+BOUND_THRESHOLDS_M = (0.2, 0.25, 0.35, 0.5)
+
+
+def _start_frames(
+    frames_per_robot: dict[int, int], starts: int, max_frames: int, seed: int
+) -> Iterator[tuple[int, int]]:
+    """(robot, start frame) of global localisation's starts for `seed` (the same draws)."""
+    rng = np.random.default_rng(seed)
+    for i in range(starts):
+        robot = 1 + i % 5
+        yield robot, int(rng.integers(0, frames_per_robot[robot] - max_frames - 1))
+
+
+def frames_to_information(
+    frames: list[FrameInput],
+    gt: Trajectory,
+    k0: int,
+    max_frames: int,
+    landmarks: dict[str, np.ndarray],
+    filter_config: FilterConfig,
+    bearing_sigma_rad: float | None,
+) -> dict[float, int | None]:
+    """First frame (from `k0`) at which even an estimator that knows the answer could be
+    as sure as the convergence test asks: the Cramer-Rao bound of the latest pose given
+    every frame's odometry (the filter's own motion noise) and labelled bearings to the
+    surveyed landmarks, linearised at ground truth. Per position threshold t of
+    BOUND_THRESHOLDS_M: the frame where the position's major-axis sigma is <= t and the
+    heading's sigma <= converged_sigma_rad * t / converged_sigma_m (t = 0.25 m is the
+    filter's test). The start has a prior of 10 m and pi rad (no initial pose).
+    `bearing_sigma_rad` None: each observation's stated sigma."""
+    import gtsam
+
+    xk, lk = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    lm_key = {}
+    for j, (label, xy) in enumerate(landmarks.items()):
+        lm_key[label] = lk(j)
+        graph.add(gtsam.PriorFactorPoint2(lk(j), xy, gtsam.noiseModel.Isotropic.Sigma(2, 1e-4)))
+        values.insert(lk(j), np.asarray(xy, dtype=np.float64))
+    heading_per_m = filter_config.converged_sigma_rad / filter_config.converged_sigma_m
+    found: dict[float, int | None] = dict.fromkeys(BOUND_THRESHOLDS_M)
+    for k in range(max_frames):
+        f = frames[k0 + k]
+        truth = _truth_at(gt, f.stamp)
+        if truth is None:
+            break
+        values.insert(xk(k), gtsam.Pose2(*truth))
+        if k == 0:
+            start = gtsam.noiseModel.Diagonal.Sigmas(np.array([10.0, 10.0, math.pi]))
+            graph.add(gtsam.PriorFactorPose2(xk(0), gtsam.Pose2(*truth), start))
+        elif f.odometry is None:
+            raise ValueError(f"frame {f.seq} after the start carries no odometry")
+        else:
+            odo = np.array([f.odometry.dx, f.odometry.dy, f.odometry.dtheta])
+            sig = motion_sigmas(odo, f.stamp - frames[k0 + k - 1].stamp, filter_config)
+            graph.add(
+                gtsam.BetweenFactorPose2(
+                    xk(k - 1), xk(k), gtsam.Pose2(*odo), gtsam.noiseModel.Diagonal.Sigmas(sig)
+                )
+            )
+        for o in f.observations:
+            if o.label in lm_key:
+                s = o.sigma_rad if bearing_sigma_rad is None else bearing_sigma_rad
+                graph.add(
+                    gtsam.BearingFactor2D(
+                        xk(k), lm_key[o.label], gtsam.Rot2(o.bearing_rad),
+                        gtsam.noiseModel.Isotropic.Sigma(1, s or filter_config.bearing_sigma_rad),
+                    )
+                )  # fmt: skip
+        cov = gtsam.Marginals(graph, values).marginalCovariance(xk(k))
+        pos = math.sqrt(float(np.linalg.eigvalsh(cov[:2, :2]).max()))
+        head = math.sqrt(float(cov[2, 2]))
+        for t in BOUND_THRESHOLDS_M:
+            if found[t] is None and pos <= t and head <= heading_per_m * t:
+                found[t] = k
+        if all(v is not None for v in found.values()):
+            break
+    return found
+
+
+def information_bound(
+    directory: Path, starts: int, max_frames: int, seeds: list[int], doc: dict[str, Any]
+) -> dict[str, Any]:
+    """frames_to_information over global localisation's starts (the same draws per seed),
+    with the observations' stated sigma and with 0.5 deg (MRCLAM-6's bearing residual at
+    ground truth is 0.3-0.6 deg); set beside the filter's frames to relocalise."""
+    data = {r: load_mrclam(directory, r) for r in range(1, 6)}
+    lm_table = data[1].landmarks
+    assert lm_table is not None
+    landmarks = {str(int(s)): np.array([x, y]) for s, x, y in lm_table}
+    runs = {r: mrclam_frames(data[r]) for r in data}
+    cfg = FilterConfig()
+    models = {"stated": None, "0.5deg": math.radians(0.5)}
+    rows = []
+    for seed in seeds:
+        for i, (robot, k0) in enumerate(
+            _start_frames({r: len(v[0]) for r, v in runs.items()}, starts, max_frames, seed)
+        ):
+            frames, gt = runs[robot]
+            row: dict[str, Any] = {"seed": seed, "start": i, "robot": robot, "start_frame": k0}
+            for name, sigma in models.items():
+                got = frames_to_information(frames, gt, k0, max_frames, landmarks, cfg, sigma)
+                row[name] = {str(t): v for t, v in got.items()}
+            rows.append(row)
+    summary: dict[str, Any] = {}
+    for name in models:
+        summary[name] = {}
+        for t in BOUND_THRESHOLDS_M:
+            ks = [r[name][str(t)] for r in rows if r[name][str(t)] is not None]
+            summary[name][str(t)] = {
+                "reached": len(ks),
+                "median_frames": _median(ks),
+                "per_seed_median_frames": [
+                    _median([r[name][str(t)] for r in rows if r["seed"] == s]) for s in seeds
+                ],
+            }
+    out: dict[str, Any] = {
+        "what": "first frame at which the Cramer-Rao bound of the latest pose (odometry with "
+        "the filter's motion noise + labelled bearings to the surveyed map, linearised at "
+        "ground truth, start prior 10 m / pi) is within a position sigma t (major axis) and "
+        "a heading sigma of 8 deg * t / 0.25 m; t = 0.25 m is the filter's convergence test",
+        "seeds": seeds,
+        "starts_per_seed": starts,
+        "max_frames": max_frames,
+        "summary": summary,
+        "runs": rows,
+    }
+    pf = {(r["robot"], r["start_frame"]): r for r in doc.get("global", {}).get("runs", [])}
+    paired = [
+        (pf[(r["robot"], r["start_frame"])]["frames_to_relocalise"], r["stated"]["0.25"])
+        for r in rows
+        if (r["robot"], r["start_frame"]) in pf
+        and pf[(r["robot"], r["start_frame"])]["success"]
+        and r["stated"]["0.25"] is not None
+    ]
+    if paired:
+        lag = [a - b for a, b in paired]
+        out["filter_vs_bound_seed0"] = {
+            "pairs": len(paired),
+            "median_frames_filter_minus_bound": _median(lag),
+            "filter_sooner_than_bound": int(sum(d < 0 for d in lag)),
+        }
+    return out
 
 
 # --------------------------------------------------------------------------- 3. kidnap
@@ -552,7 +701,7 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="*",
-        choices=["pf", "global", "study", "kidnap", "tracking"],
+        choices=["pf", "global", "study", "bound", "kidnap", "tracking"],
         default=["pf", "global", "kidnap"],
         help="parts to run; the others keep their figures from an existing localisation.json",
     )
@@ -590,6 +739,13 @@ def main() -> None:
         doc["global_study"] = global_study(directory, args.starts, args.max_frames, seeds)
         for name, row in doc["global_study"].items():
             print(name, row["runs"])
+    if "bound" in args.parts:
+        doc["runs_of_parts"]["bound"] = _stamp()
+        seeds = [args.seed, *args.other_seeds]
+        doc["information_bound"] = information_bound(
+            directory, args.starts, args.max_frames, seeds, doc
+        )
+        print(json.dumps({k: v for k, v in doc["information_bound"].items() if k != "runs"}))
     if "kidnap" in args.parts:
         doc["runs_of_parts"]["kidnap"] = _stamp()
         doc["kidnap_localiser"] = [

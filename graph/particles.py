@@ -278,6 +278,23 @@ class FilterConfig:
             raise ValueError("need bearing_sigma_rad > 0 and bearing_sigma_floor_rad >= 0")
 
 
+def motion_sigmas(odometry_xytheta: FloatArray, dt_s: float, config: FilterConfig) -> FloatArray:
+    """(3,) sigmas (m, m, rad) of the motion model's noise on one odometry increment
+    (previous robot frame) taking `dt_s` seconds: floor + per metre + per radian turned,
+    in quadrature with the per-sqrt-second term."""
+    odo = np.asarray(odometry_xytheta, dtype=np.float64)
+    dist = math.hypot(odo[0], odo[1])
+    sig = (
+        np.asarray(config.motion_sigma_floor)
+        + np.asarray(config.motion_sigma_per_metre) * dist
+        + np.array([0.0, 0.0, config.motion_sigma_per_radian * abs(odo[2])])
+    )
+    out: FloatArray = np.hypot(
+        sig, np.asarray(config.motion_sigma_per_sqrt_second) * math.sqrt(max(dt_s, 0.0))
+    )
+    return out
+
+
 @dataclass(frozen=True, slots=True)
 class FilterEstimate:
     """Main-mode mean pose, its ``(3, 3)`` covariance of (x, y, theta), convergence."""
@@ -338,15 +355,8 @@ class ParticleFilter:
         self, odometry_xytheta: FloatArray, *, dt_s: float, rng: np.random.Generator
     ) -> None:
         """Move every particle by the odometry (previous robot frame) plus noise."""
-        cfg = self.config
         odo = np.asarray(odometry_xytheta, dtype=np.float64)
-        dist = math.hypot(odo[0], odo[1])
-        sig = (
-            np.asarray(cfg.motion_sigma_floor)
-            + np.asarray(cfg.motion_sigma_per_metre) * dist
-            + np.array([0.0, 0.0, cfg.motion_sigma_per_radian * abs(odo[2])])
-        )
-        sig = np.hypot(sig, np.asarray(cfg.motion_sigma_per_sqrt_second) * math.sqrt(max(dt_s, 0)))
+        sig = motion_sigmas(odo, dt_s, self.config)
         noisy = odo[None, :] + rng.normal(0.0, 1.0, size=(self.size, 3)) * sig[None, :]
         c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
         self.particles[:, 0] += c * noisy[:, 0] - s * noisy[:, 1]
