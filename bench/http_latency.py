@@ -7,7 +7,7 @@ Run from the repository root (never during someone else's benchmark: 2 cores)::
 
 Frames: MRCLAM-6 robot 1 (labelled bearing observations, ~1 per frame) when the
 data is there, else a simulated indoor run (~10 bearings per frame). Map config:
-landmark cap 8 (MRCLAM) or 50 (sim), coverage policy, 100-pose window.
+landmark cap 8 (MRCLAM) or 50 (sim), coverage policy, the default window.
 
 Measured, per frame:
 

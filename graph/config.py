@@ -19,7 +19,8 @@ class SlamConfig:
     policy: str = "coverage"
     """Name of the landmark-selection policy (see graph.policies)."""
     pose_window: int | None = 100
-    """Poses kept per robot; older ones are marginalised. None = keep every pose."""
+    """Poses kept per robot; older ones are marginalised. None = keep every pose. With
+    window_observations the window grows beyond this while its poses hold few factors."""
     bearing_sigma_rad: float = math.radians(1.0)
     """Default one-sigma bearing noise when an observation gives none."""
     huber_k: float | None = 1.345
@@ -106,6 +107,15 @@ class SlamConfig:
     landmarks per frame."""
     allow_new_landmarks: bool = True
     """False freezes the map (localisation mode): no candidates become landmarks."""
+    window_observations: int | None = 900
+    """A window of sparse observations grows beyond pose_window, up to max_pose_window
+    poses, while its poses hold fewer bearing factors than this (what an update costs);
+    a pose beyond pose_window leaves early, two in a frame, once they hold 5 % more.
+    None: pose_window alone. MRCLAM-6 (~1.7 bearings a frame) then keeps ~500 poses and
+    its bounded graph matches the one that keeps every pose (bench.window_study); the
+    lifelong sim (~10 a frame) and camera maps (~50) keep pose_window's 100."""
+    max_pose_window: int = 600
+    """Most poses of a window grown by window_observations."""
 
     def __post_init__(self) -> None:
         if self.landmark_cap is not None and self.landmark_cap < 1:
@@ -128,5 +138,9 @@ class SlamConfig:
             raise ValueError("max_linked_keyframes must be >= 1")
         if self.max_landmark_factors is not None and self.max_landmark_factors < 1:
             raise ValueError("max_landmark_factors must be >= 1 or None")
+        if self.window_observations is not None and self.window_observations < 1:
+            raise ValueError("window_observations must be >= 1 or None")
+        if self.pose_window is not None and self.max_pose_window < self.pose_window:
+            raise ValueError("max_pose_window must be >= pose_window")
         if self.candidate_ttl_frames < 1:
             raise ValueError("candidate_ttl_frames must be >= 1")

@@ -44,6 +44,8 @@ from graph.triangulation import Triangulation, parallax, triangulate
 from graph.types import FrameInput, Pose2D
 from graph.validation import validate_frame
 
+_SHRINK_SLACK = 20
+"""A window shrinks by an extra pose beyond window_observations * (1 + 1/this)."""
 _SWEEP_EVERY = 50
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -172,6 +174,8 @@ class BearingSlam:
         """Frame index of each live landmark's newest bearing factor (max_landmark_factors)."""
         # Marginalised non-keyframe frames, by the live keyframe their pose is relative to.
         self._anchored: dict[int, array[int]] = {}
+        self._window_factors: dict[int, int] = {}
+        """Bearing factors on each pose while it is in its robot's window."""
 
     # ---------------------------------------------------------------- queries
     @property
@@ -263,16 +267,12 @@ class BearingSlam:
         plan = self._plan(frame, robot, anchor)
         t1 = time.perf_counter()
         # Estimates before the update: what a marginalised pose keeps.
-        before = {k: self._graph.pose(k) for k, _ in plan.leaving}
-        if robot is not None and robot.keyframes and plan.exiting and not plan.promoted:
-            # The anchor of the exiting non-keyframe pose (see _commit).
-            anchor_key = robot.keyframes[-1][0]
-            before.setdefault(anchor_key, self._graph.pose(anchor_key))
+        before = self._poses_before_exit(robot, plan.exiting, plan.promoted, plan.leaving)
         self._graph.update(
             plan.factors,
             plan.values,
             marginalise=[k for k, _ in plan.leaving],
-            drop=self._dropped_observations(plan),
+            drop=self._dropped_observations(plan.exiting, plan.promoted),
         )
         t2 = time.perf_counter()
         robot = self._commit(frame, robot, plan, before)
@@ -281,6 +281,7 @@ class BearingSlam:
         if plan.promoted and plan.exiting is not None:
             # A new keyframe joins the marginal factors its pose was already in.
             self._graph.marginal_keys.extend(self._graph.neighbourhoods(plan.exiting[0]))
+        self._shrink_window(robot)
         self._thin_keyframes()
         t3 = time.perf_counter()
         covariance = self._graph.pose_covariance(plan.key) if with_covariance else None
@@ -354,7 +355,7 @@ class BearingSlam:
                         previous, key, frame.odometry, cfg, frame.stamp - robot.last_stamp
                     )
                 )
-            full = cfg.pose_window is not None and len(robot.window) >= cfg.pose_window
+            full = self._window_full(robot)
             exiting = robot.window[0] if full else None
             promoted, leaving = self._window_exit(robot, exiting)
         values.insert(key, predicted)
@@ -473,12 +474,12 @@ class BearingSlam:
         )
         return sorted(order[:bound])
 
-    def _dropped_observations(self, plan: _Plan) -> list[int]:
+    def _dropped_observations(self, exiting: tuple[int, int] | None, promoted: bool) -> list[int]:
         """Factor indices of the landmark observations of a pose leaving the window
         without becoming a keyframe, when `drop_window_observations` is set."""
-        if not self.config.drop_window_observations or plan.exiting is None or plan.promoted:
+        if not self.config.drop_window_observations or exiting is None or promoted:
             return []
-        key = plan.exiting[0]
+        key = exiting[0]
         return [
             i
             for i in self._graph.factors_of(key)
@@ -504,6 +505,22 @@ class BearingSlam:
         if len(robot.keyframes) >= cfg.max_keyframes:
             return True, (robot.keyframes[0],)
         return True, ()
+
+    def _window_full(self, robot: _Robot) -> bool:
+        """Does the robot's oldest window pose leave with this frame (see pose_window and
+        window_observations)?"""
+        cfg = self.config
+        n = len(robot.window)
+        if cfg.pose_window is None or n < cfg.pose_window:
+            return False
+        if cfg.window_observations is None or n >= cfg.max_pose_window:
+            return True
+        return self._window_factor_count(robot) >= cfg.window_observations
+
+    def _window_factor_count(self, robot: _Robot) -> int:
+        """Bearing factors on the robot's window poses (see window_observations)."""
+        counts = self._window_factors
+        return sum(counts.get(key, 0) for key, _ in robot.window)
 
     def _holds_candidate_ray(self, key: int) -> bool:
         """Does a candidate track hold its first ray from pose `key` (and is the option on)?"""
@@ -565,26 +582,12 @@ class BearingSlam:
         robot.last_stamp = frame.stamp
         robot.next_index += 1
         robot.window.append((plan.key, frame_index))
-        anchored_exit = False
-        if plan.exiting is not None:
-            robot.window.popleft()
-            if plan.promoted:
-                robot.keyframes.append(plan.exiting)
-            elif robot.keyframes:
-                # A non-keyframe pose follows its keyframe: it keeps its pose relative
-                # to the robot's last keyframe, which the graph goes on correcting.
-                anchor = robot.keyframes[-1][0]
-                rel = before[anchor].between(before[plan.exiting[0]])
-                self._set_traj_pose(plan.exiting[1], rel)
-                self._anchored.setdefault(anchor, array("q")).append(plan.exiting[1])
-                self._live_frames.pop(plan.exiting[1], None)
-                anchored_exit = True
-        for key, old_frame in plan.leaving:
-            if anchored_exit and plan.exiting is not None and key == plan.exiting[0]:
-                continue
-            if robot.keyframes and robot.keyframes[0][0] == key:
-                robot.keyframes.popleft()
-            self._retire(key, old_frame, before[key])
+        self._window_factors[plan.key] = len(plan.factored)
+        for _, _, rays in plan.new_landmarks:
+            for r in rays:
+                if r.pose_key in self._window_factors:
+                    self._window_factors[r.pose_key] += 1
+        self._apply_exit(robot, plan.exiting, plan.promoted, plan.leaving, before)
         self._traj_robot.append(robot.slot)
         self._traj_seq.append(frame.seq)
         self._traj_stamp.append(frame.stamp)
@@ -616,6 +619,75 @@ class BearingSlam:
             for label in [lb for lb, c in self._candidates.items() if c.last_frame < horizon]:
                 del self._candidates[label]
         return robot
+
+    def _poses_before_exit(
+        self,
+        robot: _Robot | None,
+        exiting: tuple[int, int] | None,
+        promoted: bool,
+        leaving: tuple[tuple[int, int], ...],
+    ) -> dict[int, gtsam.Pose2]:
+        """Estimates before an update that marginalises `leaving`: what those poses keep,
+        and the anchor keyframe of an exiting non-keyframe pose (see _apply_exit)."""
+        before = {k: self._graph.pose(k) for k, _ in leaving}
+        if robot is not None and robot.keyframes and exiting and not promoted:
+            anchor_key = robot.keyframes[-1][0]
+            before.setdefault(anchor_key, self._graph.pose(anchor_key))
+        return before
+
+    def _apply_exit(
+        self,
+        robot: _Robot,
+        exiting: tuple[int, int] | None,
+        promoted: bool,
+        leaving: tuple[tuple[int, int], ...],
+        before: dict[int, gtsam.Pose2],
+    ) -> None:
+        """Bookkeeping of the oldest window pose leaving (as a keyframe if `promoted`)
+        and of the poses marginalised with it, after the graph's update."""
+        anchored_exit = False
+        if exiting is not None:
+            robot.window.popleft()
+            self._window_factors.pop(exiting[0], None)
+            if promoted:
+                robot.keyframes.append(exiting)
+            elif robot.keyframes:
+                # A non-keyframe pose follows its keyframe: it keeps its pose relative
+                # to the robot's last keyframe, which the graph goes on correcting.
+                anchor = robot.keyframes[-1][0]
+                rel = before[anchor].between(before[exiting[0]])
+                self._set_traj_pose(exiting[1], rel)
+                self._anchored.setdefault(anchor, array("q")).append(exiting[1])
+                self._live_frames.pop(exiting[1], None)
+                anchored_exit = True
+        for key, old_frame in leaving:
+            if anchored_exit and exiting is not None and key == exiting[0]:
+                continue
+            if robot.keyframes and robot.keyframes[0][0] == key:
+                robot.keyframes.popleft()
+            self._retire(key, old_frame, before[key])
+
+    def _shrink_window(self, robot: _Robot) -> None:
+        """One more pose leaves a window longer than pose_window whose poses hold more
+        than window_observations bearing factors (+ 5 %, so that this second update is
+        rare): the frame's own exit
+        only keeps the window's length, and the factors later added to its poses (a
+        landmark's earlier rays) or a denser stretch of observations would otherwise hold
+        it over the bound."""
+        bound, length = self.config.window_observations, self.config.pose_window
+        if bound is None or length is None or len(robot.window) <= length:
+            return
+        if self._window_factor_count(robot) <= bound + bound // _SHRINK_SLACK:
+            return
+        exiting = robot.window[0]
+        promoted, leaving = self._window_exit(robot, exiting)
+        before = self._poses_before_exit(robot, exiting, promoted, leaving)
+        self._graph.update(
+            marginalise=[k for k, _ in leaving], drop=self._dropped_observations(exiting, promoted)
+        )
+        self._apply_exit(robot, exiting, promoted, leaving, before)
+        if promoted:
+            self._graph.marginal_keys.extend(self._graph.neighbourhoods(exiting[0]))
 
     def _retire(self, key: int, frame: int, pose: gtsam.Pose2) -> None:
         """A marginalised pose's frame keeps `pose`; frames anchored to it follow."""

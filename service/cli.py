@@ -22,9 +22,11 @@ from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
+from service.mapconfig import WINDOW_FIELDS, window_settings
 from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
+_DEFAULTS = SlamConfig()
 
 
 def _optional_int(text: str) -> int | None:
@@ -51,8 +53,22 @@ def _add_map_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--pose-window",
         type=_optional_int,
-        default=100,
-        help="poses kept per robot before marginalisation (default 100; 'none')",
+        default=argparse.SUPPRESS,
+        help=f"poses kept per robot before marginalisation (default {_DEFAULTS.pose_window}; "
+        "'none'; given alone, the window does not grow)",
+    )
+    p.add_argument(
+        "--window-observations",
+        type=_optional_int,
+        default=argparse.SUPPRESS,
+        help="a window of sparse observations grows while its poses hold fewer bearing "
+        f"factors than this (default {_DEFAULTS.window_observations}; 'none')",
+    )
+    p.add_argument(
+        "--max-pose-window",
+        type=int,
+        default=argparse.SUPPRESS,
+        help=f"most poses of a grown window (default {_DEFAULTS.max_pose_window})",
     )
     p.add_argument(
         "--huber",
@@ -128,12 +144,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _window_given(args: argparse.Namespace) -> dict[str, int | None]:
+    """The window options given on the command line (the others take the map's defaults)."""
+    return {k: getattr(args, k) for k in WINDOW_FIELDS if hasattr(args, k)}
+
+
 def _config(args: argparse.Namespace) -> SlamConfig:
     extra = mrclam_noise() if args.source == "mrclam" else {}
+    window = window_settings(_window_given(args))
+    max_window = window["max_pose_window"]
+    assert max_window is not None  # an int field
     return SlamConfig(
         landmark_cap=args.landmark_cap,
         policy=args.policy,
-        pose_window=args.pose_window,
+        pose_window=window["pose_window"],
+        window_observations=window["window_observations"],
+        max_pose_window=max_window,
         huber_k=args.huber,
         **extra,
     )
@@ -212,7 +238,7 @@ def _replay_http(
     config = {
         "landmark_cap": args.landmark_cap,
         "policy": args.policy,
-        "pose_window": args.pose_window,
+        **_window_given(args),
         "noise": {"huber_k": args.huber, **(mrclam_noise() if args.source == "mrclam" else {})},
         "seed": args.seed,
         "camera": camera,

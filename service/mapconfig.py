@@ -7,6 +7,7 @@ is what the OpenAPI schema shows.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import fields
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -137,6 +138,17 @@ CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discrimi
 
 CAMERA_LANDMARK_FACTORS = 60
 """Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
+WINDOW_FIELDS = ("pose_window", "window_observations", "max_pose_window")
+
+
+def window_settings(given: Mapping[str, int | None]) -> dict[str, int | None]:
+    """The window fields of a map from those its config gives: the estimator's defaults,
+    except that a config giving `pose_window` alone gets exactly that window (no growth
+    by window_observations; so does every map stored before the growth existed)."""
+    defaults: dict[str, int | None] = {k: getattr(_DEFAULTS, k) for k in WINDOW_FIELDS}
+    if set(given) == {"pose_window"}:
+        defaults["window_observations"] = None
+    return {k: given[k] if k in given else defaults[k] for k in WINDOW_FIELDS}
 
 
 class MapConfig(BaseModel):
@@ -157,7 +169,19 @@ class MapConfig(BaseModel):
     pose_window: int | None = Field(
         _DEFAULTS.pose_window,
         ge=2,
-        description="poses kept per robot before the oldest is marginalised; null = keep all",
+        description="poses kept per robot before the oldest is marginalised; null = keep all. "
+        "Given alone (without window_observations / max_pose_window), the window is exactly "
+        "this long",
+    )
+    window_observations: int | None = Field(
+        _DEFAULTS.window_observations,
+        ge=1,
+        description="a window of sparse observations grows beyond pose_window, up to "
+        "max_pose_window poses, while its poses hold fewer bearing factors than this; "
+        "null = pose_window alone",
+    )
+    max_pose_window: int = Field(
+        _DEFAULTS.max_pose_window, ge=2, description="most poses of a grown window"
     )
     camera: CameraConfig | None = Field(
         None,
@@ -193,6 +217,11 @@ class MapConfig(BaseModel):
     def _camera_factor_bound(self) -> MapConfig:
         if "max_landmark_factors" not in self.model_fields_set and self.camera is not None:
             self.max_landmark_factors = CAMERA_LANDMARK_FACTORS
+        given = {k: getattr(self, k) for k in WINDOW_FIELDS if k in self.model_fields_set}
+        for k, v in window_settings(given).items():
+            setattr(self, k, v)
+        if self.pose_window is not None and self.max_pose_window < self.pose_window:
+            raise ValueError("max_pose_window must be >= pose_window")
         return self
 
     @field_validator("camera", mode="before")
@@ -231,6 +260,8 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         landmark_cap=cfg.landmark_cap,
         policy=cfg.policy,
         pose_window=cfg.pose_window,
+        window_observations=cfg.window_observations,
+        max_pose_window=cfg.max_pose_window,
         bearing_sigma_rad=cfg.noise.bearing_sigma_rad,
         huber_k=cfg.noise.huber_k,
         odometry_sigma_floor=cfg.noise.odometry_sigma_floor,

@@ -29,7 +29,9 @@ def _run(frames, config: SlamConfig, seed: int = 0) -> BearingSlam:
 def test_bounded_graph_over_many_seeds(seed: int, policy: str) -> None:
     """Cap and window hold after every frame; removed landmarks leave the graph."""
     frames, _, _ = circle_frames(160, seed=seed, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=8, pose_window=15, max_keyframes=5, policy=policy)
+    cfg = SlamConfig(
+        landmark_cap=8, pose_window=15, window_observations=None, max_keyframes=5, policy=policy
+    )
     slam = BearingSlam(cfg, rng=np.random.default_rng(seed))
     ever: set[int] = set()
     for f in frames:
@@ -104,7 +106,13 @@ def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
     or are marginalised and follow their keyframe; the trajectory stays as accurate
     as keeping every pose."""
     frames, truth, _ = circle_frames(300, seed=4, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=None, pose_window=10, max_keyframes=12, keyframe_distance_m=0.4)
+    cfg = SlamConfig(
+        landmark_cap=None,
+        pose_window=10,
+        window_observations=None,
+        max_keyframes=12,
+        keyframe_distance_m=0.4,
+    )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     pose_counts = []
     for f in frames:
@@ -124,6 +132,7 @@ def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> Non
     frames, truth, _ = circle_frames(260, seed=5, n_landmarks=30)
     cfg = SlamConfig(
         landmark_cap=8,
+        window_observations=None,
         pose_window=10,
         max_keyframes=200,
         keyframe_distance_m=0.2,
@@ -149,7 +158,13 @@ def test_marginalised_frames_follow_their_keyframe() -> None:
     """With every keyframe kept, a frame marginalised early still ends where the
     final estimate puts its keyframe (not where it was when it left the window)."""
     frames, truth, _ = circle_frames(240, seed=6, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=None, pose_window=8, max_keyframes=1000, keyframe_distance_m=0.6)
+    cfg = SlamConfig(
+        landmark_cap=None,
+        pose_window=8,
+        window_observations=None,
+        max_keyframes=1000,
+        keyframe_distance_m=0.6,
+    )
     slam = _run(frames, cfg)
     full = _run(frames, SlamConfig(landmark_cap=None, pose_window=None))
     traj, reference = slam.trajectory()["r1"], full.trajectory()["r1"]
@@ -283,6 +298,7 @@ def test_a_pose_holding_a_candidates_first_ray_stays_as_keyframe(keep: bool) -> 
 
     cfg = SlamConfig(
         landmark_cap=None,
+        window_observations=None,
         pose_window=3,
         keyframe_distance_m=100.0,
         keyframe_for_candidate_rays=keep,
@@ -323,7 +339,7 @@ def test_an_update_cholesky_refuses_is_redone_with_qr(at: int) -> None:
     iSAM2 over every factor, its bookkeeping stays whole, and the run ends as accurate
     as one that never met the refusal."""
     frames, truth, _ = circle_frames(160, seed=2, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=8, pose_window=15, max_keyframes=5)
+    cfg = SlamConfig(landmark_cap=8, pose_window=15, window_observations=None, max_keyframes=5)
     clean = _run(frames, cfg)
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     for k, f in enumerate(frames):
@@ -391,3 +407,46 @@ def test_the_innovation_gate_refuses_a_confirmed_outlier_and_nothing_else() -> N
         SlamConfig(landmark_cap=None, pose_window=30, max_innovation_rad=None),
     ):
         assert _run(_with_observation(frames, k, label, bad), other).gated_observations == 0
+
+
+@pytest.mark.parametrize("bound", [None, 60, 10**6])
+def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> None:
+    """window_observations: beyond pose_window the window grows, up to max_pose_window,
+    while its poses hold fewer bearing factors than the bound, and sheds poses once they
+    hold more (two in a frame); None keeps pose_window exactly."""
+    frames, truth, _ = circle_frames(200, seed=3, n_landmarks=12, max_range=4.0)
+    cfg = SlamConfig(
+        landmark_cap=None, pose_window=20, window_observations=bound, max_pose_window=80
+    )
+    slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+    lengths, held_over, was_over = [], 0, False
+    for f in frames:
+        slam.process(f, with_covariance=False)
+        robot = slam._robots["r1"]
+        lengths.append(len(robot.window))
+        counted = slam._window_factor_count(robot)
+        if bound == 60:
+            # The count is the window poses' bearing factors in the graph.
+            window = {k for k, _ in robot.window}
+            bearings = [
+                f for f in slam.graph._factors.values() if isinstance(f, gtsam.BearingFactor2D)
+            ]
+            assert counted == sum(1 for f in bearings for k in f.keys() if k in window)
+            # Over the bound (+5 %) beyond pose_window, the window does not grow, and
+            # over it in two frames running, it sheds a pose (two left, one came).
+            over = lengths[-1] > 20 and counted > bound + bound // 20
+            if over and len(lengths) > 1:
+                assert lengths[-1] <= lengths[-2]
+                if was_over:
+                    assert lengths[-1] == lengths[-2] - 1
+                    held_over += 1
+            was_over = over
+    assert max(lengths) <= 80 and lengths[-1] >= 20
+    if bound is None:
+        assert max(lengths) == 20
+    elif bound == 60:
+        assert 20 < max(lengths) < 80, "a sparse stretch grows the window, the bound stops it"
+        assert held_over > 0, "the run must exercise the shrinking"
+    else:
+        assert max(lengths) == 80
+    assert _rmse(slam.trajectory()["r1"], truth) < 1.0

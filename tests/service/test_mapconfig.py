@@ -1,10 +1,12 @@
-"""A map's config: the camera map's default bound on landmark factors per frame."""
+"""A map's config: the camera map's default bound on landmark factors per frame, the
+pose window's defaults."""
 
 from __future__ import annotations
 
 import pytest
 from pydantic import ValidationError
 
+from graph.config import SlamConfig
 from service.mapconfig import CAMERA_LANDMARK_FACTORS, MapConfig, slam_config
 
 
@@ -35,3 +37,22 @@ def test_drop_window_observations_reaches_the_estimator() -> None:
     stored = MapConfig.model_validate({"drop_window_observations": True}).model_dump(mode="json")
     assert slam_config(stored, "mapping").drop_window_observations is True
     assert slam_config({}, "mapping").drop_window_observations is False
+
+
+def test_window_growth_defaults_and_a_window_given_alone() -> None:
+    defaults = SlamConfig()
+    omitted = slam_config(MapConfig.model_validate({}).model_dump(mode="json"), "mapping")
+    assert (omitted.pose_window, omitted.window_observations, omitted.max_pose_window) == (
+        defaults.pose_window,
+        defaults.window_observations,
+        defaults.max_pose_window,
+    )
+    # pose_window alone (as every map stored before the growth existed): exactly that window.
+    alone = MapConfig.model_validate({"pose_window": 30})
+    assert (alone.pose_window, alone.window_observations) == (30, None)
+    stored = alone.model_dump(mode="json")
+    assert slam_config(stored, "mapping").window_observations is None
+    both = MapConfig.model_validate({"pose_window": 30, "window_observations": 200})
+    assert slam_config(both.model_dump(mode="json"), "mapping").window_observations == 200
+    with pytest.raises(ValidationError, match="max_pose_window"):
+        MapConfig.model_validate({"pose_window": 300, "max_pose_window": 200})
