@@ -115,7 +115,7 @@ class SlamConfig:
     its bounded graph matches the one that keeps every pose (bench.window_study); the
     lifelong sim (~10 a frame) and camera maps (~50) keep pose_window's 100."""
     max_pose_window: int = 600
-    """Most poses of a window grown by window_observations."""
+    """Most poses of a window grown by window_observations (pose_window if that is more)."""
 
     def __post_init__(self) -> None:
         if self.landmark_cap is not None and self.landmark_cap < 1:
@@ -140,7 +140,7 @@ class SlamConfig:
             raise ValueError("max_landmark_factors must be >= 1 or None")
         if self.window_observations is not None and self.window_observations < 1:
             raise ValueError("window_observations must be >= 1 or None")
-        if self.pose_window is not None and self.max_pose_window < self.pose_window:
-            raise ValueError("max_pose_window must be >= pose_window")
+        if self.max_pose_window < 2:
+            raise ValueError("max_pose_window must be >= 2")
         if self.candidate_ttl_frames < 1:
             raise ValueError("candidate_ttl_frames must be >= 1")

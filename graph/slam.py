@@ -513,7 +513,7 @@ class BearingSlam:
         n = len(robot.window)
         if cfg.pose_window is None or n < cfg.pose_window:
             return False
-        if cfg.window_observations is None or n >= cfg.max_pose_window:
+        if cfg.window_observations is None or n >= max(cfg.max_pose_window, cfg.pose_window):
             return True
         return self._window_factor_count(robot) >= cfg.window_observations
 
@@ -670,10 +670,9 @@ class BearingSlam:
     def _shrink_window(self, robot: _Robot) -> None:
         """One more pose leaves a window longer than pose_window whose poses hold more
         than window_observations bearing factors (+ 5 %, so that this second update is
-        rare): the frame's own exit
-        only keeps the window's length, and the factors later added to its poses (a
-        landmark's earlier rays) or a denser stretch of observations would otherwise hold
-        it over the bound."""
+        rare): the frame's own exit only keeps the window's length, and the factors later
+        added to its poses (a landmark's earlier rays) or a denser stretch of observations
+        would otherwise hold it over the bound."""
         bound, length = self.config.window_observations, self.config.pose_window
         if bound is None or length is None or len(robot.window) <= length:
             return
@@ -682,9 +681,9 @@ class BearingSlam:
         exiting = robot.window[0]
         promoted, leaving = self._window_exit(robot, exiting)
         before = self._poses_before_exit(robot, exiting, promoted, leaving)
-        self._graph.update(
-            marginalise=[k for k, _ in leaving], drop=self._dropped_observations(exiting, promoted)
-        )
+        drop = self._dropped_observations(exiting, promoted)
+        if leaving or drop:  # a pose promoted to keyframe leaves nothing to marginalise
+            self._graph.update(marginalise=[k for k, _ in leaving], drop=drop)
         self._apply_exit(robot, exiting, promoted, leaving, before)
         if promoted:
             self._graph.marginal_keys.extend(self._graph.neighbourhoods(exiting[0]))

@@ -181,7 +181,9 @@ class MapConfig(BaseModel):
         "null = pose_window alone",
     )
     max_pose_window: int = Field(
-        _DEFAULTS.max_pose_window, ge=2, description="most poses of a grown window"
+        _DEFAULTS.max_pose_window,
+        ge=2,
+        description="most poses of a grown window (pose_window if that is more)",
     )
     camera: CameraConfig | None = Field(
         None,
@@ -220,8 +222,6 @@ class MapConfig(BaseModel):
         given = {k: getattr(self, k) for k in WINDOW_FIELDS if k in self.model_fields_set}
         for k, v in window_settings(given).items():
             setattr(self, k, v)
-        if self.pose_window is not None and self.max_pose_window < self.pose_window:
-            raise ValueError("max_pose_window must be >= pose_window")
         return self
 
     @field_validator("camera", mode="before")
