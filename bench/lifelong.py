@@ -11,8 +11,8 @@ child process (``--worker``, started with ``subprocess``) so that one run's
 memory cannot show up in the other's RSS:
 
 ``bounded``
-    ``SlamConfig(landmark_cap=50, policy="coverage")`` (the default window: 100 poses,
-    longer while its poses hold fewer than 900 bearing factors) over every frame.
+    ``SlamConfig(landmark_cap=50, policy="coverage")`` (the default 100-pose window)
+    over every frame.
 ``baseline``
     plain uncapped iSAM2, ``SlamConfig(landmark_cap=None, pose_window=None)``,
     over the same frames until ``--baseline-frames`` frames are done or
@@ -572,7 +572,7 @@ def plot(records: dict[str, dict[str, Any]], n: int, seed: int, path: Path) -> N
 
     colours = {"bounded": "tab:blue", "baseline": "tab:red"}
     labels = {
-        "bounded": "covslam bounded (cap 50, coverage, default window)",
+        "bounded": "covslam bounded (cap 50, coverage, 100-pose window)",
         "baseline": "plain iSAM2 (no cap, every pose kept)",
     }
     fig, axes = plt.subplots(3, 1, figsize=(10, 11), sharex=True)

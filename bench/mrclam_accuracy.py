@@ -2,9 +2,8 @@
 
 ATE RMSE (unaligned; every run is anchored at ground truth on its first frame)
 for: (a) dead reckoning, (b) full batch Levenberg-Marquardt with every landmark
-and pose, (c) covslam uncapped (its default bounded graph: a 100-pose window,
-longer while its poses hold fewer than 900 bearing factors (at most 600 poses), plus
-up to 300 keyframes; and with every pose kept), (d) covslam with a landmark
+and pose, (c) covslam uncapped (its default bounded graph: a 100-pose window
+plus up to 300 keyframes; and with every pose kept), (d) covslam with a landmark
 cap of 8 for each policy. Odometry noise: graph defaults plus MRCLAM's heading
 drift (service.datasets.mrclam.mrclam_noise), the same for every method.
 

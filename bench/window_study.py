@@ -1,13 +1,13 @@
 """Why the bounded graph misses batch accuracy on MRCLAM-6: pose-window variants.
 
 Uncapped covslam (every landmark kept) on robots 1-5, bearing-only, for: the default
-bounded graph (a 100-pose window that grows, up to 600 poses, while its poses hold fewer
-than 900 bearing factors; + keyframes), the window of 100 or 200 poses exactly (the
-default before the growth: 100), every pose kept, and `keyframe_for_candidate_rays` (a
-pose holding a candidate's first ray stays as a keyframe; 100 poses); dead reckoning
-for reference. Each robot's run is replayed whole and also
-from later start frames (`--starts`; anchored at ground truth there, as the whole run
-is at its first frame): one run per robot is a single, chaotic sample. Per run: ATE
+bounded graph (100-pose window + keyframes), that window grown while its poses hold
+fewer than 900 bearing factors (`window_observations`, up to 600 poses), a 200-pose
+window, every pose kept, and `keyframe_for_candidate_rays` (a pose holding a candidate's
+first ray stays as a keyframe); dead reckoning for reference. Each robot's run is
+replayed whole and also from later start frames (`--starts`; anchored at ground truth
+there, as the whole run is at its first frame): one run per robot is a single, chaotic
+sample. Per run: ATE
 RMSE, median ms per frame, and the final error of every landmark against the
 surveyed map (a group of landmarks off together is the signature of information
 marginalised at a wrong estimate).
@@ -41,7 +41,7 @@ log = logging.getLogger("bench.window_study")
 VARIANTS: dict[str, dict[str, Any]] = {
     "dead_reckoning": {},
     "default": {},
-    "window_100": {"window_observations": None},
+    "window_900": {"window_observations": 900},
     "window_200": {"pose_window": 200, "window_observations": None},
     "every_pose": {"pose_window": None},
     "keyframe_for_candidate_rays": {
