@@ -38,6 +38,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from graph.angles import wrap_angle
@@ -156,6 +157,17 @@ def learn_places(
     loc.places.last_visited.clear()
 
 
+def _surveyed_runs(
+    directory: Path,
+) -> tuple[dict[str, np.ndarray], dict[int, tuple[list[FrameInput], Trajectory]]]:
+    """The surveyed landmark map (label -> position) and robots 1-5's frames and truth."""
+    data = {r: load_mrclam(directory, r) for r in range(1, 6)}
+    lm_table = data[1].landmarks
+    assert lm_table is not None
+    landmarks = {str(int(s)): np.array([x, y]) for s, x, y in lm_table}
+    return landmarks, {r: mrclam_frames(data[r]) for r in data}
+
+
 def global_localisation(
     directory: Path,
     starts: int,
@@ -163,11 +175,7 @@ def global_localisation(
     seed: int,
     config: LocaliserConfig | None = None,
 ) -> dict[str, Any]:
-    data = {r: load_mrclam(directory, r) for r in range(1, 6)}
-    lm_table = data[1].landmarks
-    assert lm_table is not None
-    landmarks = {str(int(s)): np.array([x, y]) for s, x, y in lm_table}
-    runs = {r: mrclam_frames(data[r]) for r in data}
+    landmarks, runs = _surveyed_runs(directory)
     base = Localiser(LocaliserConfig(learn_places=False))
     learn_places(base, runs[1][0], runs[1][1], landmarks, span_s=300.0)
     places_blob = base.places
@@ -325,8 +333,6 @@ def frames_to_information(
     heading's sigma <= converged_sigma_rad * t / converged_sigma_m (t = 0.25 m is the
     filter's test). The start has a prior of 10 m and pi rad (no initial pose).
     `bearing_sigma_rad` None: each observation's stated sigma."""
-    import gtsam
-
     xk, lk = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     lm_key = {}
@@ -381,18 +387,13 @@ def information_bound(
     """frames_to_information over global localisation's starts (the same draws per seed),
     with the observations' stated sigma and with 0.5 deg (MRCLAM-6's bearing residual at
     ground truth is 0.3-0.6 deg); set beside the filter's frames to relocalise."""
-    data = {r: load_mrclam(directory, r) for r in range(1, 6)}
-    lm_table = data[1].landmarks
-    assert lm_table is not None
-    landmarks = {str(int(s)): np.array([x, y]) for s, x, y in lm_table}
-    runs = {r: mrclam_frames(data[r]) for r in data}
+    landmarks, runs = _surveyed_runs(directory)
     cfg = FilterConfig()
     models = {"stated": None, "0.5deg": math.radians(0.5)}
     rows = []
     for seed in seeds:
-        for i, (robot, k0) in enumerate(
-            _start_frames({r: len(v[0]) for r, v in runs.items()}, starts, max_frames, seed)
-        ):
+        lengths = {r: len(v[0]) for r, v in runs.items()}
+        for i, (robot, k0) in enumerate(_start_frames(lengths, starts, max_frames, seed)):
             frames, gt = runs[robot]
             row: dict[str, Any] = {"seed": seed, "start": i, "robot": robot, "start_frame": k0}
             for name, sigma in models.items():

@@ -175,7 +175,8 @@ class BearingSlam:
         # Marginalised non-keyframe frames, by the live keyframe their pose is relative to.
         self._anchored: dict[int, array[int]] = {}
         self._window_factors: dict[int, int] = {}
-        """Bearing factors on each pose while it is in its robot's window."""
+        """Bearing factors on each pose while it is in its robot's window (kept only
+        with window_observations)."""
 
     # ---------------------------------------------------------------- queries
     @property
@@ -582,11 +583,12 @@ class BearingSlam:
         robot.last_stamp = frame.stamp
         robot.next_index += 1
         robot.window.append((plan.key, frame_index))
-        self._window_factors[plan.key] = len(plan.factored)
-        for _, _, rays in plan.new_landmarks:
-            for r in rays:
-                if r.pose_key in self._window_factors:
-                    self._window_factors[r.pose_key] += 1
+        if self.config.window_observations is not None:  # only the growing window counts
+            self._window_factors[plan.key] = len(plan.factored)
+            for _, _, rays in plan.new_landmarks:
+                for r in rays:
+                    if r.pose_key in self._window_factors:
+                        self._window_factors[r.pose_key] += 1
         self._apply_exit(robot, plan.exiting, plan.promoted, plan.leaving, before)
         self._traj_robot.append(robot.slot)
         self._traj_seq.append(frame.seq)
