@@ -596,8 +596,7 @@ class BearingSlam:
         self._traj_pose.extend((plan.predicted.x(), plan.predicted.y(), plan.predicted.theta()))
         self._live_frames[frame_index] = plan.key
 
-        estimate = self._graph.estimate()
-        here = estimate.atPose2(plan.key)
+        here = self._graph.pose(plan.key)
         here_xy = np.array([here.x(), here.y()])
         for lid, _ in plan.observed:
             self._landmarks[lid].observe(here_xy, frame.stamp)
@@ -609,7 +608,7 @@ class BearingSlam:
             self._next_landmark_id += 1
             record = LandmarkRecord(lid, label, frame_index, rays[0].stamp, frame.stamp)
             for r in rays:
-                p = estimate.atPose2(r.pose_key)
+                p = self._graph.pose(r.pose_key)
                 record.observe(np.array([p.x(), p.y()]), r.stamp)
             self._landmarks[lid] = record
             self._last_factor[lid] = frame_index
