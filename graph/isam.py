@@ -146,6 +146,7 @@ class IncrementalGraph:
                 xy = np.asarray(self._estimate.atPoint2(key), dtype=np.float64)
             else:
                 xy = np.asarray(self._isam.calculateEstimatePoint2(key), dtype=np.float64)
+            xy.setflags(write=False)  # shared with the cache: a caller may not edit it
             self._point_cache[key] = xy
         return xy
 
