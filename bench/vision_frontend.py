@@ -188,6 +188,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         policy=args.policy,
         pose_window=args.pose_window,
         max_landmark_factors=args.max_landmark_factors or None,
+        removal_margin=args.removal_margin,
     )
 
     pipeline = ImagePipeline(
@@ -346,6 +347,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "policy": args.policy,
             "pose_window": args.pose_window,
             "max_landmark_factors": args.max_landmark_factors or None,
+            "removal_margin": args.removal_margin,
         },
         "truth_px": args.truth_px,
         "matched_observations": len(matched),
@@ -428,6 +430,12 @@ def main() -> None:
         type=int,
         default=CAMERA_LANDMARK_FACTORS,
         help="bearing factors on live landmarks per frame, both maps (0: one per observation)",
+    )
+    p.add_argument(
+        "--removal-margin",
+        type=int,
+        default=0,
+        help="over the cap, remove down to cap - this in one update (both maps)",
     )
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")

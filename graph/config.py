@@ -118,10 +118,20 @@ class SlamConfig:
     lifelong sim (~10 a frame) and camera maps (~50) keep pose_window's 100 anyway."""
     max_pose_window: int = 600
     """Most poses of a window grown by window_observations (pose_window if that is more)."""
+    removal_margin: int = 0
+    """When the live count exceeds landmark_cap, the policy removes landmarks down to
+    landmark_cap - removal_margin, in one marginalisation. A removal costs one iSAM2
+    update however many landmarks it takes, so a margin lets a map that meets new
+    landmarks every frame (a camera map) pay for one every few frames. 0: down to the
+    cap, one frame at a time as it is exceeded."""
 
     def __post_init__(self) -> None:
         if self.landmark_cap is not None and self.landmark_cap < 1:
             raise ValueError("landmark_cap must be >= 1 or None")
+        if self.removal_margin < 0 or (
+            self.landmark_cap is not None and self.removal_margin >= self.landmark_cap
+        ):
+            raise ValueError("removal_margin must be >= 0 and below landmark_cap")
         if self.pose_window is not None and self.pose_window < 2:
             raise ValueError("pose_window must be >= 2 or None")
         if not (self.bearing_sigma_rad > 0 and math.isfinite(self.bearing_sigma_rad)):

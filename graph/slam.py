@@ -730,7 +730,8 @@ class BearingSlam:
         self._traj_pose[i : i + 3] = array("d", (pose.x(), pose.y(), pose.theta()))
 
     def _enforce_budget(self, frame: FrameInput) -> tuple[int, ...]:
-        """Marginalise the policy's choices until the live count is within the cap."""
+        """Once the live count exceeds the cap, marginalise the policy's choices until it
+        is removal_margin below it."""
         cap = self.config.landmark_cap
         if cap is None or len(self._landmarks) <= cap:
             return ()
@@ -749,7 +750,7 @@ class BearingSlam:
         chosen: list[Removal] = []
         # Marginalising a landmark leaves the others' marginals unchanged, so one
         # covariance computation serves every removal of this frame.
-        while len(table.ids) > cap:
+        while len(table.ids) > cap - self.config.removal_margin:
             removal = self._policy.select(table, rng=self._rng)
             chosen.append(removal)
             keep = table.ids != removal.landmark_id

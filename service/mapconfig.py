@@ -207,6 +207,13 @@ class MapConfig(BaseModel):
         f"observation. Omitted: {CAMERA_LANDMARK_FACTORS} for a map with a camera (a "
         "panorama matches ~100 landmarks a frame), null otherwise",
     )
+    removal_margin: int = Field(
+        _DEFAULTS.removal_margin,
+        ge=0,
+        description="once the live count exceeds landmark_cap, landmarks are removed down "
+        "to landmark_cap - removal_margin in one marginalisation (fewer removal updates "
+        "for maps that meet new landmarks every frame); 0 = down to the cap",
+    )
     drop_window_observations: bool = Field(
         False,
         description="a pose leaving the window without becoming a keyframe loses its "
@@ -271,6 +278,7 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         initial_pose_sigma=cfg.noise.initial_pose_sigma,
         optimizer=cfg.optimizer,
         max_landmark_factors=cfg.max_landmark_factors,
+        removal_margin=cfg.removal_margin,
         drop_window_observations=cfg.drop_window_observations,
         allow_new_landmarks=mode == "mapping",
     )

@@ -450,3 +450,33 @@ def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> N
     else:
         assert max(lengths) == 80
     assert _rmse(slam.trajectory()["r1"], truth) < 1.0
+
+
+@pytest.mark.parametrize("margin", [0, 3])
+def test_a_removal_margin_removes_below_the_cap_in_one_update(margin: int) -> None:
+    """Over the cap, the live count drops to cap - margin in one step, and never goes
+    over the cap after a frame; a larger margin needs fewer removal steps."""
+    frames, _, _ = circle_frames(240, seed=5, n_landmarks=30)
+    cap = 8
+    slam = BearingSlam(
+        SlamConfig(landmark_cap=cap, pose_window=20, removal_margin=margin),
+        rng=np.random.default_rng(0),
+    )
+    steps = 0
+    for f in frames:
+        out = slam.process(f, with_covariance=False)
+        assert out.live <= cap
+        if out.marginalised:
+            steps += 1
+            assert out.live == len(slam.landmarks) == cap - margin
+    assert steps > 0
+    if margin:
+        plain = _run(frames, SlamConfig(landmark_cap=cap, pose_window=20))
+        assert steps < len({r.frame for r in plain.removals})
+
+
+def test_a_removal_margin_must_leave_landmarks() -> None:
+    with pytest.raises(ValueError, match="removal_margin"):
+        SlamConfig(landmark_cap=8, removal_margin=8)
+    with pytest.raises(ValueError, match="removal_margin"):
+        SlamConfig(removal_margin=-1)

@@ -57,3 +57,10 @@ def test_window_growth_defaults_and_a_window_given_alone() -> None:
     # A window given longer than the growth's limit is still that long.
     long = slam_config(MapConfig.model_validate({"pose_window": 900}).model_dump(), "mapping")
     assert (long.pose_window, long.window_observations) == (900, None)
+
+
+def test_removal_margin_reaches_the_estimator_and_must_stay_below_the_cap() -> None:
+    assert slam_config({"landmark_cap": 50, "removal_margin": 5}, "mapping").removal_margin == 5
+    assert slam_config({}, "mapping").removal_margin == 0
+    with pytest.raises(ValueError, match="removal_margin"):
+        slam_config({"landmark_cap": 5, "removal_margin": 5}, "mapping")
