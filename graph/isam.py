@@ -132,20 +132,13 @@ class IncrementalGraph:
         delta, as calculateEstimate() gives it, without computing every variable."""
         pose = self._pose_cache.get(key)
         if pose is None:
-            if self._estimate is not None:
-                pose = self._estimate.atPose2(key)
-            else:
-                pose = self._isam.calculateEstimatePose2(key)
-            self._pose_cache[key] = pose
+            pose = self._pose_cache[key] = self._isam.calculateEstimatePose2(key)
         return pose
 
     def point(self, key: int) -> NDArray[np.float64]:
         xy = self._point_cache.get(key)
         if xy is None:
-            if self._estimate is not None:
-                xy = np.asarray(self._estimate.atPoint2(key), dtype=np.float64)
-            else:
-                xy = np.asarray(self._isam.calculateEstimatePoint2(key), dtype=np.float64)
+            xy = np.asarray(self._isam.calculateEstimatePoint2(key), dtype=np.float64)
             xy.setflags(write=False)  # shared with the cache: a caller may not edit it
             self._point_cache[key] = xy
         return xy
