@@ -54,7 +54,7 @@ from frontend.pipeline import FrontEnd
 from graph.slam import BearingSlam
 from service.datasets.render_run import write_rendered_run
 from service.frames_io import frame_from_dict
-from service.mapconfig import slam_config
+from service.mapconfig import MapConfig, slam_config
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord
@@ -179,6 +179,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
     if args.optimizer is not None:
         config["optimizer"] = args.optimizer
+    if args.graph_frame_distance is not None:
+        config["graph_frame_distance_m"] = args.graph_frame_distance or None
+    # The config as the service creates the map (camera defaults filled in), so that the
+    # in-process runs and the HTTP map estimate alike.
+    config = MapConfig.model_validate(config).for_new_map(None).model_dump(mode="json")
     load_start = os.getloadavg()
     print(f"{len(frames)} frames, load average {load_start[0]:.1f}, config {config}")
     pipeline = ImagePipeline(
@@ -353,6 +358,13 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the map config's iSAM2 step (default: the service's, dogleg); results go to "
         "http_images_<optimizer>.json",
+    )
+    p.add_argument(
+        "--graph-frame-distance",
+        type=float,
+        default=None,
+        help="the map config's graph_frame_distance_m (default: the camera map's; 0: every "
+        "frame in the graph)",
     )
     p.add_argument(
         "--render-dir",

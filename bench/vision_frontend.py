@@ -52,7 +52,7 @@ from service.datasets.render import (
     visible_corners,
 )
 from service.evaluation import Trajectory, ate_rmse
-from service.mapconfig import CAMERA_LANDMARK_FACTORS
+from service.mapconfig import CAMERA_GRAPH_FRAME_DISTANCE_M, CAMERA_LANDMARK_FACTORS
 from service.vision import ImagePipeline
 
 log = logging.getLogger("bench.vision_frontend")
@@ -189,6 +189,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         pose_window=args.pose_window,
         max_landmark_factors=args.max_landmark_factors or None,
         removal_margin=args.removal_margin,
+        graph_frame_distance_m=args.graph_frame_distance or None,
     )
 
     pipeline = ImagePipeline(
@@ -348,6 +349,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "pose_window": args.pose_window,
             "max_landmark_factors": args.max_landmark_factors or None,
             "removal_margin": args.removal_margin,
+            "graph_frame_distance_m": args.graph_frame_distance or None,
         },
         "truth_px": args.truth_px,
         "matched_observations": len(matched),
@@ -436,6 +438,12 @@ def main() -> None:
         type=int,
         default=0,
         help="over the cap, remove down to cap - this in one update (both maps)",
+    )
+    p.add_argument(
+        "--graph-frame-distance",
+        type=float,
+        default=CAMERA_GRAPH_FRAME_DISTANCE_M,
+        help="metres between graph frames, the others tracked (both maps; 0: every frame)",
     )
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")

@@ -125,6 +125,23 @@ class SlamConfig:
     landmarks every frame (a camera map) pay for one every few frames. 0: down to the
     cap, one frame at a time as it is exceeded."""
 
+    graph_frame_distance_m: float | None = None
+    """Off (None) by default: every frame enters the graph. Set, a frame enters the graph
+    only when its robot moved this far since its last frame that did, turned
+    graph_frame_angle_rad, graph_frame_max_gap frames went by, the frame sees fewer than
+    graph_frame_min_landmarks live landmarks, or it starts or re-anchors the robot's
+    chain. The other frames are tracked (see BearingSlam._track): their pose is solved
+    against the graph's landmarks held fixed, kept relative to the robot's last graph
+    frame, and their odometry is folded into the next graph frame's. A camera sees the
+    same ~100 landmarks from nearly the same place frame after frame; in the graph, each
+    such frame makes iSAM2 re-eliminate them all and links one more pose into every
+    removed landmark's dense marginal."""
+    graph_frame_angle_rad: float = math.radians(30.0)
+    graph_frame_max_gap: int = 4
+    """Most frames of a robot between two of its graph frames (tracked ones in between)."""
+    graph_frame_min_landmarks: int = 5
+    """A frame seeing fewer live landmarks than this enters the graph (tracking needs them)."""
+
     def __post_init__(self) -> None:
         if self.landmark_cap is not None and self.landmark_cap < 1:
             raise ValueError("landmark_cap must be >= 1 or None")
@@ -152,6 +169,14 @@ class SlamConfig:
             raise ValueError("max_landmark_factors must be >= 1 or None")
         if self.window_observations is not None and self.window_observations < 1:
             raise ValueError("window_observations must be >= 1 or None")
+        if self.graph_frame_distance_m is not None and not self.graph_frame_distance_m > 0:
+            raise ValueError("graph_frame_distance_m must be > 0 or None")
+        if not self.graph_frame_angle_rad > 0:
+            raise ValueError("graph_frame_angle_rad must be > 0")
+        if self.graph_frame_max_gap < 1:
+            raise ValueError("graph_frame_max_gap must be >= 1")
+        if self.graph_frame_min_landmarks < 0:
+            raise ValueError("graph_frame_min_landmarks must be >= 0")
         if self.max_pose_window < 2:
             raise ValueError("max_pose_window must be >= 2")
         if self.candidate_ttl_frames < 1:

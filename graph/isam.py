@@ -89,6 +89,7 @@ class IncrementalGraph:
         self._estimate: gtsam.Values | None = None
         self._pose_cache: dict[int, gtsam.Pose2] = {}
         self._point_cache: dict[int, NDArray[np.float64]] = {}
+        self._cov_cache: dict[int, NDArray[np.float64]] = {}
         """Estimates of single variables asked for since the last update. A frame needs a
         handful of them, and the whole estimate is a copy of every variable. The first
         read after an update costs more either way: it makes iSAM2 compute its delta
@@ -157,8 +158,14 @@ class IncrementalGraph:
         return np.array([(p.x(), p.y(), p.theta()) for p in poses], dtype=np.float64)
 
     def pose_covariance(self, key: int) -> NDArray[np.float64]:
-        """(3, 3) marginal covariance of a pose (x, y, theta in its own frame)."""
-        return np.asarray(self._isam.marginalCovariance(key))
+        """(3, 3) marginal covariance of a pose (x, y, theta in its own frame); cached
+        until the next update (tracked frames ask for their base pose's, read-only)."""
+        cov = self._cov_cache.get(key)
+        if cov is None:
+            cov = np.asarray(self._isam.marginalCovariance(key), dtype=np.float64)
+            cov.setflags(write=False)
+            self._cov_cache[key] = cov
+        return cov
 
     def landmark_covariances(self, keys: Sequence[int]) -> NDArray[np.float64]:
         """(N, 2, 2) marginal covariances of landmarks from one joint marginal."""
@@ -215,6 +222,7 @@ class IncrementalGraph:
         self._estimate = None
         self._pose_cache = {}
         self._point_cache = {}
+        self._cov_cache = {}
         for index in remove:
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]

@@ -32,6 +32,7 @@ from graph.factors import (
     landmark_key,
     landmark_prior_factor,
     odometry_factor,
+    odometry_sigmas,
     pose_key,
     pose_prior_factor,
     to_pose2,
@@ -40,6 +41,7 @@ from graph.factors import (
 from graph.isam import IncrementalGraph
 from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
 from graph.policies import LandmarkTable, Removal, get_policy, information_content
+from graph.tracking import Motion, compose_motion, solve_pose, tracked_covariance
 from graph.triangulation import Triangulation, parallax, triangulate
 from graph.types import FrameInput, Pose2D
 from graph.validation import validate_frame
@@ -62,6 +64,12 @@ class _Robot:
     """(pose key, frame index) of the robot's newest poses, oldest first."""
     keyframes: deque[tuple[int, int]] = field(default_factory=deque)
     """(pose key, frame index) of older poses kept in the graph as keyframes."""
+    motion: Motion | None = None
+    """Odometry since the robot's newest graph frame (window[-1]), when frames were
+    tracked since (see SlamConfig.graph_frame_distance_m)."""
+    tracked: tuple[tuple[float, float, float], NDArray[np.float64]] | None = None
+    """The newest frame's pose relative to window[-1] and its bearings' (3, 3)
+    information, when that frame was tracked; None when it is in the graph."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,7 +273,14 @@ class BearingSlam:
             last_stamp=robot.last_stamp if robot else None,
             require_initial_pose=anchor is None,
         )
-        plan = self._plan(frame, robot, anchor)
+        motion = None
+        if robot is not None and anchor is None and self.config.graph_frame_distance_m is not None:
+            motion = self._motion(robot, frame)
+            if not self._is_graph_frame(frame, motion):
+                return self._track(frame, robot, motion, with_covariance, t0)
+            if motion.frames == 1:
+                motion = None  # one step: the frame's own odometry factor, as without
+        plan = self._plan(frame, robot, anchor, motion)
         t1 = time.perf_counter()
         # Estimates before the update: what a marginalised pose keeps.
         before = self._poses_before_exit(robot, plan.exiting, plan.promoted, plan.leaving)
@@ -285,7 +300,7 @@ class BearingSlam:
         self._shrink_window(robot)
         self._thin_keyframes()
         t3 = time.perf_counter()
-        covariance = self._graph.pose_covariance(plan.key) if with_covariance else None
+        covariance = self._graph.pose_covariance(plan.key).copy() if with_covariance else None
         t4 = time.perf_counter()
         return FrameOutcome(
             frame_index=self._frames - 1,
@@ -311,11 +326,116 @@ class BearingSlam:
             },
         )
 
+    def _motion(self, robot: _Robot, frame: FrameInput) -> Motion:
+        """The robot's odometry since its last graph frame, this frame's included."""
+        assert frame.odometry is not None  # validated
+        odo = frame.odometry
+        sigmas = odometry_sigmas(odo, self.config, frame.stamp - robot.last_stamp)
+        return compose_motion(robot.motion, (odo.dx, odo.dy, odo.dtheta), sigmas)
+
+    def _is_graph_frame(self, frame: FrameInput, motion: Motion) -> bool:
+        """Does this frame enter the graph (see SlamConfig.graph_frame_distance_m)?"""
+        cfg = self.config
+        assert cfg.graph_frame_distance_m is not None
+        x, y, theta = motion.xyt
+        if math.hypot(x, y) >= cfg.graph_frame_distance_m:
+            return True
+        if abs(theta) >= cfg.graph_frame_angle_rad or motion.frames >= cfg.graph_frame_max_gap:
+            return True
+        seen = {o.label for o in frame.observations if o.label in self._label_to_id}
+        return len(seen) < cfg.graph_frame_min_landmarks
+
+    def _track(
+        self, frame: FrameInput, robot: _Robot, motion: Motion, with_covariance: bool, t0: float
+    ) -> FrameOutcome:
+        """A frame that stays out of the graph: its pose from its bearings to the live
+        landmarks (held fixed) and the odometry since the robot's last graph frame (held
+        fixed too), kept relative to that frame so that it follows the graph's later
+        corrections. The landmarks' observation-position means count it; nothing else in
+        the map changes, and its odometry goes into the next graph frame's factor."""
+        cfg = self.config
+        base_key = robot.window[-1][0]
+        base = self._graph.pose(base_key)
+        observed: list[tuple[int, float]] = []
+        sigmas: list[float] = []
+        for obs in frame.observations:
+            lid = self._label_to_id.get(obs.label)
+            if lid is not None:
+                observed.append((lid, obs.bearing_rad))
+                sigmas.append(obs.sigma_rad if obs.sigma_rad is not None else cfg.bearing_sigma_rad)
+        observed, sigmas = self._gate(observed, sigmas, base.compose(motion.pose))
+        xy = self._graph.points([landmark_key(lid) for lid, _ in observed]).reshape(-1, 2)
+        solved = solve_pose(
+            base,
+            motion,
+            xy,
+            np.array([z for _, z in observed], dtype=np.float64),
+            np.array(sigmas, dtype=np.float64),
+            cfg.huber_k,
+        )
+        t1 = time.perf_counter()
+        covariance = (
+            tracked_covariance(self._graph.pose_covariance(base_key), motion, solved.information)
+            if with_covariance
+            else None
+        )
+        t2 = time.perf_counter()
+        # Commit (nothing above changed the map).
+        rel = base.between(solved.pose)
+        frame_index = self._frames
+        robot.last_seq = frame.seq
+        robot.last_stamp = frame.stamp
+        robot.motion = motion
+        robot.tracked = ((rel.x(), rel.y(), rel.theta()), solved.information)
+        self._traj_robot.append(robot.slot)
+        self._traj_seq.append(frame.seq)
+        self._traj_stamp.append(frame.stamp)
+        self._traj_pose.extend((rel.x(), rel.y(), rel.theta()))
+        self._anchored.setdefault(base_key, array("q")).append(frame_index)
+        here = np.array([solved.pose.x(), solved.pose.y()])
+        for lid, _ in observed:
+            self._landmarks[lid].observe(here, frame.stamp)
+        self._count_frame()
+        return FrameOutcome(
+            frame_index=frame_index,
+            robot=frame.robot,
+            seq=frame.seq,
+            stamp=frame.stamp,
+            pose=from_pose2(solved.pose),
+            covariance=covariance,
+            observed=tuple(lid for lid, _ in observed),
+            added=(),
+            marginalised=(),
+            live=len(self._landmarks),
+            timing_ms={
+                "prepare": 1e3 * (t1 - t0),
+                "update": 0.0,
+                "budget": 0.0,
+                "covariance": 1e3 * (t2 - t1),
+                "total": 1e3 * (t2 - t0),
+            },
+        )
+
+    def latest_pose(self, robot: str) -> gtsam.Pose2:
+        """The current estimate of the robot's newest frame (KeyError: unknown robot)."""
+        state = self._robots[robot]
+        base = self._graph.pose(state.window[-1][0])
+        return base if state.tracked is None else base.compose(gtsam.Pose2(*state.tracked[0]))
+
+    def latest_pose_covariance(self, robot: str) -> NDArray[np.float64]:
+        """(3, 3) covariance of the robot's newest frame (x, y, theta in its own frame)."""
+        state = self._robots[robot]
+        cov = self._graph.pose_covariance(state.window[-1][0])
+        if state.tracked is None or state.motion is None:
+            return cov.copy()
+        return tracked_covariance(cov, state.motion, state.tracked[1])
+
     def _plan(
         self,
         frame: FrameInput,
         robot: _Robot | None,
         anchor: tuple[Pose2D, NDArray[np.float64]] | None = None,
+        motion: Motion | None = None,
     ) -> _Plan:
         cfg = self.config
         frame_index = self._frames
@@ -347,6 +467,10 @@ class BearingSlam:
                         previous, key, vague_link(gap), cfg, frame.stamp - robot.last_stamp
                     )
                 )
+            elif motion is not None:  # tracked frames since the previous graph frame
+                predicted = self._graph.pose(previous).compose(motion.pose)
+                noise = gtsam.noiseModel.Gaussian.Covariance(motion.covariance)
+                factors.append(gtsam.BetweenFactorPose2(previous, key, motion.pose, noise))
             else:
                 predicted = self._graph.pose(previous).compose(
                     gtsam.Pose2(frame.odometry.dx, frame.odometry.dy, frame.odometry.dtheta)
@@ -582,6 +706,8 @@ class BearingSlam:
         robot.last_seq = frame.seq
         robot.last_stamp = frame.stamp
         robot.next_index += 1
+        robot.motion = None
+        robot.tracked = None
         robot.window.append((plan.key, frame_index))
         if self.config.window_observations is not None:  # only the growing window counts
             self._window_factors[plan.key] = len(plan.factored)
@@ -614,12 +740,16 @@ class BearingSlam:
             self._last_factor[lid] = frame_index
             self._label_to_id[label] = lid
             del self._candidates[label]
+        self._count_frame()
+        return robot
+
+    def _count_frame(self) -> None:
+        """One more frame; every _SWEEP_EVERY frames, candidates left unseen expire."""
         self._frames += 1
         if self._frames % _SWEEP_EVERY == 0:
             horizon = self._frames - self.config.candidate_ttl_frames
             for label in [lb for lb, c in self._candidates.items() if c.last_frame < horizon]:
                 del self._candidates[label]
-        return robot
 
     def _poses_before_exit(
         self,
@@ -658,7 +788,12 @@ class BearingSlam:
                 anchor = robot.keyframes[-1][0]
                 rel = before[anchor].between(before[exiting[0]])
                 self._set_traj_pose(exiting[1], rel)
-                self._anchored.setdefault(anchor, array("q")).append(exiting[1])
+                followers = self._anchored.setdefault(anchor, array("q"))
+                followers.append(exiting[1])
+                # Tracked frames that followed the exiting pose now follow the keyframe.
+                for f in self._anchored.pop(exiting[0], ()):
+                    self._set_traj_pose(f, rel.compose(self._traj_pose_at(f)))
+                    followers.append(f)
                 self._live_frames.pop(exiting[1], None)
                 anchored_exit = True
         for key, old_frame in leaving:
@@ -694,9 +829,7 @@ class BearingSlam:
         self._live_frames.pop(frame, None)
         self._set_traj_pose(frame, pose)
         for f in self._anchored.pop(key, ()):
-            i = 3 * f
-            rel = gtsam.Pose2(*self._traj_pose[i : i + 3])
-            self._set_traj_pose(f, pose.compose(rel))
+            self._set_traj_pose(f, pose.compose(self._traj_pose_at(f)))
 
     def _thin_keyframes(self) -> None:
         """Marginalise the oldest keyframes of any marginal factor that links more than
@@ -724,6 +857,10 @@ class BearingSlam:
                 robot, frame = owner[key]
                 robot.keyframes.remove((key, frame))
                 self._retire(key, frame, poses[key])
+
+    def _traj_pose_at(self, frame: int) -> gtsam.Pose2:
+        i = 3 * frame
+        return gtsam.Pose2(*self._traj_pose[i : i + 3])
 
     def _set_traj_pose(self, frame: int, pose: gtsam.Pose2) -> None:
         i = 3 * frame

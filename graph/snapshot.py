@@ -24,7 +24,6 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from graph.factors import pose_key
 from graph.relative import RelativeMarginalFactor, RelativeSpec
 from graph.slam import BearingSlam, RemovalRecord
 
@@ -118,13 +117,6 @@ def restore_with_extra(
     for name, value in plain.items():
         setattr(slam, name, value)
     return slam, state.get("extra")
-
-
-def latest_pose_keys(slam: BearingSlam) -> dict[str, int]:
-    """The graph key of each robot's newest pose (always still in the graph)."""
-    return {
-        name: pose_key(robot.slot, robot.next_index - 1) for name, robot in slam._robots.items()
-    }
 
 
 def last_accepted(slam: BearingSlam) -> dict[str, tuple[int, float]]:

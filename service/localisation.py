@@ -24,7 +24,7 @@ from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser
 from graph.particles import FilterConfig, FilterEstimate
 from graph.places import Place
 from graph.slam import BearingSlam, FrameOutcome
-from graph.snapshot import last_accepted, latest_pose_keys
+from graph.snapshot import last_accepted
 from graph.types import FrameInput, Pose2D
 from service.appearance_places import AppearancePlaces
 from service.offgraph import ODOMETRY, OffGraphLog
@@ -279,7 +279,7 @@ class MapLocalisation:
         landmarks = self.landmark_map(slam)
         track = self.localiser.robots.get(robot)
         if robot in slam.robots and (track is None or track.status == TRACKING):
-            p = slam.graph.pose(latest_pose_keys(slam)[robot])
+            p = slam.latest_pose(robot)
             pose = np.array([p.x(), p.y(), p.theta()])
         else:
             assert track is not None

@@ -138,6 +138,8 @@ CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discrimi
 
 CAMERA_LANDMARK_FACTORS = 60
 """Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
+CAMERA_GRAPH_FRAME_DISTANCE_M = 0.25
+"""`graph_frame_distance_m` of a camera map created without one (see MapConfig.for_new_map)."""
 WINDOW_FIELDS = ("pose_window", "window_observations", "max_pose_window")
 
 
@@ -220,6 +222,16 @@ class MapConfig(BaseModel):
         "landmark observations instead of having them marginalised (cheaper with many "
         "landmarks per frame, throws information away; see the README)",
     )
+    graph_frame_distance_m: float | None = Field(
+        None,
+        gt=0,
+        description="a frame enters the factor graph only once its robot moved this far "
+        "(metres) from its last frame that did (or turned 30 deg, or every 4th frame, or "
+        "when it sees fewer than 5 live landmarks); the frames in between are tracked "
+        "against the map's landmarks and follow the graph's corrections. null = every "
+        f"frame. Omitted at creation: {CAMERA_GRAPH_FRAME_DISTANCE_M} for a map with a "
+        "camera, null otherwise (maps stored without it keep null)",
+    )
     seed: int = Field(0, ge=0, description="seed of the map's random choices (policy, k-means)")
 
     @model_validator(mode="after")
@@ -249,6 +261,16 @@ class MapConfig(BaseModel):
         if value not in POLICY_NAMES:
             raise ValueError(f"unknown policy {value!r}; one of {', '.join(POLICY_NAMES)}")
         return value
+
+    def for_new_map(self, default_cap: int | None) -> MapConfig:
+        """The config a map is created with: the service's default cap if the client gave
+        none, and a camera map's graph_frame_distance_m if the client gave none. Only at
+        creation: a stored config or an export without the field is a map built with
+        every frame in the graph, and its frame log replays that way."""
+        config = self.with_default_cap(default_cap)
+        if "graph_frame_distance_m" in self.model_fields_set or self.camera is None:
+            return config
+        return config.model_copy(update={"graph_frame_distance_m": CAMERA_GRAPH_FRAME_DISTANCE_M})
 
     def with_default_cap(self, default_cap: int | None) -> MapConfig:
         """This config with the service's default cap if the client gave none."""
@@ -280,6 +302,7 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         max_landmark_factors=cfg.max_landmark_factors,
         removal_margin=cfg.removal_margin,
         drop_window_observations=cfg.drop_window_observations,
+        graph_frame_distance_m=cfg.graph_frame_distance_m,
         allow_new_landmarks=mode == "mapping",
     )
 

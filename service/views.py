@@ -15,7 +15,7 @@ import numpy as np
 
 from graph.policies import LandmarkTable, coverage_clusters, information_content
 from graph.slam import BearingSlam
-from graph.snapshot import last_accepted, latest_pose_keys
+from graph.snapshot import last_accepted
 from service.coverage import coverage_grid
 from service.errors import ServiceError
 from service.evaluation import Trajectory, write_tum
@@ -24,12 +24,11 @@ from service.store import FrameFigures, MapStore
 
 def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
     """Latest pose of each robot with its (3, 3) covariance."""
-    keys = latest_pose_keys(slam)
     last = last_accepted(slam)
     robots = {}
-    for name, key in keys.items():
-        p = slam.graph.pose(key)
-        cov = slam.graph.pose_covariance(key)
+    for name in slam.robots:
+        p = slam.latest_pose(name)
+        cov = slam.latest_pose_covariance(name)
         robots[name] = {
             "seq": last[name][0],
             "stamp": last[name][1],

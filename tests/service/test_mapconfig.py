@@ -7,7 +7,12 @@ import pytest
 from pydantic import ValidationError
 
 from graph.config import SlamConfig
-from service.mapconfig import CAMERA_LANDMARK_FACTORS, MapConfig, slam_config
+from service.mapconfig import (
+    CAMERA_GRAPH_FRAME_DISTANCE_M,
+    CAMERA_LANDMARK_FACTORS,
+    MapConfig,
+    slam_config,
+)
 
 
 def test_camera_map_defaults_to_the_landmark_factor_bound() -> None:
@@ -64,3 +69,28 @@ def test_removal_margin_reaches_the_estimator_and_must_stay_below_the_cap() -> N
     assert slam_config({}, "mapping").removal_margin == 0
     with pytest.raises(ValueError, match="removal_margin"):
         slam_config({"landmark_cap": 5, "removal_margin": 5}, "mapping")
+
+
+def test_a_camera_map_is_created_with_graph_frames_and_a_stored_one_keeps_its_own() -> None:
+    """At creation a camera map without graph_frame_distance_m gets the camera's; a map
+    without a camera, an explicit value (null included) and a stored config (or an export)
+    without the field keep theirs, so a map built with every frame replays that way."""
+    new = MapConfig.model_validate({"camera": "panorama"}).for_new_map(50)
+    assert new.graph_frame_distance_m == CAMERA_GRAPH_FRAME_DISTANCE_M
+    assert new.landmark_cap == 50
+    stored = new.model_dump(mode="json")
+    assert stored["graph_frame_distance_m"] == CAMERA_GRAPH_FRAME_DISTANCE_M
+    assert slam_config(stored, "mapping").graph_frame_distance_m == CAMERA_GRAPH_FRAME_DISTANCE_M
+    assert MapConfig.model_validate({}).for_new_map(50).graph_frame_distance_m is None
+    every = MapConfig.model_validate({"camera": "panorama", "graph_frame_distance_m": None})
+    assert every.for_new_map(50).graph_frame_distance_m is None
+    given = MapConfig.model_validate({"camera": "panorama", "graph_frame_distance_m": 0.5})
+    assert given.for_new_map(50).graph_frame_distance_m == 0.5
+    old = {k: v for k, v in stored.items() if k != "graph_frame_distance_m"}
+    assert slam_config(old, "mapping").graph_frame_distance_m is None
+
+
+@pytest.mark.parametrize("bad", [0, -0.1, "far"])
+def test_graph_frame_distance_must_be_positive(bad: object) -> None:
+    with pytest.raises(ValidationError, match="graph_frame_distance_m"):
+        MapConfig.model_validate({"camera": "panorama", "graph_frame_distance_m": bad})
