@@ -67,6 +67,11 @@ class MapCounts(BaseModel):
         description="of those, frames the graph did not take (the robot was initialising "
         "or lost): they are in the trajectory with a pose from odometry or the filter"
     )
+    graph_frames: int = Field(
+        description="frames whose pose is a variable of the graph (in the window, a "
+        "keyframe or marginalised since); the others were tracked between them (see the "
+        "map config's graph_frame_distance_m) or off the graph"
+    )
     robots: int = Field(description="robots that posted frames")
     live_landmarks: int = Field(description="landmarks currently in the graph")
     candidates: int = Field(description="observed labels not yet triangulated")

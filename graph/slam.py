@@ -192,6 +192,11 @@ class BearingSlam:
         return self._frames
 
     @property
+    def graph_frame_count(self) -> int:
+        """Frames that entered the graph (the others were tracked)."""
+        return sum(r.next_index for r in self._robots.values())
+
+    @property
     def graph(self) -> IncrementalGraph:
         return self._graph
 

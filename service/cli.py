@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -22,7 +23,12 @@ from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
-from service.mapconfig import WINDOW_FIELDS, window_settings
+from service.mapconfig import (
+    CAMERA_GRAPH_FRAME_DISTANCE_M,
+    CAMERA_LANDMARK_FACTORS,
+    WINDOW_FIELDS,
+    window_settings,
+)
 from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
@@ -191,10 +197,17 @@ def _replay(args: argparse.Namespace) -> int:
             camera_config = front_end.camera.as_config()
             front_end.close()
         return _replay_http(args, sequence, frames, gt, robot, camera_config)
+    config = _config(args)
+    if front_end is not None:  # as the service creates a camera map
+        config = dataclasses.replace(
+            config,
+            max_landmark_factors=CAMERA_LANDMARK_FACTORS,
+            graph_frame_distance_m=CAMERA_GRAPH_FRAME_DISTANCE_M,
+        )
     try:
         result = replay(
             sequence,
-            config=_config(args),
+            config=config,
             seed=args.seed,
             total=len(sequence),
             progress=args.progress,

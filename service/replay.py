@@ -110,6 +110,7 @@ class ReplayResult:
         return {
             "config": _config_dict(self.slam.config),
             "frames": len(self.frame_ms),
+            "graph_frames": self.slam.graph_frame_count,
             "frame_ms": [round(t, 4) for t in self.frame_ms],
             "live_landmarks": self.live_landmarks,
             "removals": self.removal_log.read(),

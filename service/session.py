@@ -534,6 +534,7 @@ class MapSession:
             "counts": {
                 "frames": self.slam.frame_count + off_graph,
                 "off_graph_frames": off_graph,
+                "graph_frames": self.slam.graph_frame_count,
                 "robots": len(robots),
                 "live_landmarks": len(self.slam.landmarks),
                 "candidates": self.slam.candidate_count,

@@ -17,6 +17,7 @@ from frontend.cameras import PanoramaCamera
 from service.datasets.render_run import RenderedRun, write_rendered_run
 from service.evaluation import ate_rmse, dead_reckoning, read_tum
 from service.http_client import fetch_tum, image_frame_parts, replay_http
+from service.mapconfig import CAMERA_GRAPH_FRAME_DISTANCE_M
 from service.replay import ImageFrame, read_replay_frames
 from tests.e2e.conftest import Server, create_map
 from tests.frontend import _synthetic as synthetic
@@ -86,6 +87,13 @@ def test_rendered_run_over_http_builds_a_map_near_the_truth(
     run = replay_http(frames, url=server.url, map_id=map_id, progress=False)
     assert len(run.results) == FRAMES
     assert run.results[-1]["timing_ms"]["features"] > 0
+    # A camera map is created with tracked frames between its graph frames; every frame
+    # is still in the trajectory.
+    summary = client.get(f"/v1/maps/{map_id}").json()
+    assert summary["config"]["graph_frame_distance_m"] == CAMERA_GRAPH_FRAME_DISTANCE_M
+    assert 0 < summary["counts"]["graph_frames"] < summary["counts"]["frames"] == FRAMES
+    traj = client.get(f"/v1/maps/{map_id}/trajectory").json()["robots"]["r1"]
+    assert [p["seq"] for p in traj] == [f.frame.seq for f in frames]
     landmarks = client.get(f"/v1/maps/{map_id}/landmarks").json()
     assert len(landmarks) > 10, "candidate tracks became landmarks"
     observed = sum(len(r["landmarks"]["observed"]) for r in run.results)

@@ -53,6 +53,9 @@ def test_replay_of_rendered_images_builds_a_map(rendered: Path, capsys) -> None:
     assert code == 0
     stats = json.loads(stats_path.read_text())
     assert stats["image_frames"] == 60
+    # With a camera map's defaults, as the service creates one: graph frames and tracked ones.
+    assert stats["config"]["graph_frame_distance_m"] > 0
+    assert 0 < stats["graph_frames"] < 60
     # Tracks became landmarks, and later frames observed them by descriptor matching.
     assert stats["live_landmarks"][-1] > 10
     assert stats["image_landmark_observations"] > 100
