@@ -180,6 +180,16 @@ def speed_only(args: argparse.Namespace) -> dict[str, Any]:
     return {"load_average_start": list(os.getloadavg()), **speed_test(camera, images)}
 
 
+def _graph_frame_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The graph-frame settings given on the command line (others: the estimator's)."""
+    out: dict[str, Any] = {}
+    if args.graph_frame_max_gap is not None:
+        out["graph_frame_max_gap"] = args.graph_frame_max_gap
+    if args.graph_frame_angle_deg is not None:
+        out["graph_frame_angle_rad"] = math.radians(args.graph_frame_angle_deg)
+    return out
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     tw, sim, camera = _scene(args)
     identity = corner_identities(tw.corners_xyz)
@@ -190,6 +200,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         max_landmark_factors=args.max_landmark_factors or None,
         removal_margin=args.removal_margin,
         graph_frame_distance_m=args.graph_frame_distance or None,
+        **_graph_frame_options(args),
     )
 
     pipeline = ImagePipeline(
@@ -350,6 +361,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "max_landmark_factors": args.max_landmark_factors or None,
             "removal_margin": args.removal_margin,
             "graph_frame_distance_m": args.graph_frame_distance or None,
+            **_graph_frame_options(args),
         },
         "truth_px": args.truth_px,
         "matched_observations": len(matched),
@@ -445,6 +457,8 @@ def main() -> None:
         default=CAMERA_GRAPH_FRAME_DISTANCE_M,
         help="metres between graph frames, the others tracked (both maps; 0: every frame)",
     )
+    p.add_argument("--graph-frame-max-gap", type=int, default=None)
+    p.add_argument("--graph-frame-angle-deg", type=float, default=None)
     p.add_argument("--truth-px", type=float, default=2.0)
     p.add_argument("--out", default="vision_frontend")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle map (diagnosis)")

@@ -226,11 +226,30 @@ class MapConfig(BaseModel):
         None,
         gt=0,
         description="a frame enters the factor graph only once its robot moved this far "
-        "(metres) from its last frame that did (or turned 30 deg, or every 4th frame, or "
-        "when it sees fewer than 5 live landmarks); the frames in between are tracked "
+        "(metres) from its last frame that did (or turned graph_frame_angle_rad, or "
+        "graph_frame_max_gap frames went by, or it sees fewer than "
+        "graph_frame_min_landmarks live landmarks); the frames in between are tracked "
         "against the map's landmarks and follow the graph's corrections. null = every "
         f"frame. Omitted at creation: {CAMERA_GRAPH_FRAME_DISTANCE_M} for a map with a "
         "camera, null otherwise (maps stored without it keep null)",
+    )
+    graph_frame_angle_rad: float = Field(
+        _DEFAULTS.graph_frame_angle_rad,
+        gt=0,
+        description="with graph_frame_distance_m: a frame that turned this far (radians) "
+        "from its robot's last graph frame enters the graph",
+    )
+    graph_frame_max_gap: int = Field(
+        _DEFAULTS.graph_frame_max_gap,
+        ge=1,
+        description="with graph_frame_distance_m: most frames of a robot from one graph "
+        "frame to the next",
+    )
+    graph_frame_min_landmarks: int = Field(
+        _DEFAULTS.graph_frame_min_landmarks,
+        ge=0,
+        description="with graph_frame_distance_m: a frame seeing fewer live landmarks than "
+        "this enters the graph (a tracked pose needs them)",
     )
     seed: int = Field(0, ge=0, description="seed of the map's random choices (policy, k-means)")
 
@@ -303,6 +322,9 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         removal_margin=cfg.removal_margin,
         drop_window_observations=cfg.drop_window_observations,
         graph_frame_distance_m=cfg.graph_frame_distance_m,
+        graph_frame_angle_rad=cfg.graph_frame_angle_rad,
+        graph_frame_max_gap=cfg.graph_frame_max_gap,
+        graph_frame_min_landmarks=cfg.graph_frame_min_landmarks,
         allow_new_landmarks=mode == "mapping",
     )
 

@@ -90,7 +90,24 @@ def test_a_camera_map_is_created_with_graph_frames_and_a_stored_one_keeps_its_ow
     assert slam_config(old, "mapping").graph_frame_distance_m is None
 
 
-@pytest.mark.parametrize("bad", [0, -0.1, "far"])
-def test_graph_frame_distance_must_be_positive(bad: object) -> None:
-    with pytest.raises(ValidationError, match="graph_frame_distance_m"):
-        MapConfig.model_validate({"camera": "panorama", "graph_frame_distance_m": bad})
+@pytest.mark.parametrize(
+    ("field", "bad"),
+    [
+        ("graph_frame_distance_m", 0),
+        ("graph_frame_distance_m", -0.1),
+        ("graph_frame_distance_m", "far"),
+        ("graph_frame_angle_rad", 0),
+        ("graph_frame_max_gap", 0),
+        ("graph_frame_min_landmarks", -1),
+    ],
+)
+def test_graph_frame_settings_are_validated(field: str, bad: object) -> None:
+    with pytest.raises(ValidationError, match=field):
+        MapConfig.model_validate({"camera": "panorama", field: bad})
+
+
+def test_graph_frame_settings_reach_the_estimator() -> None:
+    given = {"graph_frame_angle_rad": 0.7, "graph_frame_max_gap": 9, "graph_frame_min_landmarks": 3}
+    stored = MapConfig.model_validate({"camera": "panorama", **given}).for_new_map(None)
+    estimator = slam_config(stored.model_dump(mode="json"), "mapping")
+    assert {k: getattr(estimator, k) for k in given} == given
