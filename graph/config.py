@@ -136,8 +136,8 @@ class SlamConfig:
     same ~100 landmarks from nearly the same place frame after frame; in the graph, each
     such frame makes iSAM2 re-eliminate them all and links one more pose into every
     removed landmark's dense marginal."""
-    graph_frame_angle_rad: float = math.radians(30.0)
-    graph_frame_max_gap: int = 4
+    graph_frame_angle_rad: float = math.radians(45.0)
+    graph_frame_max_gap: int = 8
     """Most frames of a robot between two of its graph frames (tracked ones in between)."""
     graph_frame_min_landmarks: int = 5
     """A frame seeing fewer live landmarks than this enters the graph (tracking needs them)."""

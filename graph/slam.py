@@ -5,6 +5,8 @@ labelled observations: association by label, delayed landmark initialisation,
 one iSAM2 update (which also marginalises the pose leaving each robot's window),
 then the landmark budget: while more landmarks are live than the cap, the
 policy picks one and it is marginalised out (Schur complement, see graph.isam).
+With `graph_frame_distance_m` set, only some frames enter the graph; the others are
+tracked against it (`_track`, graph.tracking) and follow it.
 """
 
 from __future__ import annotations

@@ -138,7 +138,7 @@ CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discrimi
 
 CAMERA_LANDMARK_FACTORS = 60
 """Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
-CAMERA_GRAPH_FRAME_DISTANCE_M = 0.25
+CAMERA_GRAPH_FRAME_DISTANCE_M = 0.5
 """`graph_frame_distance_m` of a camera map created without one (see MapConfig.for_new_map)."""
 WINDOW_FIELDS = ("pose_window", "window_observations", "max_pose_window")
 
