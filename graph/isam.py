@@ -89,11 +89,12 @@ class IncrementalGraph:
         self._estimate: gtsam.Values | None = None
         self._pose_cache: dict[int, gtsam.Pose2] = {}
         self._point_cache: dict[int, NDArray[np.float64]] = {}
-        self._cov_cache: dict[int, NDArray[np.float64]] = {}
         """Estimates of single variables asked for since the last update. A frame needs a
         handful of them, and the whole estimate is a copy of every variable. The first
         read after an update costs more either way: it makes iSAM2 compute its delta
         (dogleg's step evaluates the whole graph's error)."""
+        self._cov_cache: dict[int, NDArray[np.float64]] = {}
+        """Marginal covariances of poses asked for since the last update."""
         self.marginal_keys: list[tuple[int, ...]] = []
         """Keys of every marginal factor added since the caller last cleared this."""
 

@@ -23,12 +23,7 @@ from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
-from service.mapconfig import (
-    CAMERA_GRAPH_FRAME_DISTANCE_M,
-    CAMERA_LANDMARK_FACTORS,
-    WINDOW_FIELDS,
-    window_settings,
-)
+from service.mapconfig import CAMERA_ESTIMATOR_DEFAULTS, WINDOW_FIELDS, window_settings
 from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
@@ -199,11 +194,7 @@ def _replay(args: argparse.Namespace) -> int:
         return _replay_http(args, sequence, frames, gt, robot, camera_config)
     config = _config(args)
     if front_end is not None:  # as the service creates a camera map
-        config = dataclasses.replace(
-            config,
-            max_landmark_factors=CAMERA_LANDMARK_FACTORS,
-            graph_frame_distance_m=CAMERA_GRAPH_FRAME_DISTANCE_M,
-        )
+        config = dataclasses.replace(config, **CAMERA_ESTIMATOR_DEFAULTS)  # type: ignore[arg-type]
     try:
         result = replay(
             sequence,

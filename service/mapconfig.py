@@ -140,6 +140,12 @@ CAMERA_LANDMARK_FACTORS = 60
 """Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
 CAMERA_GRAPH_FRAME_DISTANCE_M = 0.5
 """`graph_frame_distance_m` of a camera map created without one (see MapConfig.for_new_map)."""
+CAMERA_ESTIMATOR_DEFAULTS = {
+    "max_landmark_factors": CAMERA_LANDMARK_FACTORS,
+    "graph_frame_distance_m": CAMERA_GRAPH_FRAME_DISTANCE_M,
+}
+"""What a camera map created without these estimator fields gets (MapConfig does it for
+the service; an in-process replay of image frames applies them to its SlamConfig)."""
 WINDOW_FIELDS = ("pose_window", "window_observations", "max_pose_window")
 
 
