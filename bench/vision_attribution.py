@@ -142,9 +142,13 @@ def main() -> None:
 
     make_textured_world(world, rng=rng)
     sim = simulate(world, frames=len(doc["frames"]), rng=rng, door_probability=0.5)
-    config = SlamConfig(
-        landmark_cap=args.landmark_cap, policy=args.policy, pose_window=args.pose_window
-    )
+    if "slam_config" in doc:  # the recorded run's own estimator settings
+        config = SlamConfig(**doc["slam_config"])
+        log.info("the dump's SlamConfig (--landmark-cap, --policy, --pose-window unused)")
+    else:
+        config = SlamConfig(
+            landmark_cap=args.landmark_cap, policy=args.policy, pose_window=args.pose_window
+        )
     results = []
     for name in args.variants.split(","):
         res = run_variant(name, doc, config, args.seed, sim.ground_truth)

@@ -25,6 +25,7 @@ milliseconds per panorama (features; association separately).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -339,7 +340,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         import pickle
 
         with open(args.dump, "wb") as fh:
-            pickle.dump({"frames": sim.frames, "obs": dump, "identity": identity}, fh)
+            pickle.dump(
+                {
+                    "frames": sim.frames,
+                    "obs": dump,
+                    "identity": identity,
+                    "slam_config": dataclasses.asdict(config),
+                },
+                fh,
+            )
     speed = speed_test(camera, kept_images) if not args.no_speed else {}
     ate_images = ate_rmse(trajectory(pipeline.slam), sim.ground_truth)
     ate_oracle = ate_rmse(trajectory(oracle), sim.ground_truth) if not args.no_oracle else None
