@@ -45,7 +45,7 @@ from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
 from graph.policies import LandmarkTable, Removal, get_policy, information_content
 from graph.tracking import Motion, compose_motion, solve_pose, tracked_covariance
 from graph.triangulation import Triangulation, parallax, triangulate
-from graph.types import FrameInput, Pose2D
+from graph.types import BearingObservation, FrameInput, Pose2D
 from graph.validation import validate_frame
 
 _SHRINK_SLACK = 20
@@ -69,9 +69,10 @@ class _Robot:
     motion: Motion | None = None
     """Odometry since the robot's newest graph frame (window[-1]), when frames were
     tracked since (see SlamConfig.graph_frame_distance_m)."""
-    tracked: tuple[tuple[float, float, float], NDArray[np.float64]] | None = None
-    """The newest frame's pose relative to window[-1] and its bearings' (3, 3)
-    information, when that frame was tracked; None when it is in the graph."""
+    tracked: tuple[int, NDArray[np.float64]] | None = None
+    """The newest frame's index (its trajectory entry is its pose relative to window[-1])
+    and its bearings' (3, 3) information, when that frame was tracked; None when it is
+    in the graph."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -360,17 +361,9 @@ class BearingSlam:
         fixed too), kept relative to that frame so that it follows the graph's later
         corrections. The landmarks' observation-position means count it; nothing else in
         the map changes, and its odometry goes into the next graph frame's factor."""
-        cfg = self.config
         base_key = robot.window[-1][0]
         base = self._graph.pose(base_key)
-        observed: list[tuple[int, float]] = []
-        sigmas: list[float] = []
-        for obs in frame.observations:
-            lid = self._label_to_id.get(obs.label)
-            if lid is not None:
-                observed.append((lid, obs.bearing_rad))
-                sigmas.append(obs.sigma_rad if obs.sigma_rad is not None else cfg.bearing_sigma_rad)
-        observed, sigmas = self._gate(observed, sigmas, base.compose(motion.pose))
+        observed, sigmas = self._live_observations(frame, base.compose(motion.pose))
         xy = self._graph.points([landmark_key(lid) for lid, _ in observed]).reshape(-1, 2)
         solved = solve_pose(
             base,
@@ -378,7 +371,7 @@ class BearingSlam:
             xy,
             np.array([z for _, z in observed], dtype=np.float64),
             np.array(sigmas, dtype=np.float64),
-            cfg.huber_k,
+            self.config.huber_k,
         )
         t1 = time.perf_counter()
         covariance = (
@@ -393,7 +386,7 @@ class BearingSlam:
         robot.last_seq = frame.seq
         robot.last_stamp = frame.stamp
         robot.motion = motion
-        robot.tracked = ((rel.x(), rel.y(), rel.theta()), solved.information)
+        robot.tracked = (frame_index, solved.information)
         self._traj_robot.append(robot.slot)
         self._traj_seq.append(frame.seq)
         self._traj_stamp.append(frame.stamp)
@@ -427,7 +420,7 @@ class BearingSlam:
         """The current estimate of the robot's newest frame (KeyError: unknown robot)."""
         state = self._robots[robot]
         base = self._graph.pose(state.window[-1][0])
-        return base if state.tracked is None else base.compose(gtsam.Pose2(*state.tracked[0]))
+        return base if state.tracked is None else base.compose(self._traj_pose_at(state.tracked[0]))
 
     def latest_pose_covariance(self, robot: str) -> NDArray[np.float64]:
         """(3, 3) covariance of the robot's newest frame (x, y, theta in its own frame)."""
@@ -492,20 +485,14 @@ class BearingSlam:
             promoted, leaving = self._window_exit(robot, exiting)
         values.insert(key, predicted)
 
-        observed: list[tuple[int, float]] = []
-        sigmas: list[float] = []
+        observed, sigmas = self._live_observations(frame, predicted)
         touched: dict[str, CandidateTrack] = {}
-        for obs in frame.observations:
-            sigma = obs.sigma_rad if obs.sigma_rad is not None else cfg.bearing_sigma_rad
-            lid = self._label_to_id.get(obs.label)
-            if lid is not None:
-                observed.append((lid, obs.bearing_rad))
-                sigmas.append(sigma)
-            elif cfg.allow_new_landmarks:
-                track = self._candidates.get(obs.label) or CandidateTrack(obs.label)
-                ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, sigma)
-                touched[obs.label] = track.with_ray(ray, cfg.max_rays)
-        observed, sigmas = self._gate(observed, sigmas, predicted)
+        if cfg.allow_new_landmarks:
+            for obs in frame.observations:
+                if obs.label not in self._label_to_id:
+                    track = self._candidates.get(obs.label) or CandidateTrack(obs.label)
+                    ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, self._sigma(obs))
+                    touched[obs.label] = track.with_ray(ray, cfg.max_rays)
         chosen = self._factor_choice(observed)
         for i in chosen:
             lid, bearing = observed[i]
@@ -550,6 +537,23 @@ class BearingSlam:
             promoted,
             leaving,
         )
+
+    def _sigma(self, obs: BearingObservation) -> float:
+        return obs.sigma_rad if obs.sigma_rad is not None else self.config.bearing_sigma_rad
+
+    def _live_observations(
+        self, frame: FrameInput, predicted: gtsam.Pose2
+    ) -> tuple[list[tuple[int, float]], list[float]]:
+        """(landmark id, bearing) and sigma of the frame's observations of live landmarks,
+        without those the innovation gate refuses at the `predicted` pose."""
+        observed: list[tuple[int, float]] = []
+        sigmas: list[float] = []
+        for obs in frame.observations:
+            lid = self._label_to_id.get(obs.label)
+            if lid is not None:
+                observed.append((lid, obs.bearing_rad))
+                sigmas.append(self._sigma(obs))
+        return self._gate(observed, sigmas, predicted)
 
     def _gate(
         self, observed: list[tuple[int, float]], sigmas: list[float], predicted: gtsam.Pose2
