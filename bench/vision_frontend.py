@@ -53,7 +53,11 @@ from service.datasets.render import (
     visible_corners,
 )
 from service.evaluation import Trajectory, ate_rmse
-from service.mapconfig import CAMERA_GRAPH_FRAME_DISTANCE_M, CAMERA_LANDMARK_FACTORS
+from service.mapconfig import (
+    CAMERA_GRAPH_FRAME_DISTANCE_M,
+    CAMERA_LANDMARK_FACTORS,
+    CAMERA_NOISE_DEFAULTS,
+)
 from service.vision import ImagePipeline
 
 log = logging.getLogger("bench.vision_frontend")
@@ -201,6 +205,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         max_landmark_factors=args.max_landmark_factors or None,
         removal_margin=args.removal_margin,
         graph_frame_distance_m=args.graph_frame_distance or None,
+        bearing_loss=args.bearing_loss,
+        huber_k=args.huber_k,
         **_graph_frame_options(args),
     )
 
@@ -370,6 +376,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "max_landmark_factors": args.max_landmark_factors or None,
             "removal_margin": args.removal_margin,
             "graph_frame_distance_m": args.graph_frame_distance or None,
+            "bearing_loss": args.bearing_loss,
+            "huber_k": args.huber_k,
             **_graph_frame_options(args),
         },
         "truth_px": args.truth_px,
@@ -465,6 +473,18 @@ def main() -> None:
         type=float,
         default=CAMERA_GRAPH_FRAME_DISTANCE_M,
         help="metres between graph frames, the others tracked (both maps; 0: every frame)",
+    )
+    p.add_argument(
+        "--bearing-loss",
+        default=CAMERA_NOISE_DEFAULTS["bearing_loss"],
+        choices=("huber", "geman_mcclure"),
+        help="robust loss of bearing factors (both maps)",
+    )
+    p.add_argument(
+        "--huber-k",
+        type=float,
+        default=CAMERA_NOISE_DEFAULTS["huber_k"],
+        help="the loss's threshold / scale in sigmas (both maps)",
     )
     p.add_argument("--graph-frame-max-gap", type=int, default=None)
     p.add_argument("--graph-frame-angle-deg", type=float, default=None)

@@ -12,7 +12,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from graph.config import SlamConfig
+from graph.config import BearingLoss, SlamConfig
 from graph.types import Odometry, Pose2D
 
 POSES_PER_ROBOT = 1 << 40
@@ -69,18 +69,29 @@ def pose_prior_factor(key: int, pose: Pose2D, config: SlamConfig) -> gtsam.Prior
     return gtsam.PriorFactorPose2(key, to_pose2(pose), noise)
 
 
-def bearing_noise(sigma_rad: float, huber_k: float | None) -> gtsam.noiseModel.Base:
+def bearing_noise(
+    sigma_rad: float, huber_k: float | None, loss: BearingLoss = "huber"
+) -> gtsam.noiseModel.Base:
+    """Isotropic noise of one bearing, robust with `loss` at `huber_k` sigmas (None:
+    Gaussian)."""
     base = gtsam.noiseModel.Isotropic.Sigma(1, sigma_rad)
     if huber_k is None:
         return base
-    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), base)
+    estimator = gtsam.noiseModel.mEstimator
+    kernel = estimator.Huber if loss == "huber" else estimator.GemanMcClure
+    return gtsam.noiseModel.Robust.Create(kernel.Create(huber_k), base)
 
 
 def bearing_factor(
-    pose: int, landmark: int, bearing_rad: float, sigma_rad: float, huber_k: float | None
+    pose: int,
+    landmark: int,
+    bearing_rad: float,
+    sigma_rad: float,
+    huber_k: float | None,
+    loss: BearingLoss = "huber",
 ) -> gtsam.BearingFactor2D:
     return gtsam.BearingFactor2D(
-        pose, landmark, gtsam.Rot2(bearing_rad), bearing_noise(sigma_rad, huber_k)
+        pose, landmark, gtsam.Rot2(bearing_rad), bearing_noise(sigma_rad, huber_k, loss)
     )
 
 

@@ -496,7 +496,11 @@ class BearingSlam:
         chosen = self._factor_choice(observed)
         for i in chosen:
             lid, bearing = observed[i]
-            factors.append(bearing_factor(key, landmark_key(lid), bearing, sigmas[i], cfg.huber_k))
+            factors.append(
+                bearing_factor(
+                    key, landmark_key(lid), bearing, sigmas[i], cfg.huber_k, cfg.bearing_loss
+                )
+            )
 
         leaving_keys = {k for k, _ in leaving}
         new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]] = []
@@ -517,7 +521,9 @@ class BearingSlam:
             values.insert(lkey, triangulation.point)
             for r in used:
                 factors.append(
-                    bearing_factor(r.pose_key, lkey, r.bearing_rad, r.sigma_rad, cfg.huber_k)
+                    bearing_factor(
+                        r.pose_key, lkey, r.bearing_rad, r.sigma_rad, cfg.huber_k, cfg.bearing_loss
+                    )
                 )
             if cfg.landmark_prior_sigma_m is not None:
                 factors.append(

@@ -23,7 +23,12 @@ from service.datasets.indoor_sim import make_world, simulate, write_run
 from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
-from service.mapconfig import CAMERA_ESTIMATOR_DEFAULTS, WINDOW_FIELDS, window_settings
+from service.mapconfig import (
+    CAMERA_ESTIMATOR_DEFAULTS,
+    CAMERA_NOISE_DEFAULTS,
+    WINDOW_FIELDS,
+    window_settings,
+)
 from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
@@ -194,7 +199,11 @@ def _replay(args: argparse.Namespace) -> int:
         return _replay_http(args, sequence, frames, gt, robot, camera_config)
     config = _config(args)
     if front_end is not None:  # as the service creates a camera map
-        config = dataclasses.replace(config, **CAMERA_ESTIMATOR_DEFAULTS)  # type: ignore[arg-type]
+        config = dataclasses.replace(
+            config,
+            **CAMERA_ESTIMATOR_DEFAULTS,  # type: ignore[arg-type]
+            **CAMERA_NOISE_DEFAULTS,
+        )
     try:
         result = replay(
             sequence,

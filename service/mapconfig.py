@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from graph.config import Optimizer, SlamConfig
+from graph.config import BearingLoss, Optimizer, SlamConfig
 from graph.policies import POLICY_NAMES
 
 if TYPE_CHECKING:
@@ -37,7 +37,13 @@ class NoiseConfig(BaseModel):
     huber_k: float | None = Field(
         _DEFAULTS.huber_k,
         gt=0,
-        description="Huber threshold of bearing factors in sigmas; null = plain Gaussian",
+        description="threshold (huber) or scale (geman_mcclure) of the bearing loss in "
+        "sigmas; null = plain Gaussian",
+    )
+    bearing_loss: BearingLoss = Field(
+        _DEFAULTS.bearing_loss,
+        description="robust loss of bearing factors: 'huber', or 'geman_mcclure' (a wrong "
+        "match's pull fades as it disagrees more; a camera map's default)",
     )
     odometry_sigma_floor: tuple[float, float, float] = Field(
         _DEFAULTS.odometry_sigma_floor,
@@ -146,6 +152,9 @@ CAMERA_ESTIMATOR_DEFAULTS = {
 }
 """What a camera map created without these estimator fields gets (MapConfig does it for
 the service; an in-process replay of image frames applies them to its SlamConfig)."""
+CAMERA_NOISE_DEFAULTS: dict[str, Any] = {"bearing_loss": "geman_mcclure", "huber_k": 1.0}
+"""The `noise` fields a camera map created without them gets (MapConfig.for_new_map), and
+an in-process replay of image frames (see SlamConfig.bearing_loss)."""
 WINDOW_FIELDS = ("pose_window", "window_observations", "max_pose_window")
 
 
@@ -289,13 +298,20 @@ class MapConfig(BaseModel):
 
     def for_new_map(self, default_cap: int | None) -> MapConfig:
         """The config a map is created with: the service's default cap if the client gave
-        none, and a camera map's graph_frame_distance_m if the client gave none. Only at
-        creation: a stored config or an export without the field is a map built with
-        every frame in the graph, and its frame log replays that way."""
+        none; for a camera map, graph_frame_distance_m and the noise's bearing loss and
+        scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at creation: a stored
+        config or an export without these fields is a map built with every frame in the
+        graph and Huber's loss, and its frame log replays that way."""
         config = self.with_default_cap(default_cap)
-        if "graph_frame_distance_m" in self.model_fields_set or self.camera is None:
+        if self.camera is None:
             return config
-        return config.model_copy(update={"graph_frame_distance_m": CAMERA_GRAPH_FRAME_DISTANCE_M})
+        update: dict[str, Any] = {}
+        if "graph_frame_distance_m" not in self.model_fields_set:
+            update["graph_frame_distance_m"] = CAMERA_GRAPH_FRAME_DISTANCE_M
+        if not {"bearing_loss", "huber_k"} & self.noise.model_fields_set:
+            # Loss and scale go together: a client who gave a huber_k meant Huber's.
+            update["noise"] = self.noise.model_copy(update=CAMERA_NOISE_DEFAULTS)
+        return config.model_copy(update=update) if update else config
 
     def with_default_cap(self, default_cap: int | None) -> MapConfig:
         """This config with the service's default cap if the client gave none."""
@@ -318,6 +334,7 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         max_pose_window=cfg.max_pose_window,
         bearing_sigma_rad=cfg.noise.bearing_sigma_rad,
         huber_k=cfg.noise.huber_k,
+        bearing_loss=cfg.noise.bearing_loss,
         odometry_sigma_floor=cfg.noise.odometry_sigma_floor,
         odometry_sigma_per_metre=cfg.noise.odometry_sigma_per_metre,
         odometry_sigma_per_radian=cfg.noise.odometry_sigma_per_radian,

@@ -126,7 +126,7 @@ def test_a_landmark_outside_its_gate_is_not_matched() -> None:
 def test_tracks_get_fresh_labels_are_reported_when_seen_twice_and_never_reused() -> None:
     rng = np.random.default_rng(3)
     descs = rng.integers(0, 256, (3, 32), dtype=np.uint8)
-    cfg = AssociationConfig(track_min_length=2)
+    cfg = AssociationConfig(track_min_length=2, report_when_trackless=False)
     assoc = Associator(cfg)
     seen_labels: set[str] = set()
     pose = np.zeros(3)
@@ -176,6 +176,75 @@ def test_tracks_get_fresh_labels_are_reported_when_seen_twice_and_never_reused()
     assoc.commit(again, pose=pose1, live_labels=())
     new_labels = {t.label for t in assoc._tracks["r1"]}
     assert len(new_labels) == 3 and not (new_labels & seen_labels)
+
+
+def test_a_robot_without_tracks_reports_its_first_sightings_under_their_track_labels() -> None:
+    rng = np.random.default_rng(5)
+    descs = rng.integers(0, 256, (4, 32), dtype=np.uint8)
+    assoc = Associator()  # track_min_length 2, report_when_trackless on
+    pose = np.zeros(3)
+    first = assoc.associate(
+        _features([10.0, 100.0, -60.0], descs[:3]),
+        robot="r1",
+        predicted_pose=pose,
+        pose_cov=None,
+        landmarks={},
+    )
+    # The robot's first frame: every feature is reported, as a track, at once.
+    assert len(first.observations) == 3 and set(first.kind) == {"track"}
+    assoc.commit(first, pose=pose, live_labels=())
+    labels0 = {t.label for t in assoc._tracks["r1"]}
+    assert {ob.label for ob in first.observations} == labels0
+    # Next frame: the same tracks again, under the same labels; a new feature starts a
+    # track that is not reported yet (the robot has tracks now).
+    pose1 = np.array([0.1, 0.0, 0.0])
+    second = assoc.associate(
+        _features([10.4, 100.1, -60.2, 160.0], descs),
+        robot="r1",
+        predicted_pose=pose1,
+        pose_cov=None,
+        landmarks={},
+    )
+    assert {ob.label for ob in second.observations} == labels0
+    assoc.commit(second, pose=pose1, live_labels=())
+    assert assoc.track_count("r1") == 4
+    # Tracks dropped (a re-anchoring): the next frame reports its first sightings again.
+    assoc.forget_tracks("r1")
+    third = assoc.associate(
+        _features([10.8, 100.2, -60.4, 160.1], descs),
+        robot="r1",
+        predicted_pose=pose1,
+        pose_cov=None,
+        landmarks={},
+    )
+    assert len(third.observations) == 4
+    assert not ({ob.label for ob in third.observations} & (labels0 | {"t000003"}))
+
+
+def test_a_new_track_label_stays_unique_when_another_association_was_committed_first() -> None:
+    rng = np.random.default_rng(6)
+    descs = rng.integers(0, 256, (2, 32), dtype=np.uint8)
+    assoc = Associator()
+    a = assoc.associate(
+        _features([10.0], descs[:1]),
+        robot="r1",
+        predicted_pose=(0, 0, 0),
+        pose_cov=None,
+        landmarks={},
+    )
+    b = assoc.associate(
+        _features([50.0], descs[1:]),
+        robot="r2",
+        predicted_pose=(0, 0, 0),
+        pose_cov=None,
+        landmarks={},
+    )
+    # Associated before either was committed: both were offered the same next label.
+    assert a.observations[0].label == b.observations[0].label
+    assoc.commit(a, pose=(0, 0, 0), live_labels=())
+    assoc.commit(b, pose=(0, 0, 0), live_labels=())
+    labels = [t.label for r in ("r1", "r2") for t in assoc._tracks[r]]
+    assert len(set(labels)) == 2
 
 
 def test_promoted_track_becomes_a_landmark_and_is_forgotten_when_marginalised() -> None:

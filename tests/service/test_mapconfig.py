@@ -10,6 +10,7 @@ from graph.config import SlamConfig
 from service.mapconfig import (
     CAMERA_GRAPH_FRAME_DISTANCE_M,
     CAMERA_LANDMARK_FACTORS,
+    CAMERA_NOISE_DEFAULTS,
     MapConfig,
     slam_config,
 )
@@ -88,6 +89,33 @@ def test_a_camera_map_is_created_with_graph_frames_and_a_stored_one_keeps_its_ow
     assert given.for_new_map(50).graph_frame_distance_m == 0.5
     old = {k: v for k, v in stored.items() if k != "graph_frame_distance_m"}
     assert slam_config(old, "mapping").graph_frame_distance_m is None
+
+
+def test_a_camera_map_is_created_with_the_camera_loss_and_a_stored_one_keeps_huber() -> None:
+    """A camera map created without a bearing loss or scale gets Geman-McClure; a map
+    without a camera, a client's own loss or huber_k, and a stored config without the
+    field (every map stored before it existed) keep Huber's."""
+    new = MapConfig.model_validate({"camera": "panorama"}).for_new_map(50)
+    stored = new.model_dump(mode="json")
+    cfg = slam_config(stored, "mapping")
+    assert (cfg.bearing_loss, cfg.huber_k) == (
+        CAMERA_NOISE_DEFAULTS["bearing_loss"],
+        CAMERA_NOISE_DEFAULTS["huber_k"],
+    )
+    assert cfg.bearing_loss == "geman_mcclure"
+    plain = slam_config(MapConfig.model_validate({}).for_new_map(50).model_dump(), "mapping")
+    assert (plain.bearing_loss, plain.huber_k) == ("huber", SlamConfig().huber_k)
+    own_k = MapConfig.model_validate({"camera": "panorama", "noise": {"huber_k": 2.0}})
+    assert own_k.for_new_map(50).noise.bearing_loss == "huber"
+    assert own_k.for_new_map(50).noise.huber_k == 2.0
+    own_loss = MapConfig.model_validate({"camera": "panorama", "noise": {"bearing_loss": "huber"}})
+    assert own_loss.for_new_map(50).noise.huber_k == SlamConfig().huber_k
+    old = dict(stored, noise={k: v for k, v in stored["noise"].items() if k != "bearing_loss"})
+    assert slam_config(old, "mapping").bearing_loss == "huber"
+    with pytest.raises(ValidationError):
+        MapConfig.model_validate({"noise": {"bearing_loss": "tukey"}})
+    with pytest.raises(ValueError, match="bearing_loss"):
+        SlamConfig(bearing_loss="tukey")  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(
