@@ -54,7 +54,7 @@ from frontend.pipeline import FrontEnd
 from graph.slam import BearingSlam
 from service.datasets.render_run import write_rendered_run
 from service.frames_io import frame_from_dict
-from service.mapconfig import MapConfig, slam_config
+from service.mapconfig import CAMERA_NOISE_DEFAULTS, MapConfig, slam_config
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord
@@ -181,6 +181,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         config["optimizer"] = args.optimizer
     if args.graph_frame_distance is not None:
         config["graph_frame_distance_m"] = args.graph_frame_distance or None
+    if args.bearing_loss is not None:  # with Huber's usual scale; GM with the camera's
+        config["noise"] = (
+            {"bearing_loss": "huber"} if args.bearing_loss == "huber" else CAMERA_NOISE_DEFAULTS
+        )
     # The config as the service creates the map (camera defaults filled in), so that the
     # in-process runs and the HTTP map estimate alike.
     config = MapConfig.model_validate(config).for_new_map(None).model_dump(mode="json")
@@ -365,6 +369,12 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the map config's graph_frame_distance_m (default: the camera map's; 0: every "
         "frame in the graph)",
+    )
+    p.add_argument(
+        "--bearing-loss",
+        choices=["huber", "geman_mcclure"],
+        default=None,
+        help="the map config's bearing loss (default: the camera map's, geman_mcclure)",
     )
     p.add_argument(
         "--render-dir",
