@@ -103,11 +103,10 @@ class AssociationConfig:
     """A robot with no candidate tracks (its first frame; its tracks were just dropped at
     a re-anchoring; or it lost them all) reports every new track at its first sighting.
     The first two are the best known poses of the run (the initial pose's prior, or the
-    anchor): without
-    its rays the map hangs off the next frame's, one odometry step away. On rendered
-    runs (1000 frames, cap 200) the oracle's ATE rose from 0.0050 to 0.0184 m with
-    its first frame's observations dropped, and that one frame was all of the
-    difference between the oracle and the oracle on the front end's selection."""
+    anchor): without their rays the map hangs off the next frame's, one odometry step
+    away. On rendered runs (1000 frames, cap 200) the oracle's ATE rose from 0.0050 to
+    0.0184 m with its first frame's observations dropped, and that one frame was all of
+    the difference between the oracle and the oracle on the front end's selection."""
     max_track_observations: int = 400
     """Most track observations reported per frame (longest tracks first). At 60 the limit
     bound on 91 % of the frames of a 1000-frame rendered run: the longest tracks kept the

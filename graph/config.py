@@ -29,18 +29,18 @@ class SlamConfig:
     """Threshold (huber) or scale (geman_mcclure) of the bearing loss in sigmas; None =
     plain Gaussian."""
     bearing_loss: BearingLoss = "huber"
-    """Robust loss of bearing factors in the graph. Huber's pull
-    on a wrong match never fades: past the threshold every outlier still tugs with the
-    same force. Geman-McClure's weight falls as 1/e^4, so a run of wrong matches (a
-    landmark whose corner went out of sight, matched to a look-alike for 40 frames)
-    stops counting once it disagrees with the rest. Replaying a rendered run's recorded
-    observations (1000 frames, cap 200), ATE 0.0377 -> 0.0115 m with scale 1; on the
-    oracle's (no wrong matches) 0.0050 -> 0.0056 m. Non-convex: bearings that disagree
-    with a drifted map at first (a loop closure after a long way) count for little, so
-    it suits dense, frequent observations (cameras), not sparse ones. A tracked frame's
-    pose solve (graph.tracking) keeps Huber's at huber_k: it starts from the odometry's
-    prediction, where a run's bearings may all be several sigmas off, and Geman-McClure
-    would barely let them move it (on the rendered runs it changed ATE by +0-3 %)."""
+    """Robust loss of bearing factors in the graph. Huber's pull on a wrong match never
+    fades: past the threshold every outlier still tugs with the same force.
+    Geman-McClure's weight falls as 1/e^4, so a run of wrong matches (a landmark whose
+    corner went out of sight, matched to a look-alike for 40 frames) stops counting once
+    it disagrees with the rest. Replaying a rendered run's recorded observations (1000
+    frames, cap 200), ATE 0.0377 -> 0.0115 m with scale 1; on the oracle's (no wrong
+    matches) 0.0050 -> 0.0056 m. Non-convex: bearings that disagree with a drifted map
+    at first (a loop closure after a long way) count for little, so it suits dense,
+    frequent observations (cameras), not sparse ones. A tracked frame's pose solve
+    (graph.tracking) keeps Huber's at huber_k: it starts from the odometry's prediction,
+    where a run's bearings may all be several sigmas off, and Geman-McClure would barely
+    let them move it (on the rendered runs it changed ATE by +0-3 %)."""
     odometry_sigma_floor: tuple[float, float, float] = (0.002, 0.002, math.radians(0.2))
     """Odometry sigma (x m, y m, theta rad) of a motionless step."""
     odometry_sigma_per_metre: tuple[float, float, float] = (0.03, 0.03, math.radians(1.0))

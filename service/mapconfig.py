@@ -299,9 +299,9 @@ class MapConfig(BaseModel):
     def for_new_map(self, default_cap: int | None) -> MapConfig:
         """The config a map is created with: the service's default cap if the client gave
         none; for a camera map, graph_frame_distance_m and the noise's bearing loss and
-        scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at creation: a stored
-        config or an export without these fields is a map built with every frame in the
-        graph and Huber's loss, and its frame log replays that way."""
+        scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at
+        creation: a stored config or an export without these fields is a map built with
+        every frame in the graph and Huber's loss, and its frame log replays that way."""
         config = self.with_default_cap(default_cap)
         if self.camera is None:
             return config
