@@ -163,9 +163,6 @@ class Association:
     """|bearing residual| / its sigma (pose and feature only) of each landmark match."""
     landmark_lateral_m: dict[str, float] = field(default_factory=dict)
     """|bearing residual| x range of each landmark match (m; corrected pose)."""
-    new_track_labels: tuple[str, ...] = ()
-    """Label of the track each `unmatched` feature starts at `commit` (empty: numbered
-    then)."""
 
 
 def _distances(a: NDArray[Any], b: NDArray[Any], binary: bool) -> FloatArray:
@@ -356,11 +353,9 @@ class Associator:
         ]
         report.sort(key=lambda t: (-tracks[t[0]].length, t[1]))
         unmatched = np.flatnonzero(free & seeds).astype(np.int64)
-        new_labels = tuple(
-            f"{self.config.label_prefix}{self._next_track + i:06d}" for i in range(len(unmatched))
-        )
         if self.config.track_min_length <= 1 or (self.config.report_when_trackless and not tracks):
-            report.extend(zip(new_labels, unmatched.tolist(), strict=True))
+            labels = self._next_track_labels(len(unmatched))
+            report.extend(zip(labels, unmatched.tolist(), strict=True))
         for label, c in report[: self.config.max_track_observations]:
             obs.append(self._observation(features, c, label))
             index.append(c)
@@ -374,10 +369,14 @@ class Associator:
             landmark_matches=lm_matches,
             track_matches=tr_matches,
             unmatched=unmatched,
-            new_track_labels=new_labels,
             landmark_fit=dict(self._last_fit),
             landmark_lateral_m=dict(self._last_lateral),
         )
+
+    def _next_track_labels(self, n: int) -> tuple[str, ...]:
+        """The labels the next `n` new tracks get (nothing is taken until `commit`)."""
+        prefix = self.config.label_prefix
+        return tuple(f"{prefix}{self._next_track + i:06d}" for i in range(n))
 
     @staticmethod
     def _observation(features: Features, c: int, label: str) -> BearingObservation:
@@ -649,14 +648,9 @@ class Associator:
                 self._promote(t, here, positions.get(t.label))
             elif t.missed <= cfg.track_max_missed:
                 kept.append(t)
-        # The labels `associate` gave the new tracks, unless another association of this
-        # map was committed in between (then numbered afresh: the labels stay unique).
-        fresh = association.new_track_labels
-        if not fresh or fresh[0] != f"{cfg.label_prefix}{self._next_track:06d}":
-            fresh = tuple(
-                f"{cfg.label_prefix}{self._next_track + i:06d}"
-                for i in range(len(association.unmatched))
-            )
+        # The labels `associate` reported for new tracks, the next ones in order (if another
+        # association of this map was committed in between, these are later ones: unique).
+        fresh = self._next_track_labels(len(association.unmatched))
         for c, label in zip(association.unmatched.tolist(), fresh, strict=True):
             t = _Track(
                 label=label,
