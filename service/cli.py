@@ -79,8 +79,12 @@ def _add_map_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--huber",
         type=_optional_float,
-        default=1.345,
-        help="Huber threshold in sigmas for bearings (default 1.345; 'none')",
+        default=argparse.SUPPRESS,
+        help=(
+            f"Huber threshold in sigmas for bearings ('none': no robust loss; default "
+            f"{_DEFAULTS.huber_k}, and on camera maps Geman-McClure at "
+            f"{CAMERA_NOISE_DEFAULTS['huber_k']}, as the service creates them)"
+        ),
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the policy's rng")
     p.add_argument("--trajectory", type=Path, help="write every frame's latest pose (TUM)")
@@ -166,8 +170,19 @@ def _config(args: argparse.Namespace) -> SlamConfig:
         pose_window=window["pose_window"],
         window_observations=window["window_observations"],
         max_pose_window=max_window,
-        huber_k=args.huber,
+        huber_k=getattr(args, "huber", _DEFAULTS.huber_k),
         **extra,
+    )
+
+
+def camera_map_config(config: SlamConfig, args: argparse.Namespace) -> SlamConfig:
+    """`config` as the service creates a camera map from the same options: the camera
+    estimator defaults, and its robust loss unless `--huber` was given (then Huber)."""
+    noise = {} if hasattr(args, "huber") else CAMERA_NOISE_DEFAULTS
+    return dataclasses.replace(
+        config,
+        **CAMERA_ESTIMATOR_DEFAULTS,  # type: ignore[arg-type]
+        **noise,
     )
 
 
@@ -198,12 +213,8 @@ def _replay(args: argparse.Namespace) -> int:
             front_end.close()
         return _replay_http(args, sequence, frames, gt, robot, camera_config)
     config = _config(args)
-    if front_end is not None:  # as the service creates a camera map
-        config = dataclasses.replace(
-            config,
-            **CAMERA_ESTIMATOR_DEFAULTS,  # type: ignore[arg-type]
-            **CAMERA_NOISE_DEFAULTS,
-        )
+    if front_end is not None:
+        config = camera_map_config(config, args)
     try:
         result = replay(
             sequence,
@@ -252,7 +263,11 @@ def _replay_http(
         "landmark_cap": args.landmark_cap,
         "policy": args.policy,
         **_window_given(args),
-        "noise": {"huber_k": args.huber, **(mrclam_noise() if args.source == "mrclam" else {})},
+        # huber_k only if given: a camera map created without it gets the camera's loss.
+        "noise": {
+            **({"huber_k": args.huber} if hasattr(args, "huber") else {}),
+            **(mrclam_noise() if args.source == "mrclam" else {}),
+        },
         "seed": args.seed,
         "camera": camera,
     }

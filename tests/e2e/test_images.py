@@ -261,6 +261,8 @@ def test_replay_cli_posts_image_frames_with_the_camera_config(
     map_id = json.loads(stats.read_text())["map_id"]
     summary = client.get(f"/v1/maps/{map_id}").json()
     assert summary["config"]["camera"] == {**CAMERA.as_config(), "model": "panorama"}
+    # No --huber: the map gets the camera's robust loss, as in an in-process replay.
+    assert summary["config"]["noise"]["bearing_loss"] == "geman_mcclure"
     assert summary["counts"]["frames"] == 8
     assert "8 frames over HTTP" in capsys.readouterr().out
 

@@ -73,3 +73,22 @@ def test_image_frame_with_a_bad_image_field_is_refused(tmp_path: Path) -> None:
     )
     with pytest.raises(FrameFileError, match="image"):
         read_replay_frames(path)
+
+
+def test_image_replay_takes_the_camera_loss_unless_huber_is_given() -> None:
+    from graph.config import SlamConfig
+    from service.cli import _config, build_parser, camera_map_config
+    from service.mapconfig import CAMERA_NOISE_DEFAULTS
+
+    plain = build_parser().parse_args(["replay", "frames.jsonl"])
+    assert _config(plain).huber_k == SlamConfig().huber_k
+    assert _config(plain).bearing_loss == "huber"
+    camera = camera_map_config(_config(plain), plain)
+    assert camera.bearing_loss == CAMERA_NOISE_DEFAULTS["bearing_loss"]
+    assert camera.huber_k == CAMERA_NOISE_DEFAULTS["huber_k"]
+
+    given = build_parser().parse_args(["replay", "frames.jsonl", "--huber", "2.5"])
+    kept = camera_map_config(_config(given), given)
+    assert (kept.bearing_loss, kept.huber_k) == ("huber", 2.5)
+    off = build_parser().parse_args(["replay", "frames.jsonl", "--huber", "none"])
+    assert camera_map_config(_config(off), off).huber_k is None
