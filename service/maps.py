@@ -77,7 +77,9 @@ class MapService:
                 return map_id
 
     def _new_record(self, name: str, config: MapConfig, mode: Mode) -> MapRecord:
-        config = config.for_new_map(self.settings.default_landmark_cap)
+        config = config.for_new_map(
+            self.settings.default_landmark_cap, self.settings.default_camera_landmark_cap
+        )
         record = MapRecord(self._new_id(), name, mode, config.model_dump(mode="json"), time.time())
         try:
             slam_config(record.config, mode)

@@ -12,8 +12,10 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service.mapconfig import CAMERA_LANDMARK_CAP
 
 
 class StoreSettings(BaseModel):
@@ -101,6 +103,10 @@ class Settings(BaseSettings):
     default_landmark_cap: int | None = Field(
         50, description="landmark cap of a new map whose config gives none; null = uncapped"
     )
+    default_camera_landmark_cap: int | None = Field(
+        CAMERA_LANDMARK_CAP,
+        description="landmark cap of a new camera map whose config gives none; null = uncapped",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         "info", description="log level of the service and uvicorn"
     )
@@ -108,11 +114,11 @@ class Settings(BaseSettings):
     workers: WorkerSettings = Field(default_factory=WorkerSettings)
     api: ApiSettings = Field(default_factory=ApiSettings)
 
-    @field_validator("default_landmark_cap")
+    @field_validator("default_landmark_cap", "default_camera_landmark_cap")
     @classmethod
-    def _cap_positive(cls, value: int | None) -> int | None:
+    def _cap_positive(cls, value: int | None, info: ValidationInfo) -> int | None:
         if value is not None and value < 1:
-            raise ValueError("default_landmark_cap must be >= 1 or null")
+            raise ValueError(f"{info.field_name} must be >= 1 or null")
         return value
 
 

@@ -10,6 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
+from service.mapconfig import CAMERA_LANDMARK_CAP
 from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(160))
@@ -53,6 +54,9 @@ def test_map_lifecycle(client: httpx.Client) -> None:
 def test_default_cap_comes_from_settings_and_null_means_uncapped(client: httpx.Client) -> None:
     default = client.post("/v1/maps", json={"name": "d"}).json()
     assert default["estimator"]["landmark_cap"] == 50
+    camera = client.post("/v1/maps", json={"name": "c", "config": {"camera": "panorama"}})
+    assert camera.status_code == 201, camera.text
+    assert camera.json()["estimator"]["landmark_cap"] == CAMERA_LANDMARK_CAP
     uncapped = client.post("/v1/maps", json={"name": "u", "config": {"landmark_cap": None}})
     assert uncapped.json()["estimator"]["landmark_cap"] is None
     assert default["estimator"]["optimizer"] == "dogleg"

@@ -9,6 +9,7 @@ from pydantic import ValidationError
 from graph.config import SlamConfig
 from service.mapconfig import (
     CAMERA_GRAPH_FRAME_DISTANCE_M,
+    CAMERA_LANDMARK_CAP,
     CAMERA_LANDMARK_FACTORS,
     CAMERA_NOISE_DEFAULTS,
     MapConfig,
@@ -78,7 +79,7 @@ def test_a_camera_map_is_created_with_graph_frames_and_a_stored_one_keeps_its_ow
     without the field keep theirs, so a map built with every frame replays that way."""
     new = MapConfig.model_validate({"camera": "panorama"}).for_new_map(50)
     assert new.graph_frame_distance_m == CAMERA_GRAPH_FRAME_DISTANCE_M
-    assert new.landmark_cap == 50
+    assert new.landmark_cap == CAMERA_LANDMARK_CAP
     stored = new.model_dump(mode="json")
     assert stored["graph_frame_distance_m"] == CAMERA_GRAPH_FRAME_DISTANCE_M
     assert slam_config(stored, "mapping").graph_frame_distance_m == CAMERA_GRAPH_FRAME_DISTANCE_M
@@ -139,3 +140,18 @@ def test_graph_frame_settings_reach_the_estimator() -> None:
     stored = MapConfig.model_validate({"camera": "panorama", **given}).for_new_map(None)
     estimator = slam_config(stored.model_dump(mode="json"), "mapping")
     assert {k: getattr(estimator, k) for k in given} == given
+
+
+def test_a_camera_map_gets_the_camera_default_cap_unless_it_gives_one() -> None:
+    """A camera map created without a cap gets the camera's default (the service's
+    `default_camera_landmark_cap`), a map without a camera the plain default; a client's
+    own cap, null (uncapped) included, is kept."""
+    camera = MapConfig.model_validate({"camera": "panorama"})
+    assert camera.for_new_map(50).landmark_cap == CAMERA_LANDMARK_CAP
+    assert camera.for_new_map(50, 120).landmark_cap == 120
+    assert camera.for_new_map(50, None).landmark_cap is None
+    assert MapConfig.model_validate({}).for_new_map(50, 120).landmark_cap == 50
+    own = MapConfig.model_validate({"camera": "panorama", "landmark_cap": 30})
+    assert own.for_new_map(50, 120).landmark_cap == 30
+    uncapped = MapConfig.model_validate({"camera": "panorama", "landmark_cap": None})
+    assert uncapped.for_new_map(50, 120).landmark_cap is None

@@ -16,12 +16,14 @@ def test_nested_environment_variables(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("COVSLAM_STORE__SYNCHRONOUS", "FULL")
     monkeypatch.setenv("COVSLAM_WORKERS__COUNT", "3")
     monkeypatch.setenv("COVSLAM_DEFAULT_LANDMARK_CAP", "20")
+    monkeypatch.setenv("COVSLAM_DEFAULT_CAMERA_LANDMARK_CAP", "150")
     get_settings.cache_clear()
     try:
         s = get_settings()
         assert s.port == 9123 and s.data_dir == Path("/tmp/somewhere")
         assert s.store.synchronous == "FULL" and s.workers.count == 3
         assert s.default_landmark_cap == 20
+        assert s.default_camera_landmark_cap == 150
     finally:
         get_settings.cache_clear()
 
@@ -38,6 +40,7 @@ def test_defaults() -> None:
     [
         ("COVSLAM_STORE__SYNCHRONOUS", "OFF"),
         ("COVSLAM_WORKERS__COUNT", "0"),
+        ("COVSLAM_DEFAULT_CAMERA_LANDMARK_CAP", "0"),
         ("COVSLAM_DEFAULT_LANDMARK_CAP", "0"),
         ("COVSLAM_PORT", "70000"),
     ],
