@@ -25,6 +25,7 @@ from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
 from service.mapconfig import (
     CAMERA_ESTIMATOR_DEFAULTS,
+    CAMERA_LANDMARK_CAP,
     CAMERA_NOISE_DEFAULTS,
     WINDOW_FIELDS,
     window_settings,
@@ -33,6 +34,8 @@ from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
 _DEFAULTS = SlamConfig()
+_REPLAY_CAP = 50
+"""The cap of an in-process replay without --landmark-cap (the service's default too)."""
 
 
 def _optional_int(text: str) -> int | None:
@@ -47,8 +50,11 @@ def _add_map_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--landmark-cap",
         type=_optional_int,
-        default=50,
-        help="most live landmarks (default 50; 'none' = uncapped)",
+        default=argparse.SUPPRESS,
+        help=(
+            f"most live landmarks ('none' = uncapped; default {_REPLAY_CAP}, on camera maps "
+            f"{CAMERA_LANDMARK_CAP}, as the service creates them)"
+        ),
     )
     p.add_argument(
         "--policy",
@@ -165,7 +171,7 @@ def _config(args: argparse.Namespace) -> SlamConfig:
     max_window = window["max_pose_window"]
     assert max_window is not None  # an int field
     return SlamConfig(
-        landmark_cap=args.landmark_cap,
+        landmark_cap=getattr(args, "landmark_cap", _REPLAY_CAP),
         policy=args.policy,
         pose_window=window["pose_window"],
         window_observations=window["window_observations"],
@@ -177,10 +183,13 @@ def _config(args: argparse.Namespace) -> SlamConfig:
 
 def camera_map_config(config: SlamConfig, args: argparse.Namespace) -> SlamConfig:
     """`config` as the service creates a camera map from the same options: the camera
-    estimator defaults, and its robust loss unless `--huber` was given (then Huber)."""
+    estimator defaults, its cap unless `--landmark-cap` was given, and its robust loss
+    unless `--huber` was given (then Huber)."""
     noise = {} if hasattr(args, "huber") else CAMERA_NOISE_DEFAULTS
+    cap = config.landmark_cap if hasattr(args, "landmark_cap") else CAMERA_LANDMARK_CAP
     return dataclasses.replace(
         config,
+        landmark_cap=cap,
         **CAMERA_ESTIMATOR_DEFAULTS,  # type: ignore[arg-type]
         **noise,
     )
@@ -260,10 +269,10 @@ def _replay_http(
     from service.http_client import fetch_tum, replay_http
 
     config = {
-        "landmark_cap": args.landmark_cap,
+        # Cap and huber_k only if given: the service's defaults (a camera map's own) apply.
+        **({"landmark_cap": args.landmark_cap} if hasattr(args, "landmark_cap") else {}),
         "policy": args.policy,
         **_window_given(args),
-        # huber_k only if given: a camera map created without it gets the camera's loss.
         "noise": {
             **({"huber_k": args.huber} if hasattr(args, "huber") else {}),
             **(mrclam_noise() if args.source == "mrclam" else {}),

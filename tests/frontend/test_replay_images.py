@@ -75,10 +75,10 @@ def test_image_frame_with_a_bad_image_field_is_refused(tmp_path: Path) -> None:
         read_replay_frames(path)
 
 
-def test_image_replay_takes_the_camera_loss_unless_huber_is_given() -> None:
+def test_image_replay_takes_the_camera_loss_and_cap_unless_given() -> None:
     from graph.config import SlamConfig
     from service.cli import _config, build_parser, camera_map_config
-    from service.mapconfig import CAMERA_NOISE_DEFAULTS
+    from service.mapconfig import CAMERA_LANDMARK_CAP, CAMERA_NOISE_DEFAULTS
 
     plain = build_parser().parse_args(["replay", "frames.jsonl"])
     assert _config(plain).huber_k == SlamConfig().huber_k
@@ -86,6 +86,9 @@ def test_image_replay_takes_the_camera_loss_unless_huber_is_given() -> None:
     camera = camera_map_config(_config(plain), plain)
     assert camera.bearing_loss == CAMERA_NOISE_DEFAULTS["bearing_loss"]
     assert camera.huber_k == CAMERA_NOISE_DEFAULTS["huber_k"]
+    assert (_config(plain).landmark_cap, camera.landmark_cap) == (50, CAMERA_LANDMARK_CAP)
+    capped = build_parser().parse_args(["replay", "frames.jsonl", "--landmark-cap", "none"])
+    assert camera_map_config(_config(capped), capped).landmark_cap is None
 
     given = build_parser().parse_args(["replay", "frames.jsonl", "--huber", "2.5"])
     kept = camera_map_config(_config(given), given)
