@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -24,18 +23,18 @@ from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.datasets.render_run import write_rendered_run
 from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
 from service.mapconfig import (
-    CAMERA_ESTIMATOR_DEFAULTS,
     CAMERA_LANDMARK_CAP,
     CAMERA_NOISE_DEFAULTS,
+    DEFAULT_LANDMARK_CAP,
     WINDOW_FIELDS,
+    MapConfig,
+    slam_config,
     window_settings,
 )
 from service.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
 _DEFAULTS = SlamConfig()
-_REPLAY_CAP = 50
-"""The cap of an in-process replay without --landmark-cap (the service's default too)."""
 
 
 def _optional_int(text: str) -> int | None:
@@ -52,8 +51,8 @@ def _add_map_options(p: argparse.ArgumentParser) -> None:
         type=_optional_int,
         default=argparse.SUPPRESS,
         help=(
-            f"most live landmarks ('none' = uncapped; default {_REPLAY_CAP}, on camera maps "
-            f"{CAMERA_LANDMARK_CAP}, as the service creates them)"
+            f"most live landmarks ('none' = uncapped; default {DEFAULT_LANDMARK_CAP}, on "
+            f"camera maps {CAMERA_LANDMARK_CAP}, as the service creates them)"
         ),
     )
     p.add_argument(
@@ -171,7 +170,7 @@ def _config(args: argparse.Namespace) -> SlamConfig:
     max_window = window["max_pose_window"]
     assert max_window is not None  # an int field
     return SlamConfig(
-        landmark_cap=getattr(args, "landmark_cap", _REPLAY_CAP),
+        landmark_cap=getattr(args, "landmark_cap", DEFAULT_LANDMARK_CAP),
         policy=args.policy,
         pose_window=window["pose_window"],
         window_observations=window["window_observations"],
@@ -181,18 +180,28 @@ def _config(args: argparse.Namespace) -> SlamConfig:
     )
 
 
-def camera_map_config(config: SlamConfig, args: argparse.Namespace) -> SlamConfig:
-    """`config` as the service creates a camera map from the same options: the camera
-    estimator defaults, its cap unless `--landmark-cap` was given, and its robust loss
-    unless `--huber` was given (then Huber)."""
-    noise = {} if hasattr(args, "huber") else CAMERA_NOISE_DEFAULTS
-    cap = config.landmark_cap if hasattr(args, "landmark_cap") else CAMERA_LANDMARK_CAP
-    return dataclasses.replace(
-        config,
-        landmark_cap=cap,
-        **CAMERA_ESTIMATOR_DEFAULTS,  # type: ignore[arg-type]
-        **noise,
-    )
+def _map_config_doc(args: argparse.Namespace, camera: dict[str, Any] | None) -> dict[str, Any]:
+    """The map config a replay asks for: cap and huber_k only if given, so that the
+    service's defaults (a camera map's own) apply."""
+    return {
+        **({"landmark_cap": args.landmark_cap} if hasattr(args, "landmark_cap") else {}),
+        "policy": args.policy,
+        **_window_given(args),
+        "noise": {
+            **({"huber_k": args.huber} if hasattr(args, "huber") else {}),
+            **(mrclam_noise() if args.source == "mrclam" else {}),
+        },
+        "seed": args.seed,
+        "camera": camera,
+    }
+
+
+def camera_map_config(args: argparse.Namespace, camera: dict[str, Any]) -> SlamConfig:
+    """The estimator of a camera map created from these options, as the service creates
+    it (MapConfig.for_new_map with the service's default caps)."""
+    doc = MapConfig.model_validate(_map_config_doc(args, camera))
+    created = doc.for_new_map(DEFAULT_LANDMARK_CAP, CAMERA_LANDMARK_CAP)
+    return slam_config(created.model_dump(mode="json"), "mapping")
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -221,9 +230,10 @@ def _replay(args: argparse.Namespace) -> int:
             camera_config = front_end.camera.as_config()
             front_end.close()
         return _replay_http(args, sequence, frames, gt, robot, camera_config)
-    config = _config(args)
     if front_end is not None:
-        config = camera_map_config(config, args)
+        config = camera_map_config(args, front_end.camera.as_config())
+    else:
+        config = _config(args)
     try:
         result = replay(
             sequence,
@@ -268,18 +278,7 @@ def _replay_http(
 ) -> int:
     from service.http_client import fetch_tum, replay_http
 
-    config = {
-        # Cap and huber_k only if given: the service's defaults (a camera map's own) apply.
-        **({"landmark_cap": args.landmark_cap} if hasattr(args, "landmark_cap") else {}),
-        "policy": args.policy,
-        **_window_given(args),
-        "noise": {
-            **({"huber_k": args.huber} if hasattr(args, "huber") else {}),
-            **(mrclam_noise() if args.source == "mrclam" else {}),
-        },
-        "seed": args.seed,
-        "camera": camera,
-    }
+    config = _map_config_doc(args, camera)
     name = Path(str(args.directory or args.source)).name
     run = replay_http(
         sequence,

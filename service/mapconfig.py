@@ -152,6 +152,9 @@ CAMERA_ESTIMATOR_DEFAULTS = {
 }
 """What a camera map created without these estimator fields gets (MapConfig does it for
 the service; an in-process replay of image frames applies them to its SlamConfig)."""
+DEFAULT_LANDMARK_CAP = 50
+"""The service's default landmark cap of a map created without one (its setting
+`default_landmark_cap`; an in-process replay without --landmark-cap too)."""
 CAMERA_LANDMARK_CAP = 200
 """The service's default landmark cap of a camera map created without one (its setting
 `default_camera_landmark_cap`). A camera map matches 45-60 landmarks a frame; at cap 50

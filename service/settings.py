@@ -15,7 +15,7 @@ from typing import Literal
 from pydantic import BaseModel, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.mapconfig import CAMERA_LANDMARK_CAP
+from service.mapconfig import CAMERA_LANDMARK_CAP, DEFAULT_LANDMARK_CAP
 
 
 class StoreSettings(BaseModel):
@@ -101,7 +101,8 @@ class Settings(BaseSettings):
         Path("./covslam-data"), description="directory of the SQLite store (created if missing)"
     )
     default_landmark_cap: int | None = Field(
-        50, description="landmark cap of a new map whose config gives none; null = uncapped"
+        DEFAULT_LANDMARK_CAP,
+        description="landmark cap of a new map whose config gives none; null = uncapped",
     )
     default_camera_landmark_cap: int | None = Field(
         CAMERA_LANDMARK_CAP,

@@ -80,18 +80,19 @@ def test_image_replay_takes_the_camera_loss_and_cap_unless_given() -> None:
     from service.cli import _config, build_parser, camera_map_config
     from service.mapconfig import CAMERA_LANDMARK_CAP, CAMERA_NOISE_DEFAULTS
 
+    camera_cfg = PanoramaCamera(1024, 256).as_config()
     plain = build_parser().parse_args(["replay", "frames.jsonl"])
     assert _config(plain).huber_k == SlamConfig().huber_k
     assert _config(plain).bearing_loss == "huber"
-    camera = camera_map_config(_config(plain), plain)
+    camera = camera_map_config(plain, camera_cfg)
     assert camera.bearing_loss == CAMERA_NOISE_DEFAULTS["bearing_loss"]
     assert camera.huber_k == CAMERA_NOISE_DEFAULTS["huber_k"]
     assert (_config(plain).landmark_cap, camera.landmark_cap) == (50, CAMERA_LANDMARK_CAP)
     capped = build_parser().parse_args(["replay", "frames.jsonl", "--landmark-cap", "none"])
-    assert camera_map_config(_config(capped), capped).landmark_cap is None
+    assert camera_map_config(capped, camera_cfg).landmark_cap is None
 
     given = build_parser().parse_args(["replay", "frames.jsonl", "--huber", "2.5"])
-    kept = camera_map_config(_config(given), given)
+    kept = camera_map_config(given, camera_cfg)
     assert (kept.bearing_loss, kept.huber_k) == ("huber", 2.5)
     off = build_parser().parse_args(["replay", "frames.jsonl", "--huber", "none"])
-    assert camera_map_config(_config(off), off).huber_k is None
+    assert camera_map_config(off, camera_cfg).huber_k is None
