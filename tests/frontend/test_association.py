@@ -372,3 +372,27 @@ def test_pairs_within_equals_the_full_gate_test_across_the_seam() -> None:
         np.testing.assert_array_equal(li[exact], want_l)
         np.testing.assert_array_equal(fi[exact], want_f)
         assert len(want_l) > 0
+
+
+def test_a_feature_at_a_matched_landmarks_bearing_starts_no_track() -> None:
+    """The top and bottom corner of a vertical edge have one bearing: once one of them is a
+    landmark, the other starts no track (it would become a second landmark on the same
+    2-D point, taking a second place under the cap); one 1 deg away does."""
+    rng = np.random.default_rng(7)
+    descs = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    on = Associator(AssociationConfig(coincident_rad=math.radians(0.3)))
+    off = Associator(AssociationConfig())
+    for assoc in (on, off):
+        _learn(assoc, _features([10.0], descs[:1]), {0: "A"})
+    landmarks = {"A": (np.array([2.0 * math.cos(0.1745), 2.0 * math.sin(0.1745)]), None)}
+    # A seen again; 0.1 deg along, a stranger (the edge's other end); 1 deg along, another.
+    feats = _features([10.0, 10.1, 11.0], descs)
+    with_rule = on.associate(
+        feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks=landmarks
+    )
+    without = off.associate(
+        feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks=landmarks
+    )
+    assert with_rule.landmark_matches == without.landmark_matches == {"A": 0}
+    assert without.unmatched.tolist() == [1, 2]
+    assert with_rule.unmatched.tolist() == [2]
