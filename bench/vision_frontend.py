@@ -41,7 +41,6 @@ import numpy as np
 from frontend.association import AssociationConfig
 from frontend.cameras import PanoramaCamera
 from frontend.features import FeatureConfig, FeatureExtractor, Features
-from frontend.flow import FlowConfig
 from frontend.pipeline import FrontEnd
 from graph.angles import wrap_angles
 from graph.config import SlamConfig
@@ -212,19 +211,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         **_graph_frame_options(args),
     )
 
+    association = AssociationConfig()
+    if args.coincident_deg is not None:
+        association = replace(association, coincident_rad=math.radians(args.coincident_deg))
+    if args.elevation_gate is not None:
+        association = replace(association, landmark_elevation_gate=args.elevation_gate)
     pipeline = ImagePipeline(
         BearingSlam(config, rng=np.random.default_rng(args.seed)),
-        FrontEnd(
-            camera,
-            association=AssociationConfig(
-                coincident_rad=math.radians(args.coincident_deg or 0.0),
-            ),
-            flow=FlowConfig(
-                enabled=args.flow,
-                follow=args.flow_follow,
-                new_tracks=not args.flow_no_new_tracks,
-            ),
-        ),
+        FrontEnd(camera, association=association),
     )
     oracle = BearingSlam(config, rng=np.random.default_rng(args.seed))
     truth_poses = sim.ground_truth.poses()
@@ -248,12 +242,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         feats = pipeline.front_end.features(image)
         features_ms = 1e3 * (time.perf_counter() - t0)
         ids, b, e = visible_corners(tw, truth_poses[k], camera)
-        predicted = pipeline.predict(frame)[0]
-        result = pipeline.submit(frame, feats, panorama=image)
-        # The features associated: the detections plus the points optical flow carried
-        # from the last frame (the oracle below labels the same ones).
-        feats = result.association.features
         truth = feature_truth(feats, camera, ids, b, e, args.truth_px)
+        predicted = pipeline.predict(frame)[0]
+        result = pipeline.submit(frame, feats)
         feature_ms.append(features_ms)
         assoc_ms.append(result.timing_ms["association"])
         assoc = result.association
@@ -385,10 +376,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "frames": args.frames,
         "panorama": [camera.width, camera.height],
         "seed": args.seed,
-        "optical_flow": None
-        if not args.flow
-        else {"follow": args.flow_follow, "new_tracks": not args.flow_no_new_tracks},
-        "coincident_deg": args.coincident_deg,
+        "coincident_deg": math.degrees(association.coincident_rad),
+        "landmark_elevation_gate": association.landmark_elevation_gate,
         "slam_config": {
             "landmark_cap": args.landmark_cap,
             "policy": args.policy,
@@ -512,21 +501,17 @@ def main() -> None:
     p.add_argument("--out", default="vision_frontend")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle map (diagnosis)")
     p.add_argument(
-        "--flow",
-        action="store_true",
-        help="also associate the points optical flow follows from the last frame",
-    )
-    p.add_argument(
         "--coincident-deg",
         type=float,
         default=None,
-        help="association: features this close in bearing are one 2-D point",
+        help="association: a feature this close in bearing to a landmark match is the same "
+        "2-D point and starts no track (default: AssociationConfig's; 0: off)",
     )
-    p.add_argument("--flow-follow", choices=["all", "landmarks"], default="all")
     p.add_argument(
-        "--flow-no-new-tracks",
-        action="store_true",
-        help="points optical flow carried start no track of their own",
+        "--elevation-gate",
+        type=float,
+        default=None,
+        help="association: landmark elevation gate in tolerances (AssociationConfig's)",
     )
     p.add_argument("--no-speed", action="store_true", help="skip the features speed test")
     p.add_argument("--speed-only", action="store_true", help="only the features speed test")

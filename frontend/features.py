@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from frontend.cameras import PanoramaCamera
 
-__all__ = ["FeatureConfig", "FeatureExtractor", "Features", "corner_quality"]
+__all__ = ["FeatureConfig", "FeatureExtractor", "Features"]
 
 FloatArray = NDArray[np.float64]
 
@@ -131,36 +131,6 @@ class FeatureExtractor:
         if self._pool is not None:
             self._pool.shutdown(wait=False)
 
-    @property
-    def upright(self) -> bool:
-        """Descriptors are this extractor's own upright ones (`describe`): ORB upright."""
-        return self._upright
-
-    def features_at(
-        self,
-        u: FloatArray,
-        v: FloatArray,
-        octave: NDArray[np.int64],
-        response: FloatArray,
-        descriptors: NDArray[Any],
-    ) -> Features:
-        """Features at given subpixel positions (bearing, elevation, sigma as `extract`
-        gives a detection on pyramid level `octave`)."""
-        cam, cfg = self.camera, self.config
-        binary = cfg.detector == "orb"
-        scale = cfg.orb_scale if binary else 2.0
-        return Features(
-            u=u,
-            v=v,
-            bearing_rad=cam.bearing_of_column(u),
-            elevation_rad=cam.elevation_of_row(v),
-            sigma_rad=cfg.sigma_px * cam.rad_per_px * scale ** octave.astype(np.float64),
-            response=response,
-            octave=octave,
-            descriptors=descriptors,
-            binary=binary,
-        )
-
     def _detector(self) -> Any:
         cfg = self.config
         if cfg.detector == "sift":
@@ -192,7 +162,7 @@ class FeatureExtractor:
             kp.pt = (kp.pt[0] - pad + start, kp.pt[1])
         return kept, None if desc is None else desc[keep]
 
-    def describe(
+    def _describe_upright(
         self, panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray, octave: NDArray[np.int64]
     ) -> NDArray[np.uint8]:
         """(N, 32) upright binary descriptors (256 intensity comparisons, BRIEF-style) of
@@ -273,7 +243,7 @@ class FeatureExtractor:
         elif cfg.subpixel:
             u, v = self._refine(panorama, u, v, octave)
         if cfg.min_corner_quality > 0:
-            good = corner_quality(panorama, u, v) >= cfg.min_corner_quality
+            good = _corner_quality(panorama, u, v) >= cfg.min_corner_quality
             keypoints = [kp for kp, g in zip(keypoints, good.tolist(), strict=True) if g]
             u, v, response, octave = u[good], v[good], response[good], octave[good]
             descs = [np.concatenate(descs, axis=0)[good]]
@@ -284,8 +254,19 @@ class FeatureExtractor:
         unique = _suppress_duplicates(u, v, response, cam.width, self.config.duplicate_px)
         idx = unique[self._spread(u[unique], response[unique])]
         if self._upright:  # describe only the features kept
-            descriptors[idx] = self.describe(panorama, u[idx], v[idx], octave[idx])
-        return self.features_at(u, v, octave, response, descriptors).subset(idx)
+            descriptors[idx] = self._describe_upright(panorama, u[idx], v[idx], octave[idx])
+        feats = Features(
+            u=u,
+            v=v,
+            bearing_rad=cam.bearing_of_column(u),
+            elevation_rad=cam.elevation_of_row(v),
+            sigma_rad=cfg.sigma_px * cam.rad_per_px * scale ** octave.astype(np.float64),
+            response=response,
+            octave=octave,
+            descriptors=descriptors,
+            binary=binary,
+        )
+        return feats.subset(idx)
 
     def _refine(
         self, panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray, octave: NDArray[np.int64]
@@ -326,7 +307,7 @@ class FeatureExtractor:
         return np.sort(chosen).astype(np.int64)
 
 
-def corner_quality(panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray) -> FloatArray:
+def _corner_quality(panorama: NDArray[np.uint8], u: FloatArray, v: FloatArray) -> FloatArray:
     """(N,) lambda_min / lambda_max of the gradient structure tensor in a 7x7 window."""
     h, w = panorama.shape
     half = 4

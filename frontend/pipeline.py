@@ -18,7 +18,6 @@ from frontend.association import Association, AssociationConfig, Associator, Lan
 from frontend.cameras import CameraModel, OmniCamera, PanoramaCamera
 from frontend.errors import WrongImageSize
 from frontend.features import FeatureConfig, FeatureExtractor, Features
-from frontend.flow import FlowConfig
 from frontend.image_io import MAX_IMAGE_BYTES, MAX_IMAGE_PIXELS, decode_image, image_for_camera
 
 __all__ = ["FrontEnd"]
@@ -33,7 +32,6 @@ class FrontEnd:
         *,
         features: FeatureConfig | None = None,
         association: AssociationConfig | None = None,
-        flow: FlowConfig | None = None,
         max_bytes: int = MAX_IMAGE_BYTES,
         max_pixels: int = MAX_IMAGE_PIXELS,
     ) -> None:
@@ -43,7 +41,6 @@ class FrontEnd:
         )
         self.extractor = FeatureExtractor(self.panorama_camera, features)
         self.associator = Associator(association)
-        self.flow = flow or FlowConfig()
         self.max_bytes = max_bytes
         self.max_pixels = max_pixels
 
@@ -79,7 +76,6 @@ class FrontEnd:
         predicted_pose: ArrayLike,
         pose_cov: ArrayLike | None,
         landmarks: Mapping[str, LandmarkEstimate],
-        no_new_tracks: NDArray[np.bool_] | None = None,
     ) -> Association:
         """Label one frame's features; `association.observations` go to the estimator.
 
@@ -92,7 +88,6 @@ class FrontEnd:
             predicted_pose=predicted_pose,
             pose_cov=pose_cov,
             landmarks=landmarks,
-            no_new_tracks=no_new_tracks,
         )
 
     def commit(

@@ -29,7 +29,6 @@ from frontend.appearance import rotation_between
 from frontend.association import Association, AssociationConfig, Associator
 from frontend.association_state import associator_from_doc, associator_to_doc
 from frontend.features import Features
-from frontend.flow import FlowSeed, carry_features
 from frontend.pipeline import FrontEnd
 from graph.factors import odometry_sigmas
 from graph.slam import BearingSlam, FrameOutcome
@@ -111,9 +110,6 @@ class ImagePipeline:
         self._last: dict[str, tuple[FloatArray, FloatArray]] = {}
         self._signature: dict[str, NDArray[np.float32]] = {}
         """Each robot's last panorama signature (the visual compass, see `predict`)."""
-        self._flow: dict[str, FlowSeed] = {}
-        """Each robot's last panorama and the features of it that were used (optical
-        flow follows them into the robot's next panorama: frontend.flow)."""
 
     @property
     def robots(self) -> frozenset[str]:
@@ -129,14 +125,16 @@ class ImagePipeline:
             "associator": self.front_end.associator,
             "last": self._last,
             "signature": self._signature,
-            "flow": self._flow,
         }
 
     def set_state(self, state: dict[str, Any]) -> None:
-        self.front_end.associator = state["associator"]
+        associator = state["associator"]
+        # The service's association settings, not the snapshot's: they are not part of a
+        # map's config, and an older snapshot's pickled config lacks the newer fields.
+        associator.config = self.front_end.associator.config
+        self.front_end.associator = associator
         self._last = dict(state["last"])
         self._signature = dict(state.get("signature", {}))  # older snapshots: none
-        self._flow = dict(state.get("flow", {}))
 
     def state_doc(self) -> dict[str, Any]:
         """The same state as JSON-ready data (a map export): the associator's landmark
@@ -164,10 +162,8 @@ class ImagePipeline:
         `covariance_robot`: (3, 3), x, y in the robot frame (as the estimator reports)."""
         xy_theta = np.array([pose.x, pose.y, pose.theta])
         self._last[robot] = (xy_theta, _rotate_cov(np.asarray(covariance_robot), pose.theta))
-        # The next image's odometry starts here, not at the last image: no compass for it,
-        # and no flow from the last image.
+        # The next image's odometry starts here, not at the last image: no compass for it.
         self._signature.pop(robot, None)
-        self._flow.pop(robot, None)
 
     def predict(
         self, frame: FrameInput, *, compass_rad: float | None = None
@@ -211,7 +207,6 @@ class ImagePipeline:
         with_covariance: bool = True,
         signature: NDArray[np.float32] | None = None,
         anchor: tuple[Pose2D, FloatArray] | None = None,
-        panorama: NDArray[np.uint8] | None = None,
     ) -> ImageFrameResult:
         """Process one frame whose observations come from `image` (its own are ignored).
 
@@ -222,16 +217,9 @@ class ImagePipeline:
         map-frame covariance) from the place localiser: the robot's chain is anchored
         there (BearingSlam.process), the prediction starts from it, and the robot's
         candidate tracks (rays from poses it no longer believes) are dropped.
-        `panorama`: the (validated, unwrapped) panorama `image`'s features came from, when
-        `image` is features: optical flow follows the robot's last frame's features into
-        it (frontend.flow; without it, only the detections are associated).
         """
         t0 = time.perf_counter()
-        if isinstance(image, Features):
-            feats = image
-        else:
-            panorama = self.front_end.panorama(image)
-            feats = self.front_end.extractor.extract(panorama)
+        feats = image if isinstance(image, Features) else self.front_end.features(image)
         t1 = time.perf_counter()
         compass = None
         previous = self._signature.get(frame.robot)
@@ -249,17 +237,6 @@ class ImagePipeline:
             p = anchor[0]
             predicted, cov = np.array([p.x, p.y, p.theta]), np.asarray(anchor[1], np.float64)
             self.front_end.associator.forget_tracks(frame.robot)
-        t_flow = time.perf_counter()
-        seed = self._flow.get(frame.robot)
-        flow_cfg = self.front_end.flow
-        n_detected = len(feats)
-        if flow_cfg.enabled and panorama is not None and seed is not None and anchor is None:
-            turn = math.remainder(float(predicted[2]) - seed.theta, 2.0 * math.pi)
-            feats = carry_features(seed, panorama, turn, feats, self.front_end.extractor, flow_cfg)
-        no_new_tracks = None
-        if not flow_cfg.new_tracks:
-            no_new_tracks = np.arange(len(feats)) >= n_detected
-        flow_ms = 1e3 * (time.perf_counter() - t_flow)
         slam = self.slam
         ids = sorted(slam.landmarks)
         labels = [slam.landmarks[i].label for i in ids]
@@ -273,7 +250,6 @@ class ImagePipeline:
             predicted_pose=predicted,
             pose_cov=cov,
             landmarks={lb: (p, c) for lb, p, c in zip(labels, xy, covs, strict=True)},
-            no_new_tracks=no_new_tracks,
         )
         t2 = time.perf_counter()
         outcome = slam.process(
@@ -297,41 +273,13 @@ class ImagePipeline:
         self.front_end.commit(association, pose=pose, live_labels=live, landmark_xy=positions)
         if signature is not None:
             self._signature[frame.robot] = signature
-        if flow_cfg.enabled and panorama is not None:
-            used = np.unique(
-                np.array(
-                    [
-                        *association.landmark_matches.values(),
-                        *(
-                            [
-                                *association.track_matches.values(),
-                                *association.unmatched.tolist(),
-                            ]
-                            if flow_cfg.follow == "all"
-                            else []
-                        ),
-                    ],
-                    dtype=np.int64,
-                )
-            )
-            self._flow[frame.robot] = FlowSeed(
-                panorama=panorama,
-                u=feats.u[used],
-                v=feats.v[used],
-                octave=feats.octave[used],
-                response=feats.response[used],
-                theta=float(pose[2]),
-            )
-        else:
-            self._flow.pop(frame.robot, None)
         t4 = time.perf_counter()
         return ImageFrameResult(
             outcome=outcome,
             association=association,
             timing_ms={
                 "features": 1e3 * (t1 - t0),
-                "flow": flow_ms,
-                "association": 1e3 * (t2 - t1 + t4 - t3) - flow_ms,
+                "association": 1e3 * (t2 - t1 + t4 - t3),
                 "estimator": 1e3 * (t3 - t2),
                 "total": 1e3 * (t4 - t0),
             },

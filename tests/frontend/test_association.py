@@ -380,8 +380,8 @@ def test_a_feature_at_a_matched_landmarks_bearing_starts_no_track() -> None:
     2-D point, taking a second place under the cap); one 1 deg away does."""
     rng = np.random.default_rng(7)
     descs = rng.integers(0, 256, (3, 32), dtype=np.uint8)
-    on = Associator(AssociationConfig(coincident_rad=math.radians(0.3)))
-    off = Associator(AssociationConfig())
+    on = Associator(AssociationConfig())  # the default: 0.3 deg
+    off = Associator(AssociationConfig(coincident_rad=0.0))
     for assoc in (on, off):
         _learn(assoc, _features([10.0], descs[:1]), {0: "A"})
     landmarks = {"A": (np.array([2.0 * math.cos(0.1745), 2.0 * math.sin(0.1745)]), None)}
@@ -396,3 +396,34 @@ def test_a_feature_at_a_matched_landmarks_bearing_starts_no_track() -> None:
     assert with_rule.landmark_matches == without.landmark_matches == {"A": 0}
     assert without.unmatched.tolist() == [1, 2]
     assert with_rule.unmatched.tolist() == [2]
+
+
+def test_a_landmark_with_a_known_height_takes_only_features_at_its_elevation() -> None:
+    """A look-alike at the landmark's bearing but 2.2 deg above the elevation its learnt
+    height predicts (a corner of another poster on a farther wall, seen through a door) is
+    not taken with the default gate; one 0.8 deg off is. The old gate (2 tolerances)
+    took both."""
+    rng = np.random.default_rng(11)
+    desc = rng.integers(0, 256, (1, 32), dtype=np.uint8)
+    predicted_deg = math.degrees(math.atan2(0.5, 2.0))  # 0.5 m above the camera, 2 m away
+
+    def taken(offset_deg: float, gate: float | None) -> dict[str, int]:
+        cfg = (
+            AssociationConfig() if gate is None else AssociationConfig(landmark_elevation_gate=gate)
+        )
+        assoc = Associator(cfg)
+        _learn(assoc, _features([0.0], desc), {0: "A"})
+        assoc._landmarks["A"].height_m = 0.5
+        feats = _features([0.0], desc)
+        feats.elevation_rad[:] = math.radians(predicted_deg + offset_deg)
+        return assoc.associate(
+            feats,
+            robot="r1",
+            predicted_pose=(0, 0, 0),
+            pose_cov=None,
+            landmarks={"A": (np.array([2.0, 0.0]), None)},
+        ).landmark_matches
+
+    assert taken(0.8, None) == {"A": 0}
+    assert taken(2.2, None) == {}
+    assert taken(2.2, 2.0) == {"A": 0}

@@ -60,3 +60,24 @@ def test_bad_image_leaves_map_and_front_end_unchanged() -> None:
     # The second sighting reports tracks to the estimator as candidates.
     assert second.association.kind.count("track") > 10
     p.front_end.close()
+
+
+def test_a_restored_snapshot_takes_the_services_association_settings() -> None:
+    """A snapshot pickled before an AssociationConfig field existed (unpickling gives a
+    config without it) is restored with the running service's settings, which a map's
+    config does not carry."""
+    import dataclasses
+
+    from frontend.association import AssociationConfig
+
+    current = AssociationConfig()
+    old_values = [getattr(current, f.name) for f in dataclasses.fields(AssociationConfig)]
+    old_config = object.__new__(AssociationConfig)
+    old_config.__setstate__(old_values[:-1])  # what unpickling an older snapshot gives
+    with pytest.raises(AttributeError):
+        _ = old_config.coincident_rad
+    source = _pipeline()
+    source.front_end.associator.config = old_config
+    restored = _pipeline()
+    restored.set_state(source.state())
+    assert restored.front_end.associator.config == current
