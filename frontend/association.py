@@ -81,11 +81,6 @@ class AssociationConfig:
     min_landmark_sigma_m: float = 0.005
     elevation_gate_rad: float = math.radians(1.0)
     """Elevation tolerance (plus gate_sigmas feature sigmas) of a predicted elevation."""
-    landmark_elevation_gate: float = 1.0
-    """A landmark with a learnt height takes features within this many elevation
-    tolerances of the elevation it predicts. At 2 (before 2026-12-03), look-alikes on
-    other walls took over landmarks whose corner was out of sight: on a rendered world
-    precision 98.81 % -> 99.33 % at 1."""
     max_distance: float = 45.0
     """Largest descriptor distance of a match (Hamming bits for ORB; L2 for SIFT: x5)."""
     ratio: float = 0.7
@@ -127,6 +122,13 @@ class AssociationConfig:
     frame, and a landmark lived a median of 79 frames (114 with it). With the elevation
     gate below, the image map's ATE went from 0.71-2.15x the oracle's to 0.82-1.41x over
     five worlds (README, issue 4). 0: off."""
+    landmark_elevation_gate: float = 1.0
+    """A landmark with a learnt height takes features within this many elevation
+    tolerances (`elevation_gate_rad` + gate_sigmas feature sigmas) of the elevation it
+    predicts. At 2 (before 2026-12-03), look-alikes on other walls took over landmarks
+    whose corner was out of sight: on a rendered world precision 98.81 % -> 99.33 % at 1.
+    (The last two fields: a pickled snapshot's config lacks them; ImagePipeline.set_state
+    puts the service's own config in its place.)"""
 
 
 @dataclass

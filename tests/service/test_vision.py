@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
+from frontend.association import AssociationConfig
 from frontend.cameras import PanoramaCamera
 from frontend.errors import ImageError
 from frontend.pipeline import FrontEnd
@@ -63,17 +65,13 @@ def test_bad_image_leaves_map_and_front_end_unchanged() -> None:
 
 
 def test_a_restored_snapshot_takes_the_services_association_settings() -> None:
-    """A snapshot pickled before an AssociationConfig field existed (unpickling gives a
-    config without it) is restored with the running service's settings, which a map's
-    config does not carry."""
-    import dataclasses
-
-    from frontend.association import AssociationConfig
-
+    """A snapshot pickled before the last two AssociationConfig fields existed (unpickling
+    gives a config without them) is restored with the running service's settings, which
+    a map's config does not carry."""
     current = AssociationConfig()
     old_values = [getattr(current, f.name) for f in dataclasses.fields(AssociationConfig)]
     old_config = object.__new__(AssociationConfig)
-    old_config.__setstate__(old_values[:-1])  # what unpickling an older snapshot gives
+    old_config.__setstate__(old_values[:-2])  # what unpickling an older snapshot gives
     with pytest.raises(AttributeError):
         _ = old_config.coincident_rad
     source = _pipeline()
