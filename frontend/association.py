@@ -127,8 +127,8 @@ class AssociationConfig:
     tolerances (`elevation_gate_rad` + gate_sigmas feature sigmas) of the elevation it
     predicts. At 2 (before 2026-12-03), look-alikes on other walls took over landmarks
     whose corner was out of sight: on a rendered world precision 98.81 % -> 99.33 % at 1.
-    (The last two fields: a pickled snapshot's config lacks them; ImagePipeline.set_state
-    puts the service's own config in its place.)"""
+    Both fields go last: older pickled snapshots lack them, and ImagePipeline.set_state
+    gives a restored associator the service's own config."""
 
 
 @dataclass

@@ -407,11 +407,10 @@ def test_a_landmark_with_a_known_height_takes_only_features_at_its_elevation() -
     desc = rng.integers(0, 256, (1, 32), dtype=np.uint8)
     predicted_deg = math.degrees(math.atan2(0.5, 2.0))  # 0.5 m above the camera, 2 m away
 
-    def taken(offset_deg: float, gate: float | None) -> dict[str, int]:
-        cfg = (
-            AssociationConfig() if gate is None else AssociationConfig(landmark_elevation_gate=gate)
-        )
-        assoc = Associator(cfg)
+    default_gate = AssociationConfig().landmark_elevation_gate
+
+    def taken(offset_deg: float, gate: float = default_gate) -> dict[str, int]:
+        assoc = Associator(AssociationConfig(landmark_elevation_gate=gate))
         _learn(assoc, _features([0.0], desc), {0: "A"})
         assoc._landmarks["A"].height_m = 0.5
         feats = _features([0.0], desc)
@@ -424,6 +423,6 @@ def test_a_landmark_with_a_known_height_takes_only_features_at_its_elevation() -
             landmarks={"A": (np.array([2.0, 0.0]), None)},
         ).landmark_matches
 
-    assert taken(0.8, None) == {"A": 0}
-    assert taken(2.2, None) == {}
+    assert taken(0.8) == {"A": 0}
+    assert taken(2.2) == {}
     assert taken(2.2, 2.0) == {"A": 0}
