@@ -22,7 +22,7 @@ class SlamConfig:
     """Name of the landmark-selection policy (see graph.policies)."""
     pose_window: int | None = 100
     """Poses kept per robot; older ones are marginalised. None = keep every pose. With
-    window_observations the window grows beyond this while its poses hold few factors."""
+    window_factor_bound the window grows beyond this while its poses hold few factors."""
     bearing_sigma_rad: float = math.radians(1.0)
     """Default one-sigma bearing noise when an observation gives none."""
     huber_k: float | None = 1.345
@@ -124,14 +124,21 @@ class SlamConfig:
     allow_new_landmarks: bool = True
     """False freezes the map (localisation mode): no candidates become landmarks."""
     window_observations: int | None = None
-    """Off (None) by default: a window of sparse observations grows beyond pose_window,
-    up to max_pose_window poses, while its poses hold fewer bearing factors than this
-    (what an update costs); a pose beyond pose_window leaves early, two in a frame, once
-    they hold 5 % more. At 900 on MRCLAM-6 (~1.7 bearings a frame) the window keeps
-    ~500 poses and the uncapped bounded graph matches the one that keeps every pose
-    (ATE 0.278 m against 0.384 with 100 poses), but at cap 8 a frame costs ~1.5x as much
-    (HTTP p50 over issue 3's 5 ms) and the baselines gain more than coverage; the
-    lifelong sim (~10 a frame) and camera maps (~50) keep pose_window's 100 anyway."""
+    """A window of sparse observations grows beyond pose_window, up to max_pose_window
+    poses, while its poses hold fewer bearing factors than this (what an update costs);
+    a pose beyond pose_window leaves early, two in a frame, once they hold 5 % more.
+    None: a capped map keeps pose_window's poses, an uncapped one grows by
+    uncapped_window_observations (see window_factor_bound)."""
+    uncapped_window_observations: int | None = 900
+    """window_observations of a map without a landmark cap, when window_observations is
+    None; None = pose_window alone. At 900 on MRCLAM-6 (~1.7 bearings a frame) the
+    window keeps ~500 poses and the uncapped bounded graph matches the one that keeps
+    every pose (ATE 0.280 m against 0.550 with 100 poses and 0.279 with every pose); the
+    lifelong sim (~10 a frame) and camera maps (~50) keep pose_window's 100 anyway.
+    A capped map does not grow by default: each landmark it removes leaves a marginal
+    dense over every window pose that saw it, so a longer window makes every removal's
+    factor larger (MRCLAM-6 at cap 8: HTTP p50 9.96 ms a frame against issue 3's 5 ms),
+    and at cap 8 the longer window helped the baselines more than coverage."""
     max_pose_window: int = 600
     """Most poses of a window grown by window_observations (pose_window if that is more)."""
     removal_margin: int = 0
@@ -157,6 +164,15 @@ class SlamConfig:
     """Most frames of a robot between two of its graph frames (tracked ones in between)."""
     graph_frame_min_landmarks: int = 5
     """A frame seeing fewer live landmarks than this enters the graph (tracking needs them)."""
+
+    @property
+    def window_factor_bound(self) -> int | None:
+        """The bearing factors below which the window grows beyond pose_window (None:
+        it does not): window_observations if given, else uncapped_window_observations
+        for a map without a landmark cap."""
+        if self.window_observations is not None or self.landmark_cap is not None:
+            return self.window_observations
+        return self.uncapped_window_observations
 
     def __post_init__(self) -> None:
         if self.landmark_cap is not None and self.landmark_cap < 1:
@@ -187,6 +203,8 @@ class SlamConfig:
             raise ValueError("max_landmark_factors must be >= 1 or None")
         if self.window_observations is not None and self.window_observations < 1:
             raise ValueError("window_observations must be >= 1 or None")
+        if self.uncapped_window_observations is not None and self.uncapped_window_observations < 1:
+            raise ValueError("uncapped_window_observations must be >= 1 or None")
         if self.graph_frame_distance_m is not None and not self.graph_frame_distance_m > 0:
             raise ValueError("graph_frame_distance_m must be > 0 or None")
         if not self.graph_frame_angle_rad > 0:

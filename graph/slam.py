@@ -49,7 +49,7 @@ from graph.types import BearingObservation, FrameInput, Pose2D
 from graph.validation import validate_frame
 
 _SHRINK_SLACK = 20
-"""A window shrinks by an extra pose beyond window_observations * (1 + 1/this)."""
+"""A window shrinks by an extra pose beyond window_factor_bound * (1 + 1/this)."""
 _SWEEP_EVERY = 50
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -187,7 +187,7 @@ class BearingSlam:
         self._anchored: dict[int, array[int]] = {}
         self._window_factors: dict[int, int] = {}
         """Bearing factors on each pose while it is in its robot's window (kept only
-        with window_observations)."""
+        with SlamConfig.window_factor_bound)."""
 
     # ---------------------------------------------------------------- queries
     @property
@@ -650,17 +650,18 @@ class BearingSlam:
 
     def _window_full(self, robot: _Robot) -> bool:
         """Does the robot's oldest window pose leave with this frame (see pose_window and
-        window_observations)?"""
+        SlamConfig.window_factor_bound)?"""
         cfg = self.config
         n = len(robot.window)
         if cfg.pose_window is None or n < cfg.pose_window:
             return False
-        if cfg.window_observations is None or n >= max(cfg.max_pose_window, cfg.pose_window):
+        bound = cfg.window_factor_bound
+        if bound is None or n >= max(cfg.max_pose_window, cfg.pose_window):
             return True
-        return self._window_factor_count(robot) >= cfg.window_observations
+        return self._window_factor_count(robot) >= bound
 
     def _window_factor_count(self, robot: _Robot) -> int:
-        """Bearing factors on the robot's window poses (see window_observations)."""
+        """Bearing factors on the robot's window poses (see SlamConfig.window_factor_bound)."""
         counts = self._window_factors
         return sum(counts.get(key, 0) for key, _ in robot.window)
 
@@ -726,7 +727,7 @@ class BearingSlam:
         robot.motion = None
         robot.tracked = None
         robot.window.append((plan.key, frame_index))
-        if self.config.window_observations is not None:  # only the growing window counts
+        if self.config.window_factor_bound is not None:  # only a growing window counts
             self._window_factors[plan.key] = len(plan.factored)
             for _, _, rays in plan.new_landmarks:
                 for r in rays:
@@ -822,11 +823,11 @@ class BearingSlam:
 
     def _shrink_window(self, robot: _Robot) -> None:
         """One more pose leaves a window longer than pose_window whose poses hold more
-        than window_observations bearing factors (+ 5 %, so that this second update is
+        than window_factor_bound bearing factors (+ 5 %, so that this second update is
         rare): the frame's own exit only keeps the window's length, and the factors later
         added to its poses (a landmark's earlier rays) or a denser stretch of observations
         would otherwise hold it over the bound."""
-        bound, length = self.config.window_observations, self.config.pose_window
+        bound, length = self.config.window_factor_bound, self.config.pose_window
         if bound is None or length is None or len(robot.window) <= length:
             return
         if self._window_factor_count(robot) <= bound + bound // _SHRINK_SLACK:

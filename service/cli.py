@@ -76,6 +76,13 @@ def _add_map_options(p: argparse.ArgumentParser) -> None:
         f"factors than this (default {_DEFAULTS.window_observations}; 'none')",
     )
     p.add_argument(
+        "--uncapped-window-observations",
+        type=_optional_int,
+        default=argparse.SUPPRESS,
+        help="--window-observations of an uncapped map when that is not given "
+        f"(default {_DEFAULTS.uncapped_window_observations}; 'none')",
+    )
+    p.add_argument(
         "--max-pose-window",
         type=int,
         default=argparse.SUPPRESS,
@@ -174,6 +181,7 @@ def _config(args: argparse.Namespace) -> SlamConfig:
         policy=args.policy,
         pose_window=window["pose_window"],
         window_observations=window["window_observations"],
+        uncapped_window_observations=window["uncapped_window_observations"],
         max_pose_window=max_window,
         huber_k=getattr(args, "huber", _DEFAULTS.huber_k),
         **extra,

@@ -162,16 +162,26 @@ the rendered runs' image ATE was 0.0242 / 0.0267 m (seeds 0 / 1), at 200 0.0083 
 CAMERA_NOISE_DEFAULTS: dict[str, Any] = {"bearing_loss": "geman_mcclure", "huber_k": 1.0}
 """The `noise` fields a camera map created without them gets (MapConfig.for_new_map), and
 an in-process replay of image frames (see SlamConfig.bearing_loss)."""
-WINDOW_FIELDS = ("pose_window", "window_observations", "max_pose_window")
+WINDOW_FIELDS = (
+    "pose_window",
+    "window_observations",
+    "uncapped_window_observations",
+    "max_pose_window",
+)
 
 
 def window_settings(given: Mapping[str, int | None]) -> dict[str, int | None]:
     """The window fields of a map from those its config gives: the estimator's defaults,
-    except that a config giving `pose_window` alone gets exactly that window (no growth
-    by window_observations; so does every map stored before the growth existed)."""
+    except that a config giving `pose_window` alone gets exactly that window (no growth;
+    so does every map stored before the growth existed), and one giving
+    `window_observations` without `uncapped_window_observations` gets that bound
+    whether capped or not (every map stored before the uncapped default existed)."""
     defaults: dict[str, int | None] = {k: getattr(_DEFAULTS, k) for k in WINDOW_FIELDS}
     if set(given) == {"pose_window"}:
         defaults["window_observations"] = None
+        defaults["uncapped_window_observations"] = None
+    if "window_observations" in given:
+        defaults["uncapped_window_observations"] = None
     return {k: given[k] if k in given else defaults[k] for k in WINDOW_FIELDS}
 
 
@@ -202,6 +212,13 @@ class MapConfig(BaseModel):
         ge=1,
         description="a window of sparse observations grows beyond pose_window, up to "
         "max_pose_window poses, while its poses hold fewer bearing factors than this; "
+        "null = pose_window alone, or uncapped_window_observations on an uncapped map",
+    )
+    uncapped_window_observations: int | None = Field(
+        _DEFAULTS.uncapped_window_observations,
+        ge=1,
+        description="window_observations of a map without a landmark cap when "
+        "window_observations is null (a capped map's window does not grow unless asked); "
         "null = pose_window alone",
     )
     max_pose_window: int = Field(
@@ -341,6 +358,7 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         policy=cfg.policy,
         pose_window=cfg.pose_window,
         window_observations=cfg.window_observations,
+        uncapped_window_observations=cfg.uncapped_window_observations,
         max_pose_window=cfg.max_pose_window,
         bearing_sigma_rad=cfg.noise.bearing_sigma_rad,
         huber_k=cfg.noise.huber_k,

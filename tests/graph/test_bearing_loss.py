@@ -16,7 +16,7 @@ from graph.slam import BearingSlam
 from graph.types import BearingObservation, FrameInput
 from tests.graph._world import circle_frames
 
-CFG = SlamConfig(landmark_cap=None, pose_window=40, window_observations=None)
+CFG = SlamConfig(landmark_cap=None, pose_window=40, uncapped_window_observations=None)
 VICTIMS = 4
 """Landmarks of the ~15 in view that a look-alike takes over for 60 frames."""
 

@@ -109,7 +109,7 @@ def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
     cfg = SlamConfig(
         landmark_cap=None,
         pose_window=10,
-        window_observations=None,
+        uncapped_window_observations=None,
         max_keyframes=12,
         keyframe_distance_m=0.4,
     )
@@ -161,7 +161,7 @@ def test_marginalised_frames_follow_their_keyframe() -> None:
     cfg = SlamConfig(
         landmark_cap=None,
         pose_window=8,
-        window_observations=None,
+        uncapped_window_observations=None,
         max_keyframes=1000,
         keyframe_distance_m=0.6,
     )
@@ -298,7 +298,7 @@ def test_a_pose_holding_a_candidates_first_ray_stays_as_keyframe(keep: bool) -> 
 
     cfg = SlamConfig(
         landmark_cap=None,
-        window_observations=None,
+        uncapped_window_observations=None,
         pose_window=3,
         keyframe_distance_m=100.0,
         keyframe_for_candidate_rays=keep,
@@ -413,10 +413,14 @@ def test_the_innovation_gate_refuses_a_confirmed_outlier_and_nothing_else() -> N
 def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> None:
     """window_observations: beyond pose_window the window grows, up to max_pose_window,
     while its poses hold fewer bearing factors than the bound, and sheds poses once they
-    hold more (two in a frame); None keeps pose_window exactly."""
+    hold more (two in a frame); None (and no uncapped default) keeps pose_window exactly."""
     frames, truth, _ = circle_frames(200, seed=3, n_landmarks=12, max_range=4.0)
     cfg = SlamConfig(
-        landmark_cap=None, pose_window=20, window_observations=bound, max_pose_window=80
+        landmark_cap=None,
+        pose_window=20,
+        window_observations=bound,
+        uncapped_window_observations=None,
+        max_pose_window=80,
     )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     lengths, held_over, was_over = [], 0, False
@@ -450,6 +454,34 @@ def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> N
     else:
         assert max(lengths) == 80
     assert _rmse(slam.trajectory()["r1"], truth) < 1.0
+
+
+def test_by_default_only_an_uncapped_maps_window_grows() -> None:
+    """window_factor_bound: an uncapped map grows its window by
+    uncapped_window_observations; a capped one keeps pose_window unless it gives
+    window_observations, which applies capped or not."""
+    assert SlamConfig(landmark_cap=None).window_factor_bound == 900
+    assert (
+        SlamConfig(landmark_cap=None, uncapped_window_observations=None).window_factor_bound is None
+    )
+    assert SlamConfig(landmark_cap=8).window_factor_bound is None
+    assert SlamConfig(landmark_cap=8, window_observations=60).window_factor_bound == 60
+    assert SlamConfig(landmark_cap=None, window_observations=60).window_factor_bound == 60
+    with pytest.raises(ValueError, match="uncapped_window_observations"):
+        SlamConfig(uncapped_window_observations=0)
+
+    frames, _, _ = circle_frames(120, seed=3, n_landmarks=12, max_range=4.0)
+    longest = {}
+    for cap in (None, 40):
+        cfg = SlamConfig(landmark_cap=cap, pose_window=20, uncapped_window_observations=10**6)
+        slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+        n = 0
+        for f in frames:
+            slam.process(f, with_covariance=False)
+            n = max(n, len(slam._robots["r1"].window))
+        assert slam.removal_count == 0  # the cap of 40 is never reached: only the cap differs
+        longest[cap] = n
+    assert longest == {None: 120, 40: 20}
 
 
 @pytest.mark.parametrize("margin", [0, 3])

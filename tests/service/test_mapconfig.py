@@ -66,6 +66,23 @@ def test_window_growth_defaults_and_a_window_given_alone() -> None:
     assert (long.pose_window, long.window_observations) == (900, None)
 
 
+def test_an_uncapped_maps_window_grows_unless_its_config_says_otherwise() -> None:
+    """A new uncapped map grows its window by uncapped_window_observations; a config
+    giving window_observations (as every map stored before that default did, null
+    included) or pose_window alone keeps what it says; a capped map does not grow."""
+    new = MapConfig.model_validate({"landmark_cap": None})
+    assert slam_config(new.model_dump(mode="json"), "mapping").window_factor_bound == 900
+    legacy = {**new.model_dump(mode="json"), "window_observations": None}
+    del legacy["uncapped_window_observations"]
+    assert slam_config(legacy, "mapping").window_factor_bound is None
+    explicit = MapConfig.model_validate({"landmark_cap": None, "window_observations": 300})
+    assert slam_config(explicit.model_dump(mode="json"), "mapping").window_factor_bound == 300
+    alone = MapConfig.model_validate({"landmark_cap": None, "pose_window": 40})
+    assert slam_config(alone.model_dump(mode="json"), "mapping").window_factor_bound is None
+    capped = MapConfig.model_validate({"landmark_cap": 8})
+    assert slam_config(capped.model_dump(mode="json"), "mapping").window_factor_bound is None
+
+
 def test_removal_margin_reaches_the_estimator_and_must_stay_below_the_cap() -> None:
     assert slam_config({"landmark_cap": 50, "removal_margin": 5}, "mapping").removal_margin == 5
     assert slam_config({}, "mapping").removal_margin == 0
