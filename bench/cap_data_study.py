@@ -58,7 +58,7 @@ def online_association(
     appeared: dict[int, tuple[int, str]] = {}
     for k, frame in enumerate(frames):
         slam.process(frame)
-        live = dict(slam._label_to_id)
+        live = {record.label: lid for lid, record in slam.landmarks.items()}
         for label, lid in live.items():
             appeared.setdefault(lid, (k, label))
         for record in slam.removals:

@@ -140,7 +140,7 @@ class SlamConfig:
     factor larger (MRCLAM-6 at cap 8: HTTP p50 9.96 ms a frame against issue 3's 5 ms),
     and at cap 8 the longer window helped the baselines more than coverage."""
     max_pose_window: int = 600
-    """Most poses of a window grown by window_observations (pose_window if that is more)."""
+    """Most poses of a grown window (see window_factor_bound; pose_window if that is more)."""
     removal_margin: int = 0
     """When the live count exceeds landmark_cap, the policy removes landmarks down to
     landmark_cap - removal_margin, in one marginalisation. A removal costs one iSAM2
