@@ -41,10 +41,11 @@ import numpy as np
 from bench.batch import batch_solve
 from bench.lifelong import machine_info
 from graph.config import SlamConfig
-from graph.slam import BearingSlam
+from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
 from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames, mrclam_noise
 from service.evaluation import Trajectory, ate_rmse
+from service.replay import ReplayResult
 
 log = logging.getLogger("bench.cap_data_study")
 
@@ -53,16 +54,18 @@ def online_association(
     frames: list[FrameInput], config: SlamConfig, seed: int, ray_frames: int
 ) -> tuple[Trajectory, list[FrameInput], dict[str, int]]:
     """The online run's trajectory and its frames relabelled by online landmark id."""
-    slam = BearingSlam(config, rng=np.random.default_rng(seed))
-    held: list[list[int | None]] = []
     appeared: dict[int, tuple[int, str]] = {}
+
+    def removed(record: RemovalRecord) -> None:  # also a landmark added and removed at once
+        appeared.setdefault(record.landmark_id, (record.frame, record.label))
+
+    slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removed)
+    held: list[list[int | None]] = []
     for k, frame in enumerate(frames):
         slam.process(frame)
         live = {record.label: lid for lid, record in slam.landmarks.items()}
         for label, lid in live.items():
             appeared.setdefault(lid, (k, label))
-        for record in slam.removals:
-            appeared.setdefault(record.landmark_id, (record.frame, record.label))
         held.append([live.get(o.label) for o in frame.observations])
     by_label: dict[str, list[tuple[int, int]]] = {}
     for lid, (k, label) in appeared.items():
@@ -80,14 +83,13 @@ def online_association(
                 kept.append(dataclasses.replace(obs, label=f"{obs.label}#{holder}"))
         used += len(kept)
         out.append(dataclasses.replace(frame, observations=tuple(kept)))
-    rows = slam.trajectory(frames[0].robot)[frames[0].robot]
     counts = {
         "landmark_ids": len(appeared),
         "removals": slam.removal_count,
         "observations": sum(len(f.observations) for f in frames),
         "observations_used": used,
     }
-    return Trajectory.from_poses(rows[:, 1], rows[:, 2:5]), out, counts
+    return ReplayResult(slam).trajectory(frames[0].robot), out, counts
 
 
 def _only(frames: list[FrameInput], labels: set[str]) -> list[FrameInput]:
