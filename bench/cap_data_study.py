@@ -15,10 +15,19 @@ Full batch Levenberg-Marquardt (bench.batch) then solves:
   estimate and batch_all's solution; the lowest graph error wins);
 - ``batch_fixed_subset``: a fixed random subset of `cap` of the robot's landmark labels
   kept for the whole run (median over `--subsets` subsets; starts: dead reckoning and
-  batch_all's solution), the case measured while issue 2 was planned.
+  batch_all's solution), the case measured while issue 2 was planned;
+- ``batch_fixed_subset_dr_start``: the same subsets from dead reckoning alone (no
+  start that has seen every landmark, which no online map has).
+
+And online, on the same fixed subsets (no landmark is ever removed, so no churn):
+
+- ``online_fixed_subset``: the capped configuration itself (its 100-pose window);
+- ``online_fixed_subset_every_pose``: the same with every pose kept.
 
 If batch_same_data is as far off as the online run, a better estimator cannot close the
-gap; only the association (which landmarks live when) can. The association is an
+gap; only the association (which landmarks live when) can. If the online runs on a fixed
+subset are as far off as well, the association is not the only loss: the incremental
+estimator on so few landmarks is one too. The association is an
 approximation where candidate rays are concerned (rays a candidate dropped with poses
 that left the window, or observations refused by the innovation gate, count as used).
 
@@ -45,7 +54,7 @@ from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
 from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames, mrclam_noise
 from service.evaluation import Trajectory, ate_rmse
-from service.replay import ReplayResult
+from service.replay import ReplayResult, replay
 
 log = logging.getLogger("bench.cap_data_study")
 
@@ -111,19 +120,36 @@ def run_robot(robot: int, args: argparse.Namespace) -> dict[str, Any]:
     )
     labels = sorted({o.label for f in frames for o in f.observations})
     rng = np.random.default_rng(args.seed)
-    subsets = []
+    fixed_keys = (
+        "batch_fixed_subset",
+        "batch_fixed_subset_dr_start",
+        "online_fixed_subset",
+        "online_fixed_subset_every_pose",
+    )
+    runs: dict[str, list[float]] = {k: [] for k in fixed_keys}
+    name = frames[0].robot
     for _ in range(args.subsets):
         chosen = set(rng.choice(labels, size=min(args.cap, len(labels)), replace=False))
-        fixed = batch_solve(_only(frames, chosen), reference, online=full.trajectory)
-        subsets.append(ate_rmse(fixed.trajectory, gt))
+        only = _only(frames, chosen)
+        fixed = batch_solve(only, reference, online=full.trajectory)
+        runs["batch_fixed_subset"].append(ate_rmse(fixed.trajectory, gt))
+        runs["batch_fixed_subset_dr_start"].append(
+            ate_rmse(batch_solve(only, reference).trajectory, gt)
+        )
+        for key, online_config in (
+            ("online_fixed_subset", config),
+            ("online_fixed_subset_every_pose", dataclasses.replace(config, pose_window=None)),
+        ):
+            res = replay(only, config=online_config, seed=args.seed, progress=False)
+            runs[key].append(ate_rmse(res.trajectory(name), gt))
     row = {
         "robot": robot,
         "online": ate_rmse(online, gt),
         "batch_all": ate_rmse(full.trajectory, gt),
         "batch_same_data": ate_rmse(same.trajectory, gt),
         "batch_same_data_start": same.start,
-        "batch_fixed_subset": float(np.median(subsets)),
-        "batch_fixed_subset_runs": subsets,
+        **{k: float(np.median(v)) for k, v in runs.items()},
+        **{f"{k}_runs": v for k, v in runs.items()},
         **counts,
     }
     log.info("%s", {k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()})
@@ -148,7 +174,15 @@ def main() -> None:
     robots = [int(r) for r in args.robots.split(",")]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = list(pool.map(run_robot, robots, [args] * len(robots)))
-    keys = ("online", "batch_all", "batch_same_data", "batch_fixed_subset")
+    keys = (
+        "online",
+        "batch_all",
+        "batch_same_data",
+        "batch_fixed_subset",
+        "batch_fixed_subset_dr_start",
+        "online_fixed_subset",
+        "online_fixed_subset_every_pose",
+    )
     mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
     summary = {
         "mean_ate_m": mean,
