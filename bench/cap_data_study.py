@@ -26,10 +26,12 @@ And online, on the same fixed subsets (no landmark is ever removed, so no churn)
 
 If batch_same_data is as far off as the online run, a better estimator cannot close the
 gap; only the association (which landmarks live when) can. If the online runs on a fixed
-subset are as far off as well, the association is not the only loss: the incremental
-estimator on so few landmarks is one too. The association is an
-approximation where candidate rays are concerned (rays a candidate dropped with poses
-that left the window, or observations refused by the innovation gate, count as used).
+subset are far off as well, the association is not the only loss: the incremental
+estimator on so few landmarks is one too.
+
+The association is an approximation where candidate rays are concerned (rays a
+candidate dropped with poses that left the window, or observations refused by the
+innovation gate, count as used).
 
     python -m bench.cap_data_study [--robots 1,2,3,4,5] [--cap 8] [--policy coverage]
                                    [--jobs 2] [--out bench/results]
@@ -57,6 +59,14 @@ from service.evaluation import Trajectory, ate_rmse
 from service.replay import ReplayResult, replay
 
 log = logging.getLogger("bench.cap_data_study")
+
+FIXED_SUBSET_KEYS = (
+    "batch_fixed_subset",
+    "batch_fixed_subset_dr_start",
+    "online_fixed_subset",
+    "online_fixed_subset_every_pose",
+)
+"""The columns measured on the fixed subsets (each the median over the subsets)."""
 
 
 def online_association(
@@ -120,13 +130,7 @@ def run_robot(robot: int, args: argparse.Namespace) -> dict[str, Any]:
     )
     labels = sorted({o.label for f in frames for o in f.observations})
     rng = np.random.default_rng(args.seed)
-    fixed_keys = (
-        "batch_fixed_subset",
-        "batch_fixed_subset_dr_start",
-        "online_fixed_subset",
-        "online_fixed_subset_every_pose",
-    )
-    runs: dict[str, list[float]] = {k: [] for k in fixed_keys}
+    runs: dict[str, list[float]] = {k: [] for k in FIXED_SUBSET_KEYS}
     name = frames[0].robot
     for _ in range(args.subsets):
         chosen = set(rng.choice(labels, size=min(args.cap, len(labels)), replace=False))
@@ -174,15 +178,7 @@ def main() -> None:
     robots = [int(r) for r in args.robots.split(",")]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = list(pool.map(run_robot, robots, [args] * len(robots)))
-    keys = (
-        "online",
-        "batch_all",
-        "batch_same_data",
-        "batch_fixed_subset",
-        "batch_fixed_subset_dr_start",
-        "online_fixed_subset",
-        "online_fixed_subset_every_pose",
-    )
+    keys = ("online", "batch_all", "batch_same_data", *FIXED_SUBSET_KEYS)
     mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
     summary = {
         "mean_ate_m": mean,

@@ -18,8 +18,8 @@ RSS the step started from:
 Scopes nest: before a step restarts the high-water mark, the mark so far is folded into
 every open scope, so an outer scope's figure includes its steps'. The steps are wrapped
 by patching the classes for this process only; the figures are the same computation as
-the lifelong run's, not its timing (the probe's own records are in the RSS, so the
-steady RSS here is not the lifelong run's). Linux only (VmHWM, clear_refs).
+the lifelong run's, not its timing (the probe's wrappers and records add to the RSS, so
+its steady RSS is not quite the lifelong run's). Linux only (VmHWM, clear_refs).
 
     python -m bench.memory_transients [--frames 8000] [--out bench/results]
 """
@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import argparse
 import functools
+import heapq
 import json
 import sys
 import time
+from array import array
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -128,7 +130,7 @@ def instrument(probe: Probe) -> None:
     probe.wrap(gtsam.GaussianFactorGraph, "eliminatePartialMultifrontal", "eliminate")
 
 
-def summarise(values: list[float]) -> dict[str, float]:
+def summarise(values: array[float]) -> dict[str, float]:
     a = np.asarray(values, dtype=np.float64)
     return {
         "count": len(a),
@@ -150,25 +152,31 @@ def main() -> None:
     probe = Probe()
     instrument(probe)
     slam = BearingSlam(RUNS["bounded"], rng=np.random.default_rng(SEED))
-    frames: list[dict[str, Any]] = []
-    by_step: dict[str, list[float]] = {}
-    schur_keys: list[int] = []  # per frame: the most keys one Schur complement touched
-    factor_keys: list[int] = []  # per frame: the most keys of a factor it took in
+    # Per-frame figures in typed arrays and only the worst frames in full: the probe's
+    # own records are inside the RSS it measures.
+    transients: array[float] = array("d")
+    by_step: dict[str, array[float]] = {}
+    schur_keys: array[int] = array("i")  # per frame: the most keys one Schur complement touched
+    factor_keys: array[int] = array("i")  # per frame: the most keys of a factor it took in
+    worst_heap: list[tuple[float, int, dict[str, Any]]] = []
     start = time.perf_counter()
     for i, frame in enumerate(todo):
         probe.steps = []
         probe.enter("frame")
         slam.process(frame, with_covariance=False)
         whole = probe.leave()
+        transients.append(whole["transient_mb"])
         for step in probe.steps:
-            by_step.setdefault(step["step"], []).append(step["transient_mb"])
+            by_step.setdefault(step["step"], array("d")).append(step["transient_mb"])
         schurs = [s for s in probe.steps if s["step"] == "schur"]
         schur_keys.append(max((s["keys"] for s in schurs), default=0))
         factor_keys.append(max((s["largest_factor_keys"] for s in schurs), default=0))
-        inner = sorted(probe.steps[:-1], key=lambda s: -s["transient_mb"])[:4]
-        frames.append(
-            {"frame": i, **whole, "rss_after_mb": round(current_rss_mb(), 2), "top": inner}
-        )
+        if len(worst_heap) < TOP_FRAMES or whole["transient_mb"] > worst_heap[0][0]:
+            inner = sorted(probe.steps[:-1], key=lambda s: -s["transient_mb"])[:4]
+            record = {"frame": i, **whole, "rss_after_mb": round(current_rss_mb(), 2), "top": inner}
+            heapq.heappush(worst_heap, (whole["transient_mb"], i, record))
+            if len(worst_heap) > TOP_FRAMES:
+                heapq.heappop(worst_heap)
         if (i + 1) % 1000 == 0:
             print(
                 f"frame {i + 1:6d}  rss {current_rss_mb():7.1f} MiB"
@@ -176,7 +184,7 @@ def main() -> None:
                 file=sys.stderr,
                 flush=True,
             )
-    worst = sorted(frames, key=lambda f: -f["transient_mb"])[:TOP_FRAMES]
+    worst = [record for *_, record in sorted(worst_heap, reverse=True)]
     steps = {name: summarise(v) for name, v in sorted(by_step.items())}
     blocks = 1000
     doc = {
@@ -188,11 +196,11 @@ def main() -> None:
         "per_block": [
             {
                 "frames": [b, b + blocks],
-                "max_transient_mb": max(f["transient_mb"] for f in frames[b : b + blocks]),
+                "max_transient_mb": max(transients[b : b + blocks]),
                 "max_schur_keys": max(schur_keys[b : b + blocks], default=0),
                 "max_factor_keys": max(factor_keys[b : b + blocks], default=0),
             }
-            for b in range(0, len(frames), blocks)
+            for b in range(0, len(transients), blocks)
         ],
         "machine": machine_info(),
     }
