@@ -10,7 +10,7 @@ choice never looks at ground truth).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -34,8 +34,10 @@ class BatchResult:
     trajectory: Trajectory
     cost: float
     start: str
-    """Which starting point won: 'dead_reckoning' or 'online'."""
+    """Which starting point won: 'dead_reckoning', 'online' or 'online_<name>'."""
     landmarks: int
+    per_start: dict[str, BatchResult] = field(default_factory=dict)
+    """The winner only: the solution from every starting point that converged, by name."""
 
 
 def _graph(frames: Sequence[FrameInput], config: SlamConfig, labels: dict[str, int]):
@@ -86,7 +88,7 @@ def batch_solve(
     elif online is not None:
         starts.update({f"online_{name}": t for name, t in online.items()})
     labels: dict[str, int] = {}
-    best: BatchResult | None = None
+    solved: dict[str, BatchResult] = {}
     for name, start in starts.items():
         values = gtsam.Values()
         for k in range(len(frames)):
@@ -132,9 +134,9 @@ def batch_solve(
             name,
             sum(1 for i in labels.values() if est.exists(landmark_key(i))),
         )
-        if best is None or result.cost < best.cost:
-            best = result
+        solved[name] = result
         labels = {}
-    if best is None:
+    if not solved:
         raise RuntimeError("batch optimisation failed from every starting point")
-    return best
+    best = min(solved.values(), key=lambda r: r.cost)
+    return replace(best, per_start=solved)

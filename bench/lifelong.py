@@ -137,16 +137,13 @@ def speed_probe_ms() -> float:
     return 1e3 * (time.perf_counter() - t0)
 
 
-_ballast: list[bytearray] = []
-"""What perturb_heap left allocated, held for the worker's lifetime."""
-
-
 def perturb_heap(seed: int) -> list[bytearray]:
     """Allocate 5-40 buffers of up to 300 kB and free every other one, so the run starts
     from a different heap layout (< 6 MB kept). The computation stays the same; what
     changes is where glibc places and reuses the dense blocks of the run, which moves
     its RSS transients: repeated with several seeds, it shows how much of the peak-RSS
-    reading is the heap's history rather than the estimator."""
+    reading is the heap's history rather than the estimator. The caller holds what it
+    returns for the run's lifetime."""
     rng = np.random.default_rng(seed)
     buffers = [bytearray(int(rng.integers(1, 300_000))) for _ in range(int(rng.integers(5, 41)))]
     return buffers[1::2]
@@ -739,8 +736,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         if args.worker_out is None:
             parser.error("--worker needs --worker-out")
         max_frames = n if args.worker_max_frames is None else min(n, args.worker_max_frames)
-        if args.worker_heap_seed is not None:
-            _ballast.extend(perturb_heap(args.worker_heap_seed))
+        seed = args.worker_heap_seed
+        held = perturb_heap(seed) if seed is not None else []  # noqa: F841 (held for the run)
         run_worker(args.worker, n, args.seed, max_frames, args.worker_budget_s, args.worker_out)
         return
 
