@@ -123,6 +123,33 @@ class IncrementalGraph:
         """The keys of every factor that touches `key`."""
         return [tuple(self._factors[i].keys()) for i in self.factors_of(key)]
 
+    def marginal_spans(self, keys: Sequence[int]) -> list[frozenset[int]]:
+        """The key sets of the marginal factors that marginalising `keys` would add: one
+        per group of `keys` linked through shared factors (the multifrontal elimination
+        of a group leaves one factor on every other key its factors touch). Bookkeeping
+        only: nothing is linearised."""
+        marginalised = set(keys)
+        group = {k: k for k in marginalised}
+
+        def root(k: int) -> int:
+            while group[k] != k:
+                group[k] = group[group[k]]
+                k = group[k]
+            return k
+
+        touched: dict[int, list[int]] = {}
+        for k in marginalised:
+            for index in self._key_factors.get(k, ()):
+                keys_of = list(self._factors[index].keys())
+                touched.setdefault(k, []).extend(keys_of)
+                for other in keys_of:
+                    if other in marginalised:
+                        group[root(other)] = root(k)
+        spans: dict[int, set[int]] = {}
+        for k, factor_keys in touched.items():
+            spans.setdefault(root(k), set()).update(x for x in factor_keys if x not in marginalised)
+        return [frozenset(s) for s in spans.values() if s]
+
     def estimate(self) -> gtsam.Values:
         """The current estimate of every variable (cached until the next update)."""
         if self._estimate is None:
@@ -300,9 +327,14 @@ class IncrementalGraph:
         # of the whole dense block per key (21 keyframes: 681 ms -> 109 ms).
         try:
             # QR leaves Jacobian factors: a square root that relative marginals use as is.
-            _, remaining = linear.eliminatePartialMultifrontal(ordering, gtsam.EliminateQR)
+            conditionals, remaining = linear.eliminatePartialMultifrontal(
+                ordering, gtsam.EliminateQR
+            )
         except RuntimeError:  # a Hessian factor that QR cannot take (e.g. rank-deficient)
-            _, remaining = linear.eliminatePartialMultifrontal(ordering)
+            conditionals, remaining = linear.eliminatePartialMultifrontal(ordering)
+        # The linearised inputs (a copy of every dense factor taken in) go before the
+        # marginals are copied into their containers: one dense copy fewer at the peak.
+        del linear, local, conditionals
         marginals: list[gtsam.NonlinearFactor] = []
         poses_only = not any(is_landmark_key(k) for k in keys)
         for i in range(remaining.size()):

@@ -16,7 +16,7 @@ import math
 import time
 from array import array
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -851,30 +851,68 @@ class BearingSlam:
 
     def _thin_keyframes(self) -> None:
         """Marginalise the oldest keyframes of any marginal factor that links more than
-        max_linked_keyframes of them (see SlamConfig.max_linked_keyframes)."""
+        max_linked_keyframes of them (see SlamConfig.max_linked_keyframes): a factor
+        that grew without a marginalisation (a window pose in it became a keyframe)."""
         bound = self.config.max_linked_keyframes
-        for _ in range(4):  # each round shrinks the factor; a few always suffice
-            linked, self._graph.marginal_keys = self._graph.marginal_keys, []
-            if not linked or max(len(k) for k in linked) <= bound:
-                return
-            owner = {
-                key: (robot, frame)
-                for robot in self._robots.values()
-                for key, frame in robot.keyframes
-            }
-            drop: set[int] = set()
-            for keys in linked:
-                mine = sorted((k for k in keys if k in owner), key=lambda k: owner[k][1])
-                if len(mine) > bound:
-                    drop.update(mine[: len(mine) - (3 * bound) // 4])
+        linked, self._graph.marginal_keys = self._graph.marginal_keys, []
+        if not linked or max(len(k) for k in linked) <= bound:
+            return
+        owner = self._keyframe_owners()
+        drop: set[int] = set()
+        for keys in linked:
+            drop.update(self._excess_keyframes(keys, owner))
+        if drop:
+            self._marginalise_with_thinning([], drop, owner)
+
+    def _keyframe_owners(self) -> dict[int, tuple[_Robot, int]]:
+        """Every keyframe's key -> (its robot, its frame index)."""
+        return {
+            key: (robot, frame) for robot in self._robots.values() for key, frame in robot.keyframes
+        }
+
+    def _excess_keyframes(
+        self, keys: Iterable[int], owner: dict[int, tuple[_Robot, int]]
+    ) -> list[int]:
+        """The oldest keyframes among a marginal factor's `keys` beyond max_linked_keyframes
+        (down to 3/4 of it, so that thinning is rare)."""
+        bound = self.config.max_linked_keyframes
+        mine = sorted((k for k in keys if k in owner), key=lambda k: owner[k][1])
+        if len(mine) <= bound:
+            return []
+        return mine[: len(mine) - (3 * bound) // 4]
+
+    def _marginalise_with_thinning(
+        self,
+        keys: Sequence[int],
+        thin: Iterable[int] = (),
+        owner: dict[int, tuple[_Robot, int]] | None = None,
+    ) -> None:
+        """Marginalise `keys` (and the keyframes `thin`) in one update, together with the
+        oldest keyframes of every marginal factor it would leave linking more than
+        max_linked_keyframes of them.
+
+        Thinning after the update instead (as _thin_keyframes does) means one more
+        iSAM2 update per removal, and while it runs iSAM2 still holds the oversized
+        factor (a landmark seen from 60 keyframes links all of them): dense copies of it
+        in the graph, its linearisation and its root clique, on top of the thinning's
+        own. The marginal is the same either way (Schur complements compose)."""
+        owner = self._keyframe_owners() if owner is None else owner
+        marginalise = set(keys)
+        drop = set(thin)
+        for _ in range(4):  # each round takes in the factors of the keyframes it adds
+            marginalise |= drop
+            drop = set()
+            for span in self._graph.marginal_spans(sorted(marginalise)):
+                drop.update(self._excess_keyframes(span, owner))
             if not drop:
-                return
-            poses = {k: self._graph.pose(k) for k in drop}
-            self._graph.update(marginalise=sorted(drop))
-            for key in sorted(drop, key=lambda k: owner[k][1]):
-                robot, frame = owner[key]
-                robot.keyframes.remove((key, frame))
-                self._retire(key, frame, poses[key])
+                break
+        thinned = sorted((k for k in marginalise if k in owner), key=lambda k: owner[k][1])
+        poses = {k: self._graph.pose(k) for k in thinned}
+        self._graph.update(marginalise=sorted(marginalise))
+        for key in thinned:
+            robot, frame = owner[key]
+            robot.keyframes.remove((key, frame))
+            self._retire(key, frame, poses[key])
 
     def _traj_pose_at(self, frame: int) -> gtsam.Pose2:
         i = 3 * frame
@@ -917,7 +955,7 @@ class BearingSlam:
                 information=None if table.information is None else table.information[keep],
             )
         positions = {r.landmark_id: self.landmark_position(r.landmark_id) for r in chosen}
-        self._graph.update(marginalise=[landmark_key(r.landmark_id) for r in chosen])
+        self._marginalise_with_thinning([landmark_key(r.landmark_id) for r in chosen])
         for removal in chosen:
             record = self._landmarks.pop(removal.landmark_id)
             self._last_factor.pop(removal.landmark_id, None)

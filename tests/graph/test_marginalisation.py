@@ -108,12 +108,17 @@ def test_marginalising_a_landmark_equals_batch_elimination(seed: int) -> None:
     assert max(growth) > 1.01, "deleting the landmark should lose information"
 
 
-def test_marginalising_poses_and_landmarks_together_matches_batch() -> None:
+@pytest.mark.parametrize("one_update", [False, True])
+def test_marginalising_poses_and_landmarks_together_matches_batch(one_update: bool) -> None:
+    """In two updates, or in one (as a removal that thins keyframes does)."""
     graph, optimum, poses, marks = _small_problem(11)
     inc = IncrementalGraph(SlamConfig(huber_k=None))
     inc.update([graph.at(i) for i in range(graph.size())], optimum)
-    inc.update(marginalise=[poses[0], poses[1]])
-    inc.update(marginalise=[marks[0]])
+    if one_update:
+        inc.update(marginalise=[marks[0], poses[0], poses[1]])
+    else:
+        inc.update(marginalise=[poses[0], poses[1]])
+        inc.update(marginalise=[marks[0]])
     rest_marks = marks[1:]
     full = gtsam.Marginals(graph, optimum)
     for key in rest_marks:
@@ -124,6 +129,29 @@ def test_marginalising_poses_and_landmarks_together_matches_batch() -> None:
         inc.pose_covariance(poses[-1]), full.marginalCovariance(poses[-1]), rtol=1e-6
     )
     assert inc.num_variables == len(poses) - 2 + len(rest_marks)
+
+
+@pytest.mark.parametrize(
+    "which",
+    [
+        ("m0",),  # one landmark: a factor on every pose
+        ("m0", "m1"),  # two landmarks sharing no factor: two marginals
+        ("p0", "p5"),  # the chain's two ends: two marginals
+        ("p0", "p1", "m2"),  # linked through their bearings: one marginal
+    ],
+)
+def test_marginal_spans_predict_the_marginal_factors(which: tuple[str, ...]) -> None:
+    graph, optimum, poses, marks = _small_problem(3)
+    inc = IncrementalGraph(SlamConfig(huber_k=None))
+    inc.update([graph.at(i) for i in range(graph.size())], optimum)
+    named = {f"p{i}": k for i, k in enumerate(poses)} | {f"m{j}": k for j, k in enumerate(marks)}
+    keys = [named[w] for w in which]
+    predicted = sorted(sorted(span) for span in inc.marginal_spans(keys))
+    inc.marginal_keys = []
+    inc.update(marginalise=keys)
+    added = sorted(sorted(k) for k in inc.marginal_keys)
+    assert added, "the marginalisation must add a marginal factor"
+    assert predicted == added
 
 
 def test_unknown_key_cannot_be_marginalised() -> None:

@@ -12,6 +12,7 @@ from graph.config import SlamConfig
 from graph.factors import landmark_key
 from graph.policies import POLICY_NAMES
 from graph.slam import BearingSlam
+from graph.types import FrameInput
 from tests.graph._world import circle_frames
 
 
@@ -139,6 +140,23 @@ def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> Non
         max_linked_keyframes=6,
     )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+    # A removal that would link too many keyframes takes the oldest with it in the
+    # same update: no marginal factor it adds is over the bound, even for a moment.
+    removal_outputs: list[int] = []
+    removal_thinned = 0
+    enforce = slam._enforce_budget
+
+    def watched_budget(frame: FrameInput) -> tuple[int, ...]:
+        nonlocal removal_thinned
+        before = {k for k, _ in slam._robots["r1"].keyframes}
+        slam.graph.marginal_keys = []
+        removed = enforce(frame)
+        after = {k for k, _ in slam._robots["r1"].keyframes}
+        removal_thinned += len(before - after)
+        removal_outputs.extend(len(before.intersection(k)) for k in slam.graph.marginal_keys)
+        return removed
+
+    slam._enforce_budget = watched_budget  # type: ignore[method-assign]
     thinned = 0
     for f in frames:
         kept = len(slam._robots["r1"].keyframes) if slam.robots else 0
@@ -149,6 +167,8 @@ def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> Non
         linked = [len(keyframes.intersection(graph.at(i).keys())) for i in range(graph.size())]
         assert max(linked, default=0) <= 6
     assert thinned > 0, "the run must exercise thinning"
+    assert removal_thinned > 0, "some removal must thin keyframes in its own update"
+    assert removal_outputs and max(removal_outputs) <= 6
     traj = slam.trajectory()["r1"]
     assert len(traj) == len(frames) and np.all(np.isfinite(traj[:, 2:]))
     assert _rmse(traj, truth) < 1.0
@@ -270,7 +290,7 @@ def test_drop_window_observations_leaves_no_marginal_on_landmarks(drop: bool) ->
 def _straight_towards_far_landmark(n: int) -> list:
     """A robot driving 0.1 m a frame along +x, seeing from frame 1 on a landmark 40 m
     ahead and 1 m aside: parallax stays under 5 degrees, so it remains a candidate."""
-    from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
+    from graph.types import BearingObservation, Odometry, Pose2D
 
     frames = []
     for i in range(n):
