@@ -220,16 +220,31 @@ class IncrementalGraph:
         *,
         marginalise: Sequence[int] = (),
         drop: Sequence[int] = (),
+        then_marginalise: Sequence[int] = (),
     ) -> None:
         """Add factors (and new variables' initial values) and marginalise keys, in one step.
 
         `drop`: indices of factors removed without keeping their information (the
-        marginalisation of `marginalise` does not see them)."""
+        marginalisation of `marginalise` does not see them). `then_marginalise`: keys
+        marginalised next, from the factors left by the first Schur complement (its
+        marginals included), in the same iSAM2 update: the marginal is the one two
+        updates would leave, but iSAM2 never holds the first marginals. Poses
+        marginalised on their own get relative marginals, which a joint elimination with
+        a landmark would not (see _schur_complement)."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
         remove: list[int] = sorted(set(drop))
         if marginalise:
             indices, marginals = self._schur_complement(marginalise, exclude=set(drop))
+            if then_marginalise:
+                later = set(then_marginalise)
+                into = [m for m in marginals if later.intersection(m.keys())]
+                marginals = [m for m in marginals if not later.intersection(m.keys())]
+                more, second = self._schur_complement(
+                    then_marginalise, exclude=set(drop) | set(indices), extra=into
+                )
+                indices = sorted(set(indices) | set(more))
+                marginals.extend(second)
             remove = sorted(set(remove) | set(indices))
             added.extend(marginals)
             self.marginal_keys.extend(tuple(m.keys()) for m in marginals)
@@ -309,9 +324,13 @@ class IncrementalGraph:
         return result, factors
 
     def _schur_complement(
-        self, keys: Sequence[int], exclude: set[int] | None = None
+        self,
+        keys: Sequence[int],
+        exclude: set[int] | None = None,
+        extra: Sequence[gtsam.NonlinearFactor] = (),
     ) -> tuple[list[int], list[gtsam.NonlinearFactor]]:
-        """Factor indices touching `keys`, and the marginal factors that replace them."""
+        """Factor indices touching `keys`, and the marginal factors that replace them
+        (and the `extra` factors, not in the graph yet, that are taken in too)."""
         missing = [k for k in keys if k not in self._key_factors]
         if missing:
             raise KeyError(f"cannot marginalise {[gtsam.DefaultKeyFormatter(k) for k in missing]}")
@@ -320,6 +339,8 @@ class IncrementalGraph:
         local = gtsam.NonlinearFactorGraph()
         for index in indices:
             local.add(self._factors[index])
+        for carried in extra:
+            local.add(carried)
         linear = local.linearize(theta)
         ordering = gtsam.Ordering(list(keys))
         # Multifrontal: keys that share a dense factor (keyframes linked by landmark

@@ -895,7 +895,9 @@ class BearingSlam:
         iSAM2 update per removal, and while it runs iSAM2 still holds the oversized
         factor (a landmark seen from 60 keyframes links all of them): dense copies of it
         in the graph, its linearisation and its root clique, on top of the thinning's
-        own. The marginal is the same either way (Schur complements compose)."""
+        own. The marginal is the same either way (Schur complements compose), and the
+        keyframes are still eliminated on their own, after `keys`, so that their
+        marginal is relative as it was (IncrementalGraph.update's then_marginalise)."""
         owner = self._keyframe_owners() if owner is None else owner
         marginalise = set(keys)
         drop = set(thin)
@@ -908,7 +910,11 @@ class BearingSlam:
                 break
         thinned = sorted((k for k in marginalise if k in owner), key=lambda k: owner[k][1])
         poses = {k: self._graph.pose(k) for k in thinned}
-        self._graph.update(marginalise=sorted(marginalise))
+        first = sorted(set(keys) - set(thinned))
+        if first:
+            self._graph.update(marginalise=first, then_marginalise=sorted(thinned))
+        else:
+            self._graph.update(marginalise=sorted(thinned))
         for key in thinned:
             robot, frame = owner[key]
             robot.keyframes.remove((key, frame))
