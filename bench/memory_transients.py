@@ -8,7 +8,8 @@ high-water mark (``VmHWM``, restarted through ``/proc/self/clear_refs``) rose ab
 RSS the step started from:
 
 - ``frame``: ``BearingSlam.process``;
-- ``budget`` / ``thin``: the landmark removals of a frame / the thinning of keyframes;
+- ``budget`` / ``thin``: the landmark removals of a frame (with the keyframes a removal
+  thins in its own update) / the thinning of keyframes whose factor grew otherwise;
 - ``update``: ``IncrementalGraph.update`` (the Schur complement plus iSAM2's update);
 - ``schur``: ``IncrementalGraph._schur_complement``, and in it ``linearise``
   (``NonlinearFactorGraph.linearize``) and ``eliminate``

@@ -139,8 +139,7 @@ class IncrementalGraph:
 
         touched: dict[int, list[int]] = {}
         for k in marginalised:
-            for index in self._key_factors.get(k, ()):
-                keys_of = list(self._factors[index].keys())
+            for keys_of in self.neighbourhoods(k):
                 touched.setdefault(k, []).extend(keys_of)
                 for other in keys_of:
                     if other in marginalised:
@@ -233,21 +232,21 @@ class IncrementalGraph:
         a landmark would not (see _schur_complement)."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
-        remove: list[int] = sorted(set(drop))
-        if marginalise:
-            indices, marginals = self._schur_complement(marginalise, exclude=set(drop))
-            if then_marginalise:
-                later = set(then_marginalise)
-                into = [m for m in marginals if later.intersection(m.keys())]
-                marginals = [m for m in marginals if not later.intersection(m.keys())]
-                more, second = self._schur_complement(
-                    then_marginalise, exclude=set(drop) | set(indices), extra=into
-                )
-                indices = sorted(set(indices) | set(more))
-                marginals.extend(second)
-            remove = sorted(set(remove) | set(indices))
-            added.extend(marginals)
-            self.marginal_keys.extend(tuple(m.keys()) for m in marginals)
+        taken: set[int] = set(drop)
+        marginals: list[gtsam.NonlinearFactor] = []
+        for stage in (marginalise, then_marginalise):
+            if not stage:
+                continue
+            # The earlier stage's marginals on this stage's keys are taken in, not added.
+            keys = set(stage)
+            into = [m for m in marginals if keys.intersection(m.keys())]
+            marginals = [m for m in marginals if not keys.intersection(m.keys())]
+            indices, more = self._schur_complement(stage, exclude=taken, extra=into)
+            taken.update(indices)
+            marginals.extend(more)
+        remove: list[int] = sorted(taken)
+        added.extend(marginals)
+        self.marginal_keys.extend(tuple(m.keys()) for m in marginals)
         for factor in added:
             new.add(factor)
         try:

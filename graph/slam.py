@@ -911,10 +911,7 @@ class BearingSlam:
         thinned = sorted((k for k in marginalise if k in owner), key=lambda k: owner[k][1])
         poses = {k: self._graph.pose(k) for k in thinned}
         first = sorted(set(keys) - set(thinned))
-        if first:
-            self._graph.update(marginalise=first, then_marginalise=sorted(thinned))
-        else:
-            self._graph.update(marginalise=sorted(thinned))
+        self._graph.update(marginalise=first, then_marginalise=thinned)
         for key in thinned:
             robot, frame = owner[key]
             robot.keyframes.remove((key, frame))
