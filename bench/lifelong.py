@@ -150,7 +150,13 @@ def perturb_heap(seed: int) -> list[bytearray]:
 
 
 def run_worker(
-    name: str, frames: int, seed: int, max_frames: int, budget_s: float | None, out: Path
+    name: str,
+    frames: int,
+    seed: int,
+    max_frames: int,
+    budget_s: float | None,
+    out: Path,
+    release_heap: bool = True,
 ) -> None:
     """Process the run through one configuration; write per-frame data to `out` (JSON)."""
     run = make_run(frames, seed)
@@ -161,7 +167,12 @@ def run_worker(
     load_start = os.getloadavg()
     rss_before = current_rss_mb()
     removal_log = RemovalLog()
-    slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removal_log.append)
+    slam = BearingSlam(
+        config,
+        rng=np.random.default_rng(seed),
+        removal_sink=removal_log.append,
+        release_heap=release_heap,
+    )
     result = ReplayResult(slam, removal_log=removal_log)
     # Per-frame figures in typed arrays (8 bytes a number, not a list's ~32): the run's
     # own bookkeeping is inside the RSS it measures.
@@ -227,6 +238,7 @@ def run_worker(
         "peak_rss_mb": peak,
         "peak_rss_since_frame": peak_reset_frame,
         "peak_rss_before_reset_mb": peak_before_reset,
+        "release_heap": release_heap,
         "loadavg_start": load_start,
         "loadavg_end": load_end,
         "git_commit": machine_info()["git_commit"],
@@ -727,6 +739,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         default=None,
         help=argparse.SUPPRESS,  # see perturb_heap
     )
+    parser.add_argument(
+        "--worker-keep-heap",
+        action="store_true",
+        help=argparse.SUPPRESS,  # BearingSlam(release_heap=False), for comparison
+    )
     args = parser.parse_args(argv)
     n = args.frames
     if n < 20:
@@ -738,7 +755,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         max_frames = n if args.worker_max_frames is None else min(n, args.worker_max_frames)
         seed = args.worker_heap_seed
         held = perturb_heap(seed) if seed is not None else []  # noqa: F841 (held for the run)
-        run_worker(args.worker, n, args.seed, max_frames, args.worker_budget_s, args.worker_out)
+        run_worker(
+            args.worker,
+            n,
+            args.seed,
+            max_frames,
+            args.worker_budget_s,
+            args.worker_out,
+            release_heap=not args.worker_keep_heap,
+        )
         return
 
     started = time.perf_counter()
