@@ -388,6 +388,7 @@ def run_summary(record: dict[str, Any], n: int, gt: Trajectory) -> dict[str, Any
         "peak_rss_mb": round(record["peak_rss_mb"], 1),
         "peak_rss_since_frame": record.get("peak_rss_since_frame"),
         "peak_rss_before_reset_mb": _r(record.get("peak_rss_before_reset_mb"), 1),
+        "release_heap": record.get("release_heap"),  # None: a record from before the option
         "removals": record["removals"],
         "first_removal_frame": record["first_removal_frame"],
         "live_landmarks": live_stats(
