@@ -25,11 +25,12 @@ wall-time budget, and a clean stop (reported) if the estimator raises.
 
 Figures, for N frames (N = 20 000 by default): median ms/frame over the early
 window [N/20, N/10) and the late window [0.95 N, N) and their ratio (goal <=
-1.1); current RSS at frame N/4 against the peak RSS from frame N/4 to the end
-(growth goal <= 5 %; Linux's peak counter is reset at N/4); live-landmark
-statistics; removals; ATE RMSE against ground truth; the median ms/frame of
-every N/20-frame checkpoint window for both runs; and the ratio baseline /
-bounded at the last checkpoint window both reached (goal >= 10 by the end). If
+1.1); the process's peak RSS at frame N/4 against its peak RSS at frame N (growth
+goal <= 5 %; Linux's peak counter is reset at N/4, so the two halves' peaks are both
+known), with the stricter reading beside it (the current RSS at N/4 against the peak
+from N/4 on); live-landmark statistics; removals; ATE RMSE against ground truth;
+the median ms/frame of every N/20-frame checkpoint window for both runs; and the
+ratio baseline / bounded at the last checkpoint window both reached (goal >= 10 by the end). If
 the baseline stops early, the JSON says where (``baseline_truncated_at_frame``)
 and the ratio is the one at the furthest window it reached; a power-law fit
 carried to the late window is given only under a key that says it is an
@@ -427,8 +428,18 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
     normalised = ratio / speed_ratio if ratio is not None and speed_ratio else None
     quarter = rss_at(record, n // 4)
     peak = record["peak_rss_mb"]
+    # The goal's reading: the process's peak RSS (ru_maxrss) at frame N/4 against the
+    # same counter at frame N. The counter is reset at N/4, so the peak at N is the larger
+    # of the two halves' peaks. Without a reset (a record from before it, or no
+    # clear_refs) there is no peak at N/4, and the goal falls back to the stricter
+    # reading below.
+    early_peak = record.get("peak_rss_before_reset_mb")
+    peak_growth = 100.0 * (max(peak, early_peak) - early_peak) / early_peak if early_peak else None
+    # Stricter: the peak over N/4..N against the current RSS at N/4, which counts any
+    # transient on top of the steady RSS as growth, however early such transients came.
     growth = 100.0 * (peak - quarter[1]) / quarter[1] if quarter else None
     growth_current = 100.0 * (record["rss_end_mb"] - quarter[1]) / quarter[1] if quarter else None
+    goal_growth = peak_growth if peak_growth is not None else growth
     return {
         "early_window": list(win["early"]),
         "late_window": list(win["late"]),
@@ -447,10 +458,19 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         "rss_at_quarter_mb": _r(quarter[1] if quarter else None, 2),
         "peak_rss_end_mb": _r(peak, 2),
         "peak_rss_since_frame": record.get("peak_rss_since_frame"),
+        "peak_rss_at_quarter_mb": _r(early_peak, 2),
+        "peak_rss_growth_pct_end_vs_quarter": _r(peak_growth, 2),
         "rss_growth_pct_peak_end_vs_quarter": _r(growth, 2),
         "rss_growth_pct_current_end_vs_quarter": _r(growth_current, 2),
+        "rss_growth_goal_reading": (
+            "peak_rss_growth_pct_end_vs_quarter"
+            if peak_growth is not None
+            else "rss_growth_pct_peak_end_vs_quarter"
+        ),
         "rss_growth_goal_max_pct": RSS_GROWTH_GOAL_PCT,
-        "rss_growth_goal_met": None if growth is None else growth <= RSS_GROWTH_GOAL_PCT,
+        "rss_growth_goal_met": (
+            None if goal_growth is None else goal_growth <= RSS_GROWTH_GOAL_PCT
+        ),
     }
 
 
@@ -662,10 +682,19 @@ def print_summary(report: dict[str, Any]) -> None:
         f"   ratio with the machine's speed taken out {fmt(f.get('time_ratio_speed_normalised'))}"
     )
     print(
-        f"{'':10s} RSS at frame {f['rss_quarter_frame']}: {fmt(f['rss_at_quarter_mb'], ' MiB')}"
-        f"   peak at end: {fmt(f['peak_rss_end_mb'], ' MiB')}"
-        f"   growth {fmt(f['rss_growth_pct_peak_end_vs_quarter'], ' %')}"
-        f" (goal <= {RSS_GROWTH_GOAL_PCT} %){goal(f['rss_growth_goal_met'])}"
+        f"{'':10s} peak RSS at frame {f['rss_quarter_frame']}:"
+        f" {fmt(f.get('peak_rss_at_quarter_mb'), ' MiB')}"
+        f"   peak from then to the end: {fmt(f['peak_rss_end_mb'], ' MiB')}"
+        f"   growth {fmt(f.get('peak_rss_growth_pct_end_vs_quarter'), ' %')}"
+        f" (goal <= {RSS_GROWTH_GOAL_PCT} %, read on"
+        f" {f.get('rss_growth_goal_reading', 'rss_growth_pct_peak_end_vs_quarter')})"
+        f"{goal(f['rss_growth_goal_met'])}"
+    )
+    print(
+        f"{'':10s} current RSS at frame {f['rss_quarter_frame']}:"
+        f" {fmt(f['rss_at_quarter_mb'], ' MiB')}   growth to the later peak"
+        f" {fmt(f['rss_growth_pct_peak_end_vs_quarter'], ' %')}, to the end's RSS"
+        f" {fmt(f['rss_growth_pct_current_end_vs_quarter'], ' %')}"
     )
     live = b["live_landmarks"]
     print(
