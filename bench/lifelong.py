@@ -26,11 +26,12 @@ wall-time budget, and a clean stop (reported) if the estimator raises.
 Figures, for N frames (N = 20 000 by default): median ms/frame over the early
 window [N/20, N/10) and the late window [0.95 N, N) and their ratio (goal <=
 1.1); the process's peak RSS at frame N/4 against its peak RSS at frame N (growth
-goal <= 5 %; Linux's peak counter is reset at N/4, so the two halves' peaks are both
-known), with the stricter reading beside it (the current RSS at N/4 against the peak
-from N/4 on); live-landmark statistics; removals; ATE RMSE against ground truth;
-the median ms/frame of every N/20-frame checkpoint window for both runs; and the
-ratio baseline / bounded at the last checkpoint window both reached (goal >= 10 by the end). If
+goal <= 5 %; Linux's peak counter is reset at N/4, so the two halves' peaks are
+both known), with the stricter reading beside it (the current RSS at N/4 against
+the peak from N/4 on); live-landmark statistics; removals; ATE RMSE against
+ground truth; the median ms/frame of every N/20-frame checkpoint window for both
+runs; and the ratio baseline / bounded at the last checkpoint window both reached
+(goal >= 10 by the end). If
 the baseline stops early, the JSON says where (``baseline_truncated_at_frame``)
 and the ratio is the one at the furthest window it reached; a power-law fit
 carried to the late window is given only under a key that says it is an

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,17 +11,13 @@ import graph.slam
 from graph.config import SlamConfig
 from graph.heap import heap_release_available, release_free_heap
 from graph.slam import BearingSlam
+from service.replay import current_rss_mb
 from tests.graph._world import circle_frames
 
 needs_trim = pytest.mark.skipif(
     not (sys.platform.startswith("linux") and heap_release_available()),
     reason="needs glibc's malloc_trim and /proc (Linux)",
 )
-
-
-def _rss_mib() -> float:
-    pages = int(Path("/proc/self/statm").read_text().split()[1])
-    return pages * 4096 / 2**20
 
 
 @needs_trim
@@ -33,10 +28,10 @@ def test_free_pages_between_live_blocks_are_released() -> None:
     blocks = [bytearray(size) for _ in range(count)]
     keep = blocks[::10]
     del blocks
-    before = _rss_mib()
+    before = current_rss_mb()
     freed = size * (count - len(keep)) / 2**20  # ~84 MiB
     assert release_free_heap()
-    after = _rss_mib()
+    after = current_rss_mb()
     assert before - after > 0.5 * freed, (before, after, freed)
     assert all(len(b) == size for b in keep)  # what is live is untouched
 
