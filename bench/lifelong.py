@@ -31,11 +31,10 @@ both known), with the stricter reading beside it (the current RSS at N/4 against
 the peak from N/4 on); live-landmark statistics; removals; ATE RMSE against
 ground truth; the median ms/frame of every N/20-frame checkpoint window for both
 runs; and the ratio baseline / bounded at the last checkpoint window both reached
-(goal >= 10 by the end). If
-the baseline stops early, the JSON says where (``baseline_truncated_at_frame``)
-and the ratio is the one at the furthest window it reached; a power-law fit
-carried to the late window is given only under a key that says it is an
-extrapolation.
+(goal >= 10 by the end). If the baseline stops early, the JSON says where
+(``baseline_truncated_at_frame``) and the ratio is the one at the furthest window
+it reached; a power-law fit carried to the late window is given only under a key
+that says it is an extrapolation.
 
 Writes ``<out>/lifelong.json`` and ``<out>/lifelong.png``; prints a summary.
 """
@@ -440,7 +439,11 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
     # transient on top of the steady RSS as growth, however early such transients came.
     growth = 100.0 * (peak - quarter[1]) / quarter[1] if quarter else None
     growth_current = 100.0 * (record["rss_end_mb"] - quarter[1]) / quarter[1] if quarter else None
-    goal_growth = peak_growth if peak_growth is not None else growth
+    goal_key, goal_growth = (
+        ("peak_rss_growth_pct_end_vs_quarter", peak_growth)
+        if peak_growth is not None
+        else ("rss_growth_pct_peak_end_vs_quarter", growth)
+    )
     return {
         "early_window": list(win["early"]),
         "late_window": list(win["late"]),
@@ -463,11 +466,7 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         "peak_rss_growth_pct_end_vs_quarter": _r(peak_growth, 2),
         "rss_growth_pct_peak_end_vs_quarter": _r(growth, 2),
         "rss_growth_pct_current_end_vs_quarter": _r(growth_current, 2),
-        "rss_growth_goal_reading": (
-            "peak_rss_growth_pct_end_vs_quarter"
-            if peak_growth is not None
-            else "rss_growth_pct_peak_end_vs_quarter"
-        ),
+        "rss_growth_goal_reading": goal_key,
         "rss_growth_goal_max_pct": RSS_GROWTH_GOAL_PCT,
         "rss_growth_goal_met": (
             None if goal_growth is None else goal_growth <= RSS_GROWTH_GOAL_PCT
@@ -684,11 +683,10 @@ def print_summary(report: dict[str, Any]) -> None:
     )
     print(
         f"{'':10s} peak RSS at frame {f['rss_quarter_frame']}:"
-        f" {fmt(f.get('peak_rss_at_quarter_mb'), ' MiB')}"
+        f" {fmt(f['peak_rss_at_quarter_mb'], ' MiB')}"
         f"   peak from then to the end: {fmt(f['peak_rss_end_mb'], ' MiB')}"
-        f"   growth {fmt(f.get('peak_rss_growth_pct_end_vs_quarter'), ' %')}"
-        f" (goal <= {RSS_GROWTH_GOAL_PCT} %, read on"
-        f" {f.get('rss_growth_goal_reading', 'rss_growth_pct_peak_end_vs_quarter')})"
+        f"   growth {fmt(f['peak_rss_growth_pct_end_vs_quarter'], ' %')}"
+        f" (goal <= {RSS_GROWTH_GOAL_PCT} %, read on {f['rss_growth_goal_reading']})"
         f"{goal(f['rss_growth_goal_met'])}"
     )
     print(
