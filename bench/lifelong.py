@@ -65,6 +65,7 @@ from graph.slam import BearingSlam
 from service.datasets.indoor_sim import SimRun, make_world, simulate
 from service.evaluation import Trajectory, ate_rmse
 from service.replay import (
+    PoseLog,
     RemovalLog,
     ReplayResult,
     current_rss_mb,
@@ -167,14 +168,15 @@ def run_worker(
     config = RUNS[name]
     load_start = os.getloadavg()
     rss_before = current_rss_mb()
-    removal_log = RemovalLog()
+    removal_log, pose_log = RemovalLog(), PoseLog()
     slam = BearingSlam(
         config,
         rng=np.random.default_rng(seed),
         removal_sink=removal_log.append,
         release_heap=release_heap,
+        trajectory_sink=pose_log,
     )
-    result = ReplayResult(slam, removal_log=removal_log)
+    result = ReplayResult(slam, removal_log=removal_log, pose_log=pose_log)
     # Per-frame figures in typed arrays (8 bytes a number, not a list's ~32): the run's
     # own bookkeeping is inside the RSS it measures.
     stages: dict[str, array[float]] = {k: array("d") for k in STAGES}

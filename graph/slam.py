@@ -45,6 +45,7 @@ from graph.isam import IncrementalGraph
 from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
 from graph.policies import LandmarkTable, Removal, get_policy, information_content
 from graph.tracking import Motion, compose_motion, solve_pose, tracked_covariance
+from graph.trajectory import PoseRow, Trajectory
 from graph.triangulation import Triangulation, parallax, triangulate
 from graph.types import BearingObservation, FrameInput, Pose2D
 from graph.validation import validate_frame
@@ -158,6 +159,7 @@ class BearingSlam:
         removal_sink: Callable[[RemovalRecord], None] | None = None,
         removal_memory: int = 1000,
         release_heap: bool = True,
+        trajectory_sink: Callable[[list[PoseRow]], None] | None = None,
     ) -> None:
         """`removal_sink` receives every removal record (e.g. to append it to durable
         storage); only the last `removal_memory` records stay in `self.removals`, so a
@@ -167,7 +169,12 @@ class BearingSlam:
         pages back to the OS (graph.heap, ~0.2 ms): the dense blocks an update builds and
         frees (marginals, a landmark removal's Schur complement) would otherwise stay
         resident, scattered through the heap, and the process's steady RSS would step up
-        over a lifelong run. The estimate does not change."""
+        over a lifelong run. The estimate does not change.
+
+        `trajectory_sink` receives the trajectory rows that became final in a frame (their
+        poses were marginalised and will not change again, graph.trajectory), and they are
+        then forgotten here, so that memory does not grow with the frames: `trajectory()`
+        returns only the rows still held. Without a sink every row stays here."""
         self.config = config or SlamConfig()
         self._policy = get_policy(self.config.policy)
         self._rng = rng
@@ -184,11 +191,9 @@ class BearingSlam:
         self.removal_count = 0
         self._removal_sink = removal_sink
         self._release_heap = release_heap
+        self._trajectory_sink = trajectory_sink
         # Per-frame trajectory: final estimates of marginalised poses, live keys looked up.
-        self._traj_robot = array("i")
-        self._traj_seq = array("q")
-        self._traj_stamp = array("d")
-        self._traj_pose = array("d")
+        self._trajectory = Trajectory()
         self._live_frames: dict[int, int] = {}
         self._last_factor: dict[int, int] = {}
         """Frame index of each live landmark's newest bearing factor (max_landmark_factors)."""
@@ -240,32 +245,39 @@ class BearingSlam:
         """Per robot, an (N, 5) array of frames: seq, stamp, x, y, theta.
 
         Poses still in the graph carry the current estimate; marginalised poses
-        keep the last estimate they had.
+        keep the last estimate they had. With a trajectory sink, the rows already
+        handed to it are not here (see `__init__`).
         """
-        poses = np.frombuffer(self._traj_pose, dtype=np.float64).reshape(-1, 3).copy()
+        rows = self._trajectory.rows()
+        poses = rows.pose
         if self._live_frames or self._anchored:
             estimate = self._graph.estimate()
-            for frame, key in self._live_frames.items():
+            live = list(self._live_frames.items())
+            idx = rows.index(np.fromiter((f for f, _ in live), np.int64, len(live)))
+            for i, (_, key) in zip(idx, live, strict=True):
                 p = estimate.atPose2(key)
-                poses[frame] = (p.x(), p.y(), p.theta())
+                poses[i] = (p.x(), p.y(), p.theta())
             for key, frames in self._anchored.items():
                 p = estimate.atPose2(key)
-                idx = np.frombuffer(frames, dtype=np.int64)
+                idx = rows.index(np.frombuffer(frames, dtype=np.int64))
                 rel = poses[idx]
                 c, s = math.cos(p.theta()), math.sin(p.theta())
                 poses[idx, 0] = p.x() + c * rel[:, 0] - s * rel[:, 1]
                 poses[idx, 1] = p.y() + s * rel[:, 0] + c * rel[:, 1]
                 poses[idx, 2] = wrap_angles(p.theta() + rel[:, 2])
-        robots = np.frombuffer(self._traj_robot, dtype=np.int32)
-        seq = np.frombuffer(self._traj_seq, dtype=np.int64).astype(np.float64)
-        stamp = np.frombuffer(self._traj_stamp, dtype=np.float64)
+        seq = rows.seq.astype(np.float64)
         out: dict[str, NDArray[np.float64]] = {}
         for name, state in self._robots.items():
             if robot is not None and name != robot:
                 continue
-            mask = robots == state.slot
-            out[name] = np.column_stack([seq[mask], stamp[mask], poses[mask]])
+            mask = rows.slot == state.slot
+            out[name] = np.column_stack([seq[mask], rows.stamp[mask], poses[mask]])
         return out
+
+    @property
+    def held_trajectory_rows(self) -> int:
+        """Trajectory rows whose pose can still change (bounded by the graph's size)."""
+        return self._trajectory.held_count
 
     # ---------------------------------------------------------------- the pipeline
     def process(
@@ -398,10 +410,7 @@ class BearingSlam:
         robot.last_stamp = frame.stamp
         robot.motion = motion
         robot.tracked = (frame_index, solved.information)
-        self._traj_robot.append(robot.slot)
-        self._traj_seq.append(frame.seq)
-        self._traj_stamp.append(frame.stamp)
-        self._traj_pose.extend((rel.x(), rel.y(), rel.theta()))
+        self._trajectory.append(frame_index, robot.slot, frame.seq, frame.stamp, rel)
         self._anchored.setdefault(base_key, array("q")).append(frame_index)
         here = np.array([solved.pose.x(), solved.pose.y()])
         for lid, _ in observed:
@@ -745,10 +754,7 @@ class BearingSlam:
                     if r.pose_key in self._window_factors:
                         self._window_factors[r.pose_key] += 1
         self._apply_exit(robot, plan.exiting, plan.promoted, plan.leaving, before)
-        self._traj_robot.append(robot.slot)
-        self._traj_seq.append(frame.seq)
-        self._traj_stamp.append(frame.stamp)
-        self._traj_pose.extend((plan.predicted.x(), plan.predicted.y(), plan.predicted.theta()))
+        self._trajectory.append(frame_index, robot.slot, frame.seq, frame.stamp, plan.predicted)
         self._live_frames[frame_index] = plan.key
 
         here = self._graph.pose(plan.key)
@@ -857,8 +863,14 @@ class BearingSlam:
         """A marginalised pose's frame keeps `pose`; frames anchored to it follow."""
         self._live_frames.pop(frame, None)
         self._set_traj_pose(frame, pose)
-        for f in self._anchored.pop(key, ()):
+        followers = self._anchored.pop(key, array("q"))
+        for f in followers:
             self._set_traj_pose(f, pose.compose(self._traj_pose_at(f)))
+        final = self._trajectory.finalise([frame, *followers], list(self._robots))
+        if self._trajectory_sink is None:
+            self._trajectory.keep(final, {n: r.slot for n, r in self._robots.items()})
+        else:
+            self._trajectory_sink(final)
 
     def _thin_keyframes(self) -> None:
         """Marginalise the oldest keyframes of any marginal factor that links more than
@@ -929,12 +941,10 @@ class BearingSlam:
             self._retire(key, frame, poses[key])
 
     def _traj_pose_at(self, frame: int) -> gtsam.Pose2:
-        i = 3 * frame
-        return gtsam.Pose2(*self._traj_pose[i : i + 3])
+        return self._trajectory.pose_at(frame)
 
     def _set_traj_pose(self, frame: int, pose: gtsam.Pose2) -> None:
-        i = 3 * frame
-        self._traj_pose[i : i + 3] = array("d", (pose.x(), pose.y(), pose.theta()))
+        self._trajectory.set_pose(frame, pose)
 
     def _enforce_budget(self, frame: FrameInput) -> tuple[int, ...]:
         """Once the live count exceeds the cap, marginalise the policy's choices until it

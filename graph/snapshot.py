@@ -6,7 +6,7 @@ factors and linearisation point do. A snapshot stores the current factors as one
 own linearisation point; a relative marginal, whose error is a Python callback,
 is stored as its `RelativeSpec`), the linearisation point as ``Values``, and the
 bookkeeping of `BearingSlam` (robots and their pose windows, landmark records,
-candidate tracks, trajectory arrays, removal log tail, the policy's rng state).
+candidate tracks, the trajectory rows it holds, removal log tail, the policy's rng state).
 `restore` builds a fresh iSAM2 from the factors at the stored linearisation
 point in one update, so the estimate after a restore equals the one before up to
 iSAM2's relinearisation state (one full step from the same linearisation point).
@@ -26,12 +26,14 @@ import numpy as np
 
 from graph.relative import RelativeMarginalFactor, RelativeSpec
 from graph.slam import BearingSlam, RemovalRecord
+from graph.trajectory import PoseRow
 
-SNAPSHOT_VERSION = 2
+SNAPSHOT_VERSION = 3
+"""3: the trajectory is a graph.trajectory.Trajectory (held rows + kept final rows)."""
 
-_SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng"})
+_SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng", "_trajectory_sink"})
 """BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is
-derived from the config, the removal sink is given again, the rng keeps its state."""
+derived from the config, the sinks are given again, the rng keeps its state."""
 _GRAPH_SPECIAL = frozenset(
     {"_isam", "_theta", "_config", "_factors", "_key_factors", "_estimate", "_points", "_poses"}
 )
@@ -78,14 +80,22 @@ def capture(slam: BearingSlam, *, extra: Any = None) -> bytes:
 
 
 def restore(
-    blob: bytes, *, removal_sink: Callable[[RemovalRecord], None] | None = None
+    blob: bytes,
+    *,
+    removal_sink: Callable[[RemovalRecord], None] | None = None,
+    trajectory_sink: Callable[[list[PoseRow]], None] | None = None,
 ) -> BearingSlam:
-    """A working `BearingSlam` from `capture`'s bytes; iSAM2 is rebuilt from the factors."""
-    return restore_with_extra(blob, removal_sink=removal_sink)[0]
+    """A working `BearingSlam` from `capture`'s bytes; iSAM2 is rebuilt from the factors.
+    The sinks are `BearingSlam`'s (a trajectory sink receives only rows that become final
+    after the restore: the snapshot holds those that were held when it was taken)."""
+    return restore_with_extra(blob, removal_sink=removal_sink, trajectory_sink=trajectory_sink)[0]
 
 
 def restore_with_extra(
-    blob: bytes, *, removal_sink: Callable[[RemovalRecord], None] | None = None
+    blob: bytes,
+    *,
+    removal_sink: Callable[[RemovalRecord], None] | None = None,
+    trajectory_sink: Callable[[list[PoseRow]], None] | None = None,
 ) -> tuple[BearingSlam, Any]:
     """`restore`, and the `extra` state given to `capture` (None if none)."""
     try:
@@ -103,6 +113,7 @@ def restore_with_extra(
         rng=rng,
         removal_sink=removal_sink,
         removal_memory=plain["removals"].maxlen,
+        trajectory_sink=trajectory_sink,
     )
     factors = gtsam.NonlinearFactorGraph()
     factors.deserialize(state["factors"])

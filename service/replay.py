@@ -18,11 +18,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from tqdm import tqdm
 
 from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.slam import BearingSlam, RemovalRecord
+from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from service.evaluation import Trajectory
 from service.frames_io import FrameFileError, read_frame_lines
@@ -81,6 +83,38 @@ class RemovalLog:
         return rows
 
 
+_POSE_RECORD = np.dtype([("robot", "<i4"), ("seq", "<i8"), ("stamp", "<f8"), ("pose", "<f8", (3,))])
+
+
+class PoseLog:
+    """Final trajectory rows spooled to disk (the estimator's trajectory sink, see
+    graph.trajectory), so a long replay's memory stays flat."""
+
+    def __init__(self) -> None:
+        self._file = tempfile.TemporaryFile("w+b")  # noqa: SIM115
+        self._robots: dict[str, int] = {}
+        self.count = 0
+
+    def __call__(self, rows: list[PoseRow]) -> None:
+        records = np.empty(len(rows), dtype=_POSE_RECORD)
+        for i, r in enumerate(rows):
+            slot = self._robots.setdefault(r.robot, len(self._robots))
+            records[i] = (slot, r.seq, r.stamp, (r.x, r.y, r.theta))
+        self._file.write(records.tobytes())
+        self.count += len(rows)
+
+    def rows(self, robot: str) -> NDArray[np.float64]:
+        """One robot's spooled rows, (N, 5) seq, stamp, x, y, theta in spooling order."""
+        if robot not in self._robots:
+            return np.zeros((0, 5))
+        self._file.flush()
+        self._file.seek(0)
+        records = np.frombuffer(self._file.read(), dtype=_POSE_RECORD)
+        self._file.seek(0, os.SEEK_END)
+        mine = records[records["robot"] == self._robots[robot]]
+        return np.column_stack([mine["seq"].astype(np.float64), mine["stamp"], mine["pose"]])
+
+
 @dataclass
 class ReplayResult:
     """What a replay produced: the map and the per-frame figures."""
@@ -98,10 +132,15 @@ class ReplayResult:
     """Frames whose observations came from the front end."""
     image_observations: int = 0
     """Bearing factors to live landmarks those frames added."""
+    pose_log: PoseLog | None = None
+    """The final trajectory rows, when the estimator spools them (its trajectory sink)."""
 
     def trajectory(self, robot: str) -> Trajectory:
         """The latest estimate of every frame's pose of one robot."""
         rows = self.slam.trajectory(robot)[robot]
+        if self.pose_log is not None:
+            rows = np.concatenate([self.pose_log.rows(robot), rows])
+            rows = rows[np.argsort(rows[:, 0], kind="stable")]
         return Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
 
     def stats(self) -> dict[str, Any]:
@@ -171,9 +210,14 @@ def replay(
     `progress`: None shows a bar only when stderr is a terminal. An ImageFrame
     goes through `front_end` (required then) and the map's ImagePipeline.
     """
-    removal_log = RemovalLog()
-    slam = BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=removal_log.append)
-    result = ReplayResult(slam, removal_log=removal_log)
+    removal_log, pose_log = RemovalLog(), PoseLog()
+    slam = BearingSlam(
+        config,
+        rng=np.random.default_rng(seed),
+        removal_sink=removal_log.append,
+        trajectory_sink=pose_log,
+    )
+    result = ReplayResult(slam, removal_log=removal_log, pose_log=pose_log)
     pipeline = ImagePipeline(slam, front_end) if front_end is not None else None
     bar = tqdm(
         frames, total=total, unit="frame", disable=None if progress is None else not progress

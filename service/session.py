@@ -24,6 +24,7 @@ from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam, RemovalRecord
 from graph.snapshot import SnapshotError, capture, restore_with_extra
+from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.camera_localisation import process_image
@@ -97,6 +98,10 @@ def _digest(value: Any, field: str) -> dict[str, Any]:
     return {"sha256": value["sha256"], "bytes": value["bytes"]}
 
 
+_POSE_FLUSH = 4096
+"""Final trajectory rows a reload collects before it writes them (bounds its memory)."""
+
+
 class _RemovalBuffer:
     """Collects the removals of one frame (the estimator's removal sink)."""
 
@@ -107,6 +112,21 @@ class _RemovalBuffer:
         self.items.append(record)
 
     def take(self) -> list[RemovalRecord]:
+        items, self.items = self.items, []
+        return items
+
+
+class _PoseBuffer:
+    """Collects the trajectory rows a frame made final (the estimator's trajectory
+    sink), to be stored with the frame's result."""
+
+    def __init__(self) -> None:
+        self.items: list[PoseRow] = []
+
+    def __call__(self, rows: list[PoseRow]) -> None:
+        self.items.extend(rows)
+
+    def take(self) -> list[PoseRow]:
         items, self.items = self.items, []
         return items
 
@@ -136,6 +156,7 @@ class MapSession:
             )
         self.record = MapRecord.from_dict(meta)
         self._removals = _RemovalBuffer()
+        self._poses = _PoseBuffer()
         self._timing: deque[float] = deque(maxlen=1000)
         self.replay_errors = 0
         self.loaded_from_snapshot = 0
@@ -163,7 +184,12 @@ class MapSession:
     def _fresh(self) -> BearingSlam:
         config = slam_config(self.record.config, self.record.mode)
         seed = MapConfig.model_validate(self.record.config).seed
-        return BearingSlam(config, rng=np.random.default_rng(seed), removal_sink=self._removals)
+        return BearingSlam(
+            config,
+            rng=np.random.default_rng(seed),
+            removal_sink=self._removals,
+            trajectory_sink=self._poses,
+        )
 
     def _load(self) -> tuple[BearingSlam, MapLocalisation, int, int]:
         """Latest snapshot + the log's tail: (estimator, place localiser, last log id,
@@ -179,7 +205,9 @@ class MapSession:
             snap = None
         if snap is not None:
             try:
-                slam, extra = restore_with_extra(snap[1], removal_sink=self._removals)
+                slam, extra = restore_with_extra(
+                    snap[1], removal_sink=self._removals, trajectory_sink=self._poses
+                )
                 slam.config = slam_config(self.record.config, self.record.mode)
                 if isinstance(extra, MapLocalisation):
                     loc = extra
@@ -199,7 +227,12 @@ class MapSession:
             self._restore_imported_frontend(imported, upto, last)
             self._replay(slam, loc, stored)
             last = stored.id
+            if len(self._poses.items) >= _POSE_FLUSH:
+                self.store.put_poses(self._poses.take())
         self._restore_imported_frontend(imported, upto, last)
+        # Rows the tail made final again (replaced: a restored estimator may round a
+        # little differently from the one that first made them final).
+        self.store.put_poses(self._poses.take())
         log.info(
             "map %s: loaded snapshot up to frame %d + %d log frames in %.0f ms",
             self.record.id,
@@ -249,6 +282,7 @@ class MapSession:
         except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
+            self._poses.take()
             if stored.result is None:  # never acknowledged: drop it
                 log.warning("map %s: dropping unprocessable log frame %d", self.path, stored.id)
                 self.store.delete_frame(stored.id)
@@ -260,7 +294,15 @@ class MapSession:
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
             result = self._result_doc(slam, localised, stored.id, {})
-            self._complete(slam, stored.id, json.dumps(result), localised, removals, observations)
+            self._complete(
+                slam,
+                stored.id,
+                json.dumps(result),
+                localised,
+                removals,
+                observations,
+                self._poses.take(),
+            )
 
     def _replay_image(
         self, slam: BearingSlam, loc: MapLocalisation, log_id: int, frame: FrameInput
@@ -399,6 +441,7 @@ class MapSession:
         except InvalidFrame as exc:
             self.store.delete_frame(log_id)
             self._removals.take()
+            self._poses.take()
             raise invalid_frame(exc.field, exc.detail) from exc
         except EstimationError as exc:
             self._forget_frame(log_id)
@@ -420,7 +463,13 @@ class MapSession:
         t2 = time.perf_counter()
         text = json.dumps(result)
         event_ids = self._complete(
-            self.slam, log_id, text, localised, removals, None if imported else observations
+            self.slam,
+            log_id,
+            text,
+            localised,
+            removals,
+            None if imported else observations,
+            self._poses.take(),
         )
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
@@ -442,6 +491,7 @@ class MapSession:
         reloaded as it was, so that the next frame meets a whole map."""
         self.store.delete_frame(log_id)
         self._removals.take()
+        self._poses.take()
         self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
 
     def _check_image_frame(self, frame: Any) -> None:
@@ -504,6 +554,7 @@ class MapSession:
         localised: Localised,
         removals: list[RemovalRecord],
         observations: str | None = None,
+        poses: list[PoseRow] | None = None,
     ) -> list[int]:
         events: list[tuple[str, str]] = [("frame", result_json)]
         added = () if localised.outcome is None else localised.outcome.added
@@ -520,7 +571,7 @@ class MapSession:
             doc = {**r.as_dict(), "frame_id": log_id}
             events.append(("landmark_marginalised", json.dumps(doc)))
             rows.append((r.landmark_id, r.frame, json.dumps(doc)))
-        return self.store.complete_frame(log_id, result_json, events, rows, observations)
+        return self.store.complete_frame(log_id, result_json, events, rows, observations, poses)
 
     # ------------------------------------------------------------ queries
     def summary(self) -> dict[str, Any]:
@@ -621,7 +672,7 @@ class MapSession:
         if robot is not None and robot not in self.slam.robots and robot in self.loc.last:
             rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
         else:
-            rows = dict(trajectory_doc(self.slam, self.record.id, robot))
+            rows = dict(trajectory_doc(self.slam, self.store, self.record.id, robot))
         self.loc.with_off_graph(rows, robot)
         if stats_every > 0:
             labels = self.store.removed_labels()

@@ -20,6 +20,12 @@ observations the front end made of an image are stored with the frame's result
 (``image_observations``): an export carries them instead of the image, and once
 every kept snapshot covers a frame its image may be deleted (``prune_images``), so a
 camera map's file stops growing by an image a frame.
+
+The trajectory rows the estimator will not change again (their poses were
+marginalised, graph.trajectory) are written to ``poses`` with the frame that
+finalised them, and the estimator forgets them: its memory and its snapshots hold
+only the rows still in play. ``poses`` is keyed by (robot, seq), so a replay of the
+log that finalises a row again replaces it.
 """
 
 from __future__ import annotations
@@ -32,6 +38,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.trajectory import PoseRow
 
 _CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
@@ -78,6 +89,15 @@ CREATE TABLE IF NOT EXISTS removals (
     frame INTEGER NOT NULL,
     record TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS poses (
+    robot TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    stamp REAL NOT NULL,
+    x REAL NOT NULL,
+    y REAL NOT NULL,
+    theta REAL NOT NULL,
+    PRIMARY KEY (robot, seq)
+) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     kind TEXT NOT NULL,
@@ -289,6 +309,11 @@ class MapStore:
 
     def delete_frame(self, frame_id: int) -> None:
         with transaction(self._conn):
+            self._conn.execute(
+                "DELETE FROM poses WHERE (robot, seq) IN (SELECT robot, seq FROM frames "
+                "WHERE id = ?)",
+                (frame_id,),
+            )
             self._conn.execute("DELETE FROM frames WHERE id = ?", (frame_id,))
             self._conn.execute("DELETE FROM images WHERE frame_id = ?", (frame_id,))
             self._conn.execute("DELETE FROM image_observations WHERE frame_id = ?", (frame_id,))
@@ -300,9 +325,11 @@ class MapStore:
         events: list[tuple[str, str]],
         removals: list[tuple[int, int, str]],
         observations: str | None = None,
+        poses: list[PoseRow] | None = None,
     ) -> list[int]:
-        """Store a frame's result, its events and removals (and, for an image frame, the
-        observations its image gave, JSON text) in one transaction; event ids."""
+        """Store a frame's result, its events and removals, the trajectory rows it made
+        final (and, for an image frame, the observations its image gave, JSON text) in one
+        transaction; event ids."""
         now = time.time()
         ids: list[int] = []
         with transaction(self._conn):
@@ -317,6 +344,8 @@ class MapStore:
                 "INSERT OR IGNORE INTO removals (landmark_id, frame, record) VALUES (?, ?, ?)",
                 removals,
             )
+            if poses:
+                self._put_poses(poses)
             for kind, data in events:
                 cur = self._conn.execute(
                     "INSERT INTO events (kind, data, created) VALUES (?, ?, ?)", (kind, data, now)
@@ -367,6 +396,40 @@ class MapStore:
             )
             for i, r, q, live, added, marg, t, c in rows
         ]
+
+    # final trajectory rows
+    def _put_poses(self, rows: list[PoseRow]) -> None:
+        self._conn.executemany(
+            "INSERT OR REPLACE INTO poses (robot, seq, stamp, x, y, theta) "
+            "VALUES (?, ?, ?, ?, ?, ?)",
+            [(r.robot, r.seq, r.stamp, r.x, r.y, r.theta) for r in rows],
+        )
+
+    def put_poses(self, rows: list[PoseRow]) -> None:
+        """Store final trajectory rows (replacing those of the same robot and seq)."""
+        if rows:
+            with transaction(self._conn):
+                self._put_poses(rows)
+
+    def poses(self, robot: str | None = None) -> dict[str, NDArray[np.float64]]:
+        """Stored final rows per robot (`robot`: that one only), each an (N, 5) array
+        seq, stamp, x, y, theta sorted by seq (as BearingSlam.trajectory)."""
+        sql = "SELECT robot, seq, stamp, x, y, theta FROM poses"
+        args: tuple[str, ...] = ()
+        if robot is not None:
+            sql, args = sql + " WHERE robot = ?", (robot,)
+        out: dict[str, list[tuple[float, ...]]] = {}
+        for name, *values in self._conn.execute(sql + " ORDER BY robot, seq", args):
+            out.setdefault(str(name), []).append(tuple(values))
+        return {k: np.array(v, dtype=np.float64).reshape(-1, 5) for k, v in out.items()}
+
+    def pose_positions(self) -> NDArray[np.float64]:
+        """(N, 2) x, y of every stored final row, metres."""
+        rows = self._conn.execute("SELECT x, y FROM poses").fetchall()
+        return np.array(rows, dtype=np.float64).reshape(-1, 2)
+
+    def pose_count(self) -> int:
+        return int(self._conn.execute("SELECT count(*) FROM poses").fetchone()[0])
 
     # snapshots
     def save_snapshot(

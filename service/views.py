@@ -12,6 +12,7 @@ import json
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from graph.policies import LandmarkTable, coverage_clusters, information_content
 from graph.slam import BearingSlam
@@ -39,8 +40,25 @@ def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
     return {"map_id": map_id, "robots": robots}
 
 
+def full_trajectory(
+    slam: BearingSlam, store: MapStore, robot: str | None = None
+) -> dict[str, NDArray[np.float64]]:
+    """Every frame's row per robot (seq, stamp, x, y, theta; sorted by seq): the final
+    rows in the store and the rows the estimator still holds."""
+    held = slam.trajectory(robot)
+    stored = store.poses(robot)
+    out = {}
+    for name, rows in held.items():
+        done = stored.get(name)
+        if done is not None and len(done):
+            rows = np.concatenate([done, rows])
+            rows = rows[np.argsort(rows[:, 0], kind="stable")]
+        out[name] = rows
+    return out
+
+
 def trajectory_doc(
-    slam: BearingSlam, map_id: str, robot: str | None = None
+    slam: BearingSlam, store: MapStore, map_id: str, robot: str | None = None
 ) -> dict[str, list[dict[str, float]]]:
     """Every frame's pose per robot: [{seq, stamp, x, y, theta}]."""
     if robot is not None and robot not in slam.robots:
@@ -53,7 +71,7 @@ def trajectory_doc(
             field="robot",
         )
     out = {}
-    for name, rows in slam.trajectory(robot).items():
+    for name, rows in full_trajectory(slam, store, robot).items():
         out[name] = [
             {"seq": int(r[0]), "stamp": float(r[1]), "x": r[2], "y": r[3], "theta": r[4]}
             for r in rows.tolist()
@@ -188,8 +206,8 @@ def coverage_doc(
     """Clusters with spreads, each landmark's E(X) and information, grid, removal log."""
     table, _ = landmark_table(slam)
     _, clusters = clusters_doc(table, seed)
-    positions = [rows[:, 2:4] for rows in slam.trajectory().values()]
-    xy = np.concatenate(positions) if positions else np.zeros((0, 2))
+    positions = [store.pose_positions(), *(rows[:, 2:4] for rows in slam.trajectory().values())]
+    xy = np.concatenate(positions)
     assert table.information is not None
     return {
         "map_id": map_id,

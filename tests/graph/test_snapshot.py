@@ -69,7 +69,7 @@ def test_restore_brings_back_every_attribute_of_the_estimator() -> None:
     restored = restore(capture(original))
     assert set(vars(restored)) == set(vars(original))
     assert set(vars(restored.graph)) == set(vars(original.graph))
-    rebuilt = {"_graph", "_policy", "_removal_sink", "_rng"}
+    rebuilt = {"_graph", "_policy", "_removal_sink", "_rng", "_trajectory_sink"}
     for name in set(vars(original)) - rebuilt:
         assert repr(getattr(restored, name)) == repr(getattr(original, name)), name
     assert restored._rng.bit_generator.state == original._rng.bit_generator.state

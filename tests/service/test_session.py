@@ -6,6 +6,7 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service.errors import ServiceError
@@ -16,12 +17,13 @@ from service.store import MapRecord
 from tests.graph._world import circle_frames
 
 FRAMES = [frame_to_dict(f) for f in circle_frames(90, seed=2)[0]]
+# A short window and a small cap: keyframes leave the graph within 120 frames.
+RETIRING = {"landmark_cap": 6, "pose_window": 10}
 
 
-def _new(path: Path, every: int = 25) -> MapSession:
-    record = MapRecord(
-        "m1", "test", "mapping", {"landmark_cap": 10, "pose_window": 30}, time.time()
-    )
+def _new(path: Path, every: int = 25, config: dict | None = None) -> MapSession:
+    config = {"landmark_cap": 10, "pose_window": 30} if config is None else config
+    record = MapRecord("m1", "test", "mapping", config, time.time())
     return MapSession.create(path, record, StoreSettings(snapshot_every=every))
 
 
@@ -200,3 +202,85 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
     for a, b in zip(got, expected[12:14], strict=True):
         assert a["seq"] == b["seq"] and a["localisation"] == b["localisation"]
         assert abs(a["pose"]["x"] - b["pose"]["x"]) + abs(a["pose"]["y"] - b["pose"]["y"]) < 5e-3
+
+
+def test_final_trajectory_rows_are_stored_and_leave_the_estimator(tmp_path: Path) -> None:
+    """A pose that left the graph will not move again: its row goes to the store with
+    the frame that finalised it, and neither the estimator nor its snapshots hold it."""
+    from graph.slam import BearingSlam
+    from graph.snapshot import restore
+    from service.mapconfig import slam_config
+
+    path = tmp_path / "m1.sqlite"
+    session = _new(path, config=RETIRING)
+    frames = circle_frames(120, seed=2)[0]
+    for f in frames:
+        session.submit(frame_to_dict(f))
+        if session.snapshot_due:
+            session.snapshot()
+    stored, held = session.store.pose_count(), session.slam.held_trajectory_rows
+    assert stored > 40 and stored + held == 120
+    snap = session.store.latest_snapshot()
+    assert snap is not None and restore(snap[1])._trajectory.kept_count == 0
+
+    # The same rows as an estimator that keeps every row itself.
+    reference = BearingSlam(
+        slam_config(session.record.config, session.record.mode), rng=np.random.default_rng(0)
+    )
+    for frame in frames:
+        reference.process(frame)
+    expected = reference.trajectory("r1")["r1"]
+    rows = session.trajectory()["r1"]
+    got = np.array([[p["seq"], p["stamp"], p["x"], p["y"], p["theta"]] for p in rows])
+    np.testing.assert_array_equal(got, expected)
+    assert len(session.export()["trajectories"]["r1"]) == 120
+    session.close()
+
+    # A reload replays the tail after the snapshot and rewrites the rows it finalises.
+    reopened = MapSession(path, StoreSettings(snapshot_every=25))
+    assert reopened.loaded_from_snapshot == 100
+    assert reopened.store.pose_count() + reopened.slam.held_trajectory_rows == 120
+    after = reopened.trajectory()["r1"]
+    assert [p["seq"] for p in after] == [p["seq"] for p in rows]
+    assert (
+        max(abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, rows, strict=True))
+        < 5e-3
+    )
+
+
+def test_a_failed_frame_stores_no_final_rows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The estimator failing half way through a frame that finalised rows: the rows
+    are not stored, and the reloaded map holds them again (nothing is lost)."""
+    from graph.errors import EstimationError
+    from graph.slam import BearingSlam
+
+    session = _new(tmp_path / "m1.sqlite", config=RETIRING)
+    frames = [frame_to_dict(f) for f in circle_frames(130, seed=2)[0]]
+    for f in frames[:100]:
+        session.submit(f)
+    real = BearingSlam.process
+    failed: list[int] = []
+
+    def half_way(self: BearingSlam, frame, **kwargs):  # type: ignore[no-untyped-def]
+        held = self.held_trajectory_rows
+        out = real(self, frame, **kwargs)
+        if not failed and self.held_trajectory_rows <= held:  # it finalised a row
+            failed.append(frame.seq)
+            raise EstimationError("injected")
+        return out
+
+    monkeypatch.setattr(BearingSlam, "process", half_way)
+    for f in frames[100:]:
+        before, stored = session.trajectory()["r1"], session.store.pose_count()
+        try:
+            session.submit(f)
+        except ServiceError:
+            break
+    assert failed, "no frame finalised a row"
+    assert session.store.pose_count() == stored
+    assert session.trajectory()["r1"] == before
+    session.submit(frames[failed[0]])
+    assert session.store.pose_count() > stored
+    assert len(session.trajectory()["r1"]) == failed[0] + 1

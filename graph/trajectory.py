@@ -1,0 +1,127 @@
+"""Every frame's pose, with what is held in memory bounded by what can still move.
+
+A frame's trajectory row is *held* while its pose can still change: its pose is in
+the graph (a window pose or a keyframe), or the row is stored relative to a pose that
+is (a tracked frame; a window pose that left without becoming a keyframe and follows
+the robot's last keyframe). Once the pose a row follows is marginalised, the row is
+*final*: its absolute pose never changes again.
+
+Held rows are bounded by the graph (its poses and the frames anchored to them), not
+by the robot's lifetime. Final rows are either kept here in compact arrays (`keep`:
+a replay that wants every pose at the end) or handed to a sink by the estimator and
+forgotten (a lifelong map: the service writes them to its store), so that the
+estimator's memory and its snapshots do not grow with the frames.
+"""
+
+from __future__ import annotations
+
+from array import array
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True, slots=True)
+class PoseRow:
+    """One final trajectory row: a frame's pose in the map frame (m, rad)."""
+
+    frame: int
+    """The estimator's frame index (0-based, in processing order over all robots)."""
+    robot: str
+    seq: int
+    stamp: float
+    x: float
+    y: float
+    theta: float
+
+
+@dataclass(frozen=True, slots=True)
+class TrajectoryRows:
+    """Rows sorted by frame index: `frame` (N,), `slot` (N,) the robot's slot, `seq`
+    (N,), `stamp` (N,), `pose` (N, 3) x, y, theta (absolute, or relative for a row
+    that follows a pose in the graph: the caller resolves those)."""
+
+    frame: NDArray[np.int64]
+    slot: NDArray[np.int32]
+    seq: NDArray[np.int64]
+    stamp: NDArray[np.float64]
+    pose: NDArray[np.float64]
+
+    def index(self, frames: NDArray[np.int64]) -> NDArray[np.intp]:
+        """Row positions of `frames` (each must be present)."""
+        return np.searchsorted(self.frame, frames)
+
+
+@dataclass(slots=True)
+class Trajectory:
+    """Held rows by frame index, plus the final rows kept (see the module docstring)."""
+
+    _held: dict[int, tuple[int, int, float, float, float, float]] = field(default_factory=dict)
+    """frame -> (slot, seq, stamp, x, y, theta)."""
+    _frame: array[int] = field(default_factory=lambda: array("q"))
+    _slot: array[int] = field(default_factory=lambda: array("i"))
+    _seq: array[int] = field(default_factory=lambda: array("q"))
+    _stamp: array[float] = field(default_factory=lambda: array("d"))
+    _pose: array[float] = field(default_factory=lambda: array("d"))
+    """The kept final rows, in the order they became final (x, y, theta each)."""
+
+    @property
+    def held_count(self) -> int:
+        return len(self._held)
+
+    @property
+    def kept_count(self) -> int:
+        return len(self._frame)
+
+    def append(self, frame: int, slot: int, seq: int, stamp: float, pose: gtsam.Pose2) -> None:
+        """A new frame's row, held."""
+        self._held[frame] = (slot, seq, stamp, pose.x(), pose.y(), pose.theta())
+
+    def pose_at(self, frame: int) -> gtsam.Pose2:
+        """A held row's pose (KeyError once the row is final)."""
+        row = self._held[frame]
+        return gtsam.Pose2(row[3], row[4], row[5])
+
+    def set_pose(self, frame: int, pose: gtsam.Pose2) -> None:
+        slot, seq, stamp = self._held[frame][:3]
+        self._held[frame] = (slot, seq, stamp, pose.x(), pose.y(), pose.theta())
+
+    def finalise(self, frames: Iterable[int], robots: list[str]) -> list[PoseRow]:
+        """Release held rows whose pose will not change again; `robots` names the slots."""
+        out = []
+        for frame in frames:
+            slot, seq, stamp, x, y, theta = self._held.pop(frame)
+            out.append(PoseRow(frame, robots[slot], seq, stamp, x, y, theta))
+        return out
+
+    def keep(self, rows: Iterable[PoseRow], slots: dict[str, int]) -> None:
+        """Keep final rows here (an estimator without a sink)."""
+        for r in rows:
+            self._frame.append(r.frame)
+            self._slot.append(slots[r.robot])
+            self._seq.append(r.seq)
+            self._stamp.append(r.stamp)
+            self._pose.extend((r.x, r.y, r.theta))
+
+    def rows(self) -> TrajectoryRows:
+        """Kept and held rows, sorted by frame index (copies)."""
+        held = self._held
+        frame = np.concatenate(
+            [np.frombuffer(self._frame, dtype=np.int64), np.fromiter(held, np.int64, len(held))]
+        )
+        values = np.array(list(held.values()), dtype=np.float64).reshape(-1, 6)
+        slot = np.concatenate(
+            [np.frombuffer(self._slot, dtype=np.int32), values[:, 0].astype(np.int32)]
+        )
+        seq = np.concatenate(
+            [np.frombuffer(self._seq, dtype=np.int64), values[:, 1].astype(np.int64)]
+        )
+        stamp = np.concatenate([np.frombuffer(self._stamp, dtype=np.float64), values[:, 2]])
+        pose = np.concatenate(
+            [np.frombuffer(self._pose, dtype=np.float64).reshape(-1, 3), values[:, 3:6]]
+        )
+        order = np.argsort(frame, kind="stable")
+        return TrajectoryRows(frame[order], slot[order], seq[order], stamp[order], pose[order])
