@@ -189,6 +189,7 @@ def run_worker(
     stop = "all requested frames" if max_frames >= frames else "--baseline-frames limit"
     error = None
     probes: list[tuple[int, float]] = [(0, min(speed_probe_ms() for _ in range(3)))]
+    held: list[tuple[int, int]] = []
     start = time.perf_counter()
     for frame in todo:
         if budget_s is not None and time.perf_counter() - start >= budget_s:
@@ -214,6 +215,7 @@ def run_worker(
             peak_reset_frame = done if reset_peak_rss() else None
         if done % RSS_EVERY == 0:
             result.rss_mb.append((done, current_rss_mb()))
+            held.append((done, slam.held_trajectory_rows))
         if done % step == 0:
             probes.append((done, min(speed_probe_ms() for _ in range(3))))
             print(
@@ -253,6 +255,8 @@ def run_worker(
         "rss_mb": result.rss_mb,
         "removals": slam.removal_count,
         "first_removal_frame": result.removal_log.first_frame,
+        "held_trajectory_rows": held,
+        "spooled_trajectory_rows": pose_log.count,
         "trajectory": traj,
     }
     out.write_text(json.dumps(record))
@@ -441,6 +445,8 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
     # transient on top of the steady RSS as growth, however early such transients came.
     growth = 100.0 * (peak - quarter[1]) / quarter[1] if quarter else None
     growth_current = 100.0 * (record["rss_end_mb"] - quarter[1]) / quarter[1] if quarter else None
+    creep = steady_rss_creep(record, n)
+    held = [h for _, h in record.get("held_trajectory_rows", [])]
     goal_key, goal_growth = (
         ("peak_rss_growth_pct_end_vs_quarter", peak_growth)
         if peak_growth is not None
@@ -473,7 +479,26 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         "rss_growth_goal_met": (
             None if goal_growth is None else goal_growth <= RSS_GROWTH_GOAL_PCT
         ),
+        "steady_rss_creep_bytes_per_frame": _r(creep, 1),
+        "held_trajectory_rows_max": max(held) if held else None,
+        "spooled_trajectory_rows": record.get("spooled_trajectory_rows"),
     }
+
+
+def steady_rss_creep(record: dict[str, Any], n: int, block: int = 1000) -> float | None:
+    """Slope of the steady RSS from frame N/4 on, bytes a frame: a least-squares line
+    through the lowest RSS sample of each `block` frames (the transients above it, see
+    the module docstring, are left out). None with fewer than three blocks."""
+    samples = [(f, mb) for f, mb in record["rss_mb"] if f > n // 4]
+    lows: dict[int, float] = {}
+    for f, mb in samples:
+        b = (f - 1) // block
+        lows[b] = min(lows.get(b, mb), mb)
+    if len(lows) < 3:
+        return None
+    blocks = np.array(sorted(lows), dtype=np.float64)
+    slope_mb = np.polyfit(blocks * block, [lows[int(b)] for b in blocks], 1)[0]
+    return float(slope_mb * 2**20)
 
 
 def _cpu_slowdown(
@@ -696,6 +721,12 @@ def print_summary(report: dict[str, Any]) -> None:
         f" {fmt(f['rss_at_quarter_mb'], ' MiB')}   growth to the later peak"
         f" {fmt(f['rss_growth_pct_peak_end_vs_quarter'], ' %')}, to the end's RSS"
         f" {fmt(f['rss_growth_pct_current_end_vs_quarter'], ' %')}"
+    )
+    print(
+        f"{'':10s} steady RSS creep from frame {f['rss_quarter_frame']}:"
+        f" {fmt(f.get('steady_rss_creep_bytes_per_frame'), ' B/frame')}"
+        f"   trajectory rows held at most {f.get('held_trajectory_rows_max')},"
+        f" spooled {f.get('spooled_trajectory_rows')}"
     )
     live = b["live_landmarks"]
     print(
