@@ -234,14 +234,16 @@ class IncrementalGraph:
         added: list[gtsam.NonlinearFactor] = list(factors)
         taken: set[int] = set(drop)
         marginals: list[gtsam.NonlinearFactor] = []
-        for stage in (marginalise, then_marginalise):
+        for stage, thinning in ((marginalise, False), (then_marginalise, True)):
             if not stage:
                 continue
             # The earlier stage's marginals on this stage's keys are taken in, not added.
             keys = set(stage)
             into = [m for m in marginals if keys.intersection(m.keys())]
             marginals = [m for m in marginals if not keys.intersection(m.keys())]
-            indices, more = self._schur_complement(stage, exclude=taken, extra=into)
+            indices, more = self._schur_complement(
+                stage, exclude=taken, extra=into, summed=thinning
+            )
             taken.update(indices)
             marginals.extend(more)
         remove: list[int] = sorted(taken)
@@ -322,14 +324,39 @@ class IncrementalGraph:
         self._key_factors = {}
         return result, factors
 
+    def _eliminate(
+        self, linear: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering, summed: bool
+    ) -> tuple[gtsam.GaussianBayesTree, gtsam.GaussianFactorGraph]:
+        """Eliminate `ordering` from `linear`: (conditionals, the marginal factors).
+
+        QR by default: it leaves Jacobian factors (square roots), which a landmark's
+        linear marginal needs as they are (iSAM2's QR fallback) and relative marginals
+        use without factoring. But QR stacks every factor of a clique into one dense
+        Jacobian, rows by columns: a keyframe thinning of 53 keyframes out of 436
+        factors over 186 keys took 15 MiB that way, the largest transient of the 20 000-
+        frame lifelong run (bench.memory_transients). `summed` (keyframe thinning, poses
+        with relative marginals): GTSAM's default, EliminatePreferCholesky, which sums
+        the factors' information into one square matrix, columns by columns; its
+        marginals are Hessian factors that relative_marginal takes a square root of.
+        Not for every pose: a window exit each frame, factored that way, made the
+        lifelong run ~5x slower (mostly the square roots of rank-deficient marginals)."""
+        if summed and self._relative:
+            return linear.eliminatePartialMultifrontal(ordering)
+        try:
+            return linear.eliminatePartialMultifrontal(ordering, gtsam.EliminateQR)
+        except RuntimeError:  # a Hessian factor that QR cannot take (e.g. rank-deficient)
+            return linear.eliminatePartialMultifrontal(ordering)
+
     def _schur_complement(
         self,
         keys: Sequence[int],
         exclude: set[int] | None = None,
         extra: Sequence[gtsam.NonlinearFactor] = (),
+        summed: bool = False,
     ) -> tuple[list[int], list[gtsam.NonlinearFactor]]:
         """Factor indices touching `keys`, and the marginal factors that replace them
-        (and the `extra` factors, not in the graph yet, that are taken in too)."""
+        (and the `extra` factors, not in the graph yet, that are taken in too).
+        `summed`: eliminate poses by Cholesky (see `_eliminate`)."""
         missing = [k for k in keys if k not in self._key_factors]
         if missing:
             raise KeyError(f"cannot marginalise {[gtsam.DefaultKeyFormatter(k) for k in missing]}")
@@ -342,21 +369,15 @@ class IncrementalGraph:
             local.add(carried)
         linear = local.linearize(theta)
         ordering = gtsam.Ordering(list(keys))
+        poses_only = not any(is_landmark_key(k) for k in keys)
         # Multifrontal: keys that share a dense factor (keyframes linked by landmark
-        # marginals) go in one clique and one QR, where sequential elimination did a QR
-        # of the whole dense block per key (21 keyframes: 681 ms -> 109 ms).
-        try:
-            # QR leaves Jacobian factors: a square root that relative marginals use as is.
-            conditionals, remaining = linear.eliminatePartialMultifrontal(
-                ordering, gtsam.EliminateQR
-            )
-        except RuntimeError:  # a Hessian factor that QR cannot take (e.g. rank-deficient)
-            conditionals, remaining = linear.eliminatePartialMultifrontal(ordering)
+        # marginals) go in one clique and one elimination, where sequential elimination
+        # did a QR of the whole dense block per key (21 keyframes: 681 ms -> 109 ms).
+        conditionals, remaining = self._eliminate(linear, ordering, summed and poses_only)
         # The linearised inputs (a copy of every dense factor taken in) go before the
         # marginals are copied into their containers: one dense copy fewer at the peak.
         del linear, local, conditionals
         marginals: list[gtsam.NonlinearFactor] = []
-        poses_only = not any(is_landmark_key(k) for k in keys)
         for i in range(remaining.size()):
             factor = remaining.at(i)
             if factor is None or len(factor.keys()) == 0:

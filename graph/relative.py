@@ -192,18 +192,38 @@ def _square_root(factor: gtsam.GaussianFactor) -> tuple[FloatArray, FloatArray]:
     """[A | b] with [A | b]^T [A | b] = the factor's augmented information.
 
     A Jacobian factor (what QR elimination of Jacobian factors leaves) already is
-    one. A Hessian factor is factored by eigen-decomposition rather than Cholesky:
-    a marginal is often rank-deficient (a landmark seen along one ray only), which
-    GaussianFactor.jacobian() refuses with IndeterminantLinearSystem.
+    one. A Hessian factor [[H, g], [g^T, f]] is factored by Cholesky of H where H is
+    well conditioned: A = [R; 0], b = [R^-T g; sqrt(f - |R^-T g|^2)] with R^T R = H.
+    Otherwise by eigen-decomposition: a marginal is often rank-deficient (a landmark
+    seen along one ray only), which Cholesky and GaussianFactor.jacobian() refuse
+    (IndeterminantLinearSystem); the eigen-decomposition is ~10x the cost.
     """
     if isinstance(factor, gtsam.JacobianFactor):
         a, b = factor.jacobian()  # whitened
         return np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     info = np.asarray(factor.augmentedInformation(), dtype=np.float64)
-    w, v = np.linalg.eigh(0.5 * (info + info.T))
+    info = 0.5 * (info + info.T)
+    h, g, f = info[:-1, :-1], info[:-1, -1], float(info[-1, -1])
+    try:
+        r = np.linalg.cholesky(h).T
+    except np.linalg.LinAlgError:
+        r = None
+    if r is not None:
+        pivots = np.diag(r) ** 2
+        if pivots.min() > _WELL_CONDITIONED * pivots.max():
+            d = np.linalg.solve(r.T, g)
+            tail = math.sqrt(max(f - float(d @ d), 0.0))
+            a = np.vstack([r, np.zeros((1, r.shape[1]))])
+            return a, np.append(d, tail)
+    w, v = np.linalg.eigh(info)
     keep = w > 1e-12 * max(float(w[-1]), 1e-300)
     root = np.sqrt(w[keep])[:, None] * v[:, keep].T
     return root[:, :-1], root[:, -1]
+
+
+_WELL_CONDITIONED = 1e-10
+"""Smallest Cholesky pivot, relative to the largest, for which `_square_root` keeps the
+Cholesky factor (pivots squared: the scale of H's eigenvalues)."""
 
 
 @dataclass(frozen=True)

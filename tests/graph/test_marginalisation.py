@@ -108,10 +108,11 @@ def test_marginalising_a_landmark_equals_batch_elimination(seed: int) -> None:
     assert max(growth) > 1.01, "deleting the landmark should lose information"
 
 
-@pytest.mark.parametrize("how", ["two updates", "jointly", "staged"])
+@pytest.mark.parametrize("how", ["two updates", "jointly", "staged", "thinning"])
 def test_marginalising_poses_and_landmarks_together_matches_batch(how: str) -> None:
     """In two updates, in one joint elimination, or staged in one update (the landmark,
-    then the poses: as a removal that thins keyframes does)."""
+    then the poses: as a removal that thins keyframes does; the poses' stage is
+    eliminated by Cholesky), or the landmark first and then a thinning alone."""
     graph, optimum, poses, marks = _small_problem(11)
     inc = IncrementalGraph(SlamConfig(huber_k=None))
     inc.update([graph.at(i) for i in range(graph.size())], optimum)
@@ -122,6 +123,9 @@ def test_marginalising_poses_and_landmarks_together_matches_batch(how: str) -> N
         inc.update(marginalise=[marks[0]], then_marginalise=[poses[0], poses[1]])
         # The poses' marginal replaces the landmark's, which never reaches iSAM2.
         assert all(poses[0] not in keys and poses[1] not in keys for keys in inc.marginal_keys)
+    elif how == "thinning":
+        inc.update(marginalise=[marks[0]])
+        inc.update(then_marginalise=[poses[0], poses[1]])
     else:
         inc.update(marginalise=[poses[0], poses[1]])
         inc.update(marginalise=[marks[0]])

@@ -16,6 +16,7 @@ from graph.relative import (
     RelativeMarginalFactor,
     RelativeSpec,
     _Blanket,
+    _square_root,
     choose_reference,
     relative_marginal,
 )
@@ -315,3 +316,27 @@ def test_a_diagonal_information_root_with_any_signs_becomes_a_between_factor(
     assert isinstance(between, gtsam.BetweenFactorPose2)
     info = np.asarray(between.noiseModel().R()).T @ np.asarray(between.noiseModel().R())
     np.testing.assert_allclose(info, root.T @ root, atol=1e-12)
+
+
+@pytest.mark.parametrize("rank", [6, 3], ids=["full rank", "rank-deficient"])
+def test_square_root_of_a_hessian_factor_gives_back_its_information(rank: int) -> None:
+    """Cholesky where the information has full rank, the eigen-decomposition where it
+    has not (a landmark seen along one ray): either way [A | b]^T [A | b] is the
+    factor's augmented information."""
+    rng = np.random.default_rng(rank)
+    rows = rng.normal(size=(rank, 6))
+    rhs = rng.normal(size=rank)
+    info = rows.T @ rows
+    factor = gtsam.HessianFactor(
+        KEYS[0],
+        KEYS[2],
+        info[:3, :3],
+        info[:3, 3:],
+        rows[:, :3].T @ rhs,
+        info[3:, 3:],
+        rows[:, 3:].T @ rhs,
+        float(rhs @ rhs),
+    )
+    a, b = _square_root(factor)
+    root = np.column_stack([a, b])
+    np.testing.assert_allclose(root.T @ root, np.asarray(factor.augmentedInformation()), atol=1e-9)
