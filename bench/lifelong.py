@@ -61,16 +61,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.config import SlamConfig
-from graph.slam import BearingSlam
 from service.datasets.indoor_sim import SimRun, make_world, simulate
 from service.evaluation import Trajectory, ate_rmse
 from service.replay import (
-    PoseLog,
-    RemovalLog,
-    ReplayResult,
     current_rss_mb,
     peak_rss_mb,
     reset_peak_rss,
+    spooled_map,
 )
 
 SEED = 20_240
@@ -168,15 +165,8 @@ def run_worker(
     config = RUNS[name]
     load_start = os.getloadavg()
     rss_before = current_rss_mb()
-    removal_log, pose_log = RemovalLog(), PoseLog()
-    slam = BearingSlam(
-        config,
-        rng=np.random.default_rng(seed),
-        removal_sink=removal_log.append,
-        release_heap=release_heap,
-        trajectory_sink=pose_log,
-    )
-    result = ReplayResult(slam, removal_log=removal_log, pose_log=pose_log)
+    result = spooled_map(config, seed, release_heap=release_heap)
+    slam = result.slam
     # Per-frame figures in typed arrays (8 bytes a number, not a list's ~32): the run's
     # own bookkeeping is inside the RSS it measures.
     stages: dict[str, array[float]] = {k: array("d") for k in STAGES}
@@ -256,7 +246,7 @@ def run_worker(
         "removals": slam.removal_count,
         "first_removal_frame": result.removal_log.first_frame,
         "held_trajectory_rows": held,
-        "spooled_trajectory_rows": pose_log.count,
+        "spooled_trajectory_rows": 0 if result.pose_log is None else result.pose_log.count,
         "trajectory": traj,
     }
     out.write_text(json.dumps(record))

@@ -194,6 +194,20 @@ def _config_dict(config: SlamConfig) -> dict[str, Any]:
     return {name: getattr(config, name) for name in config.__slots__}
 
 
+def spooled_map(config: SlamConfig, seed: int, *, release_heap: bool = True) -> ReplayResult:
+    """A fresh map whose removal log and final trajectory rows are spooled to temporary
+    files (so a long replay's memory stays flat), in an empty ReplayResult."""
+    removal_log, pose_log = RemovalLog(), PoseLog()
+    slam = BearingSlam(
+        config,
+        rng=np.random.default_rng(seed),
+        removal_sink=removal_log.append,
+        release_heap=release_heap,
+        trajectory_sink=pose_log,
+    )
+    return ReplayResult(slam, removal_log=removal_log, pose_log=pose_log)
+
+
 def replay(
     frames: Iterable[FrameInput | ImageFrame],
     *,
@@ -210,14 +224,8 @@ def replay(
     `progress`: None shows a bar only when stderr is a terminal. An ImageFrame
     goes through `front_end` (required then) and the map's ImagePipeline.
     """
-    removal_log, pose_log = RemovalLog(), PoseLog()
-    slam = BearingSlam(
-        config,
-        rng=np.random.default_rng(seed),
-        removal_sink=removal_log.append,
-        trajectory_sink=pose_log,
-    )
-    result = ReplayResult(slam, removal_log=removal_log, pose_log=pose_log)
+    result = spooled_map(config, seed)
+    slam = result.slam
     pipeline = ImagePipeline(slam, front_end) if front_end is not None else None
     bar = tqdm(
         frames, total=total, unit="frame", disable=None if progress is None else not progress
