@@ -188,6 +188,11 @@ def _log(pose: _Plain) -> list[float]:
     return [-uy * w / det, ux * w / det, w]
 
 
+_WELL_CONDITIONED = 1e-10
+"""Smallest Cholesky pivot, relative to the largest, for which `_square_root` keeps the
+Cholesky factor (pivots squared: the scale of H's eigenvalues)."""
+
+
 def _square_root(factor: gtsam.GaussianFactor) -> tuple[FloatArray, FloatArray]:
     """[A | b] with [A | b]^T [A | b] = the factor's augmented information.
 
@@ -219,11 +224,6 @@ def _square_root(factor: gtsam.GaussianFactor) -> tuple[FloatArray, FloatArray]:
     keep = w > 1e-12 * max(float(w[-1]), 1e-300)
     root = np.sqrt(w[keep])[:, None] * v[:, keep].T
     return root[:, :-1], root[:, -1]
-
-
-_WELL_CONDITIONED = 1e-10
-"""Smallest Cholesky pivot, relative to the largest, for which `_square_root` keeps the
-Cholesky factor (pivots squared: the scale of H's eigenvalues)."""
 
 
 @dataclass(frozen=True)

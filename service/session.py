@@ -282,7 +282,8 @@ class MapSession:
         except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
-            self._poses.take()
+            # The final rows collected so far stay for the load's flush: the estimator
+            # goes on without them, whatever this frame did before it failed.
             if stored.result is None:  # never acknowledged: drop it
                 log.warning("map %s: dropping unprocessable log frame %d", self.path, stored.id)
                 self.store.delete_frame(stored.id)
