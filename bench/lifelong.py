@@ -246,7 +246,8 @@ def run_worker(
         "removals": slam.removal_count,
         "first_removal_frame": result.removal_log.first_frame,
         "held_trajectory_rows": held,
-        "spooled_trajectory_rows": 0 if result.pose_log is None else result.pose_log.count,
+        # Every frame has one row: held by the estimator, or spooled.
+        "spooled_trajectory_rows": slam.frame_count - slam.held_trajectory_rows,
         "trajectory": traj,
     }
     out.write_text(json.dumps(record))

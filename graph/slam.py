@@ -45,7 +45,7 @@ from graph.isam import IncrementalGraph
 from graph.landmarks import CandidateTrack, LandmarkRecord, Ray
 from graph.policies import LandmarkTable, Removal, get_policy, information_content
 from graph.tracking import Motion, compose_motion, solve_pose, tracked_covariance
-from graph.trajectory import PoseRow, Trajectory
+from graph.trajectory import PoseRow, Trajectory, pose_rows
 from graph.triangulation import Triangulation, parallax, triangulate
 from graph.types import BearingObservation, FrameInput, Pose2D
 from graph.validation import validate_frame
@@ -866,11 +866,11 @@ class BearingSlam:
         followers = self._anchored.pop(key, array("q"))
         for f in followers:
             self._set_traj_pose(f, pose.compose(self._traj_pose_at(f)))
-        final = self._trajectory.finalise([frame, *followers], list(self._robots))
+        final = self._trajectory.finalise([frame, *followers])
         if self._trajectory_sink is None:
-            self._trajectory.keep(final, {n: r.slot for n, r in self._robots.items()})
+            self._trajectory.keep(final)
         else:
-            self._trajectory_sink(final)
+            self._trajectory_sink(pose_rows(final, list(self._robots)))
 
     def _thin_keyframes(self) -> None:
         """Marginalise the oldest keyframes of any marginal factor that links more than

@@ -38,6 +38,29 @@ class PoseRow:
     theta: float
 
 
+FinalRow = tuple[int, int, int, float, float, float, float]
+"""(frame, robot slot, seq, stamp, x, y, theta): a row as `Trajectory.finalise` releases it."""
+
+
+def pose_rows(rows: Iterable[FinalRow], robots: list[str]) -> list[PoseRow]:
+    """Released rows as a sink receives them; `robots` names the slots."""
+    return [
+        PoseRow(frame, robots[slot], seq, stamp, x, y, theta)
+        for frame, slot, seq, stamp, x, y, theta in rows
+    ]
+
+
+def with_final_rows(
+    final: NDArray[np.float64] | None, held: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """One robot's final rows (from a sink) and the rows the estimator holds, both (N, 5)
+    seq, stamp, x, y, theta as BearingSlam.trajectory gives them, as one array by seq."""
+    if final is None or not len(final):
+        return held
+    rows = np.concatenate([final, held])
+    return rows[np.argsort(rows[:, 0], kind="stable")]
+
+
 @dataclass(frozen=True, slots=True)
 class TrajectoryRows:
     """Rows sorted by frame index: `frame` (N,), `slot` (N,) the robot's slot, `seq`
@@ -89,22 +112,18 @@ class Trajectory:
         slot, seq, stamp = self._held[frame][:3]
         self._held[frame] = (slot, seq, stamp, pose.x(), pose.y(), pose.theta())
 
-    def finalise(self, frames: Iterable[int], robots: list[str]) -> list[PoseRow]:
-        """Release held rows whose pose will not change again; `robots` names the slots."""
-        out = []
-        for frame in frames:
-            slot, seq, stamp, x, y, theta = self._held.pop(frame)
-            out.append(PoseRow(frame, robots[slot], seq, stamp, x, y, theta))
-        return out
+    def finalise(self, frames: Iterable[int]) -> list[FinalRow]:
+        """Release held rows whose pose will not change again."""
+        return [(frame, *self._held.pop(frame)) for frame in frames]
 
-    def keep(self, rows: Iterable[PoseRow], slots: dict[str, int]) -> None:
+    def keep(self, rows: Iterable[FinalRow]) -> None:
         """Keep final rows here (an estimator without a sink)."""
-        for r in rows:
-            self._frame.append(r.frame)
-            self._slot.append(slots[r.robot])
-            self._seq.append(r.seq)
-            self._stamp.append(r.stamp)
-            self._pose.extend((r.x, r.y, r.theta))
+        for frame, slot, seq, stamp, x, y, theta in rows:
+            self._frame.append(frame)
+            self._slot.append(slot)
+            self._seq.append(seq)
+            self._stamp.append(stamp)
+            self._pose.extend((x, y, theta))
 
     def rows(self) -> TrajectoryRows:
         """Kept and held rows, sorted by frame index (copies)."""

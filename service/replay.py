@@ -24,7 +24,7 @@ from tqdm import tqdm
 from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.slam import BearingSlam, RemovalRecord
-from graph.trajectory import PoseRow
+from graph.trajectory import PoseRow, with_final_rows
 from graph.types import FrameInput
 from service.evaluation import Trajectory
 from service.frames_io import FrameFileError, read_frame_lines
@@ -93,7 +93,6 @@ class PoseLog:
     def __init__(self) -> None:
         self._file = tempfile.TemporaryFile("w+b")  # noqa: SIM115
         self._robots: dict[str, int] = {}
-        self.count = 0
 
     def __call__(self, rows: list[PoseRow]) -> None:
         records = np.empty(len(rows), dtype=_POSE_RECORD)
@@ -101,7 +100,6 @@ class PoseLog:
             slot = self._robots.setdefault(r.robot, len(self._robots))
             records[i] = (slot, r.seq, r.stamp, (r.x, r.y, r.theta))
         self._file.write(records.tobytes())
-        self.count += len(rows)
 
     def rows(self, robot: str) -> NDArray[np.float64]:
         """One robot's spooled rows, (N, 5) seq, stamp, x, y, theta in spooling order."""
@@ -139,8 +137,7 @@ class ReplayResult:
         """The latest estimate of every frame's pose of one robot."""
         rows = self.slam.trajectory(robot)[robot]
         if self.pose_log is not None:
-            rows = np.concatenate([self.pose_log.rows(robot), rows])
-            rows = rows[np.argsort(rows[:, 0], kind="stable")]
+            rows = with_final_rows(self.pose_log.rows(robot), rows)
         return Trajectory.from_poses(rows[:, 1], rows[:, 2:5])
 
     def stats(self) -> dict[str, Any]:

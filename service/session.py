@@ -16,7 +16,7 @@ import shutil
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -102,31 +102,23 @@ _POSE_FLUSH = 4096
 """Final trajectory rows a reload collects before it writes them (bounds its memory)."""
 
 
-class _RemovalBuffer:
-    """Collects the removals of one frame (the estimator's removal sink)."""
+T = TypeVar("T")
+
+
+class _Buffer(Generic[T]):
+    """Collects what the estimator's sinks hand out during one frame (removal records,
+    final trajectory rows), to be stored with the frame's result."""
 
     def __init__(self) -> None:
-        self.items: list[RemovalRecord] = []
+        self.items: list[T] = []
 
-    def __call__(self, record: RemovalRecord) -> None:
-        self.items.append(record)
+    def append(self, item: T) -> None:
+        self.items.append(item)
 
-    def take(self) -> list[RemovalRecord]:
-        items, self.items = self.items, []
-        return items
+    def extend(self, items: list[T]) -> None:
+        self.items.extend(items)
 
-
-class _PoseBuffer:
-    """Collects the trajectory rows a frame made final (the estimator's trajectory
-    sink), to be stored with the frame's result."""
-
-    def __init__(self) -> None:
-        self.items: list[PoseRow] = []
-
-    def __call__(self, rows: list[PoseRow]) -> None:
-        self.items.extend(rows)
-
-    def take(self) -> list[PoseRow]:
+    def take(self) -> list[T]:
         items, self.items = self.items, []
         return items
 
@@ -155,8 +147,8 @@ class MapSession:
                 500, "corrupt-map", "Map store incomplete", f"{path.name} has no map record"
             )
         self.record = MapRecord.from_dict(meta)
-        self._removals = _RemovalBuffer()
-        self._poses = _PoseBuffer()
+        self._removals: _Buffer[RemovalRecord] = _Buffer()
+        self._poses: _Buffer[PoseRow] = _Buffer()
         self._timing: deque[float] = deque(maxlen=1000)
         self.replay_errors = 0
         self.loaded_from_snapshot = 0
@@ -187,8 +179,8 @@ class MapSession:
         return BearingSlam(
             config,
             rng=np.random.default_rng(seed),
-            removal_sink=self._removals,
-            trajectory_sink=self._poses,
+            removal_sink=self._removals.append,
+            trajectory_sink=self._poses.extend,
         )
 
     def _load(self) -> tuple[BearingSlam, MapLocalisation, int, int]:
@@ -206,7 +198,7 @@ class MapSession:
         if snap is not None:
             try:
                 slam, extra = restore_with_extra(
-                    snap[1], removal_sink=self._removals, trajectory_sink=self._poses
+                    snap[1], removal_sink=self._removals.append, trajectory_sink=self._poses.extend
                 )
                 slam.config = slam_config(self.record.config, self.record.mode)
                 if isinstance(extra, MapLocalisation):

@@ -309,11 +309,6 @@ class MapStore:
 
     def delete_frame(self, frame_id: int) -> None:
         with transaction(self._conn):
-            self._conn.execute(
-                "DELETE FROM poses WHERE (robot, seq) IN (SELECT robot, seq FROM frames "
-                "WHERE id = ?)",
-                (frame_id,),
-            )
             self._conn.execute("DELETE FROM frames WHERE id = ?", (frame_id,))
             self._conn.execute("DELETE FROM images WHERE frame_id = ?", (frame_id,))
             self._conn.execute("DELETE FROM image_observations WHERE frame_id = ?", (frame_id,))

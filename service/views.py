@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from graph.policies import LandmarkTable, coverage_clusters, information_content
 from graph.slam import BearingSlam
 from graph.snapshot import last_accepted
+from graph.trajectory import with_final_rows
 from service.coverage import coverage_grid
 from service.errors import ServiceError
 from service.evaluation import Trajectory, write_tum
@@ -45,16 +46,11 @@ def full_trajectory(
 ) -> dict[str, NDArray[np.float64]]:
     """Every frame's row per robot (seq, stamp, x, y, theta; sorted by seq): the final
     rows in the store and the rows the estimator still holds."""
-    held = slam.trajectory(robot)
     stored = store.poses(robot)
-    out = {}
-    for name, rows in held.items():
-        done = stored.get(name)
-        if done is not None and len(done):
-            rows = np.concatenate([done, rows])
-            rows = rows[np.argsort(rows[:, 0], kind="stable")]
-        out[name] = rows
-    return out
+    return {
+        name: with_final_rows(stored.get(name), held)
+        for name, held in slam.trajectory(robot).items()
+    }
 
 
 def trajectory_doc(
