@@ -36,8 +36,14 @@ class BatchResult:
     start: str
     """Which starting point won: 'dead_reckoning', 'online' or 'online_<name>'."""
     landmarks: int
+    landmark_xy: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """The solution's landmark positions (x, y metres) by label."""
     per_start: dict[str, BatchResult] = field(default_factory=dict)
     """The winner only: the solution from every starting point that converged, by name."""
+
+
+def _xy(point: np.ndarray) -> tuple[float, float]:
+    return float(point[0]), float(point[1])
 
 
 def _graph(frames: Sequence[FrameInput], config: SlamConfig, labels: dict[str, int]):
@@ -133,6 +139,11 @@ def batch_solve(
             graph.error(est),
             name,
             sum(1 for i in labels.values() if est.exists(landmark_key(i))),
+            {
+                label: _xy(est.atPoint2(landmark_key(i)))
+                for label, i in labels.items()
+                if est.exists(landmark_key(i))
+            },
         )
         solved[name] = result
         labels = {}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,8 +23,10 @@ __all__ = [
     "Trajectory",
     "align_se2",
     "associate",
+    "MapFit",
     "ate_rmse",
     "dead_reckoning",
+    "fit_landmarks",
     "interpolate",
     "read_tum",
     "write_tum",
@@ -200,6 +202,65 @@ def ate_rmse(
         rot, trans = align_se2(est_xy, gt_xy)
         est_xy = est_xy @ rot.T + trans
     return float(np.sqrt(np.mean(np.sum((est_xy - gt_xy) ** 2, axis=1))))
+
+
+@dataclass(frozen=True)
+class MapFit:
+    """A map's landmarks judged against surveyed positions.
+
+    The rigid motion (R, t) that best moves the estimated landmarks onto the surveyed
+    ones (least squares, no scale) splits the map's error in two: where the map frame
+    went (``rotation_rad``, and ``shift_m``, how far that motion moves the estimated
+    landmarks' centroid: both zero for a map whose frame is the one the client gave)
+    and the map's shape (``rmse_aligned_m``, after the motion). ``rmse_m`` is what a
+    user of the map sees: the landmarks where the map puts them, in its own frame.
+
+    Attributes:
+        labels: the landmarks compared (in both sets), sorted.
+        rotation_rad: rotation of the best fit, wrapped to (-pi, pi].
+        shift_m: |R c + t - c| for the estimated landmarks' centroid c, metres.
+        rmse_m: RMS distance estimated -> surveyed, unaligned, metres.
+        rmse_aligned_m: RMS distance after the best rigid fit, metres.
+    """
+
+    labels: tuple[str, ...]
+    rotation_rad: float
+    shift_m: float
+    rmse_m: float
+    rmse_aligned_m: float
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {
+            "landmarks": len(self.labels),
+            "rotation_deg": math.degrees(self.rotation_rad),
+            "shift_m": self.shift_m,
+            "rmse_m": self.rmse_m,
+            "rmse_aligned_m": self.rmse_aligned_m,
+        }
+
+
+def fit_landmarks(
+    estimated: Mapping[str, ArrayLike], surveyed: Mapping[str, ArrayLike]
+) -> MapFit:
+    """Compare landmark positions (x, y metres, by label) with surveyed ones.
+
+    Only labels in both are compared; at least two are needed (ValueError otherwise).
+    See `MapFit` for what each figure means."""
+    labels = tuple(sorted(set(estimated) & set(surveyed)))
+    if len(labels) < 2:
+        raise ValueError(f"{len(labels)} landmarks in common with the survey; need at least 2")
+    est = np.array([np.asarray(estimated[k], dtype=np.float64).reshape(2) for k in labels])
+    ref = np.array([np.asarray(surveyed[k], dtype=np.float64).reshape(2) for k in labels])
+    rot, trans = align_se2(est, ref)
+    centroid = est.mean(axis=0)
+    moved = est @ rot.T + trans
+    return MapFit(
+        labels=labels,
+        rotation_rad=math.atan2(float(rot[1, 0]), float(rot[0, 0])),
+        shift_m=float(np.linalg.norm(rot @ centroid + trans - centroid)),
+        rmse_m=float(np.sqrt(np.mean(np.sum((est - ref) ** 2, axis=1)))),
+        rmse_aligned_m=float(np.sqrt(np.mean(np.sum((moved - ref) ** 2, axis=1)))),
+    )
 
 
 # --------------------------------------------------------------------------- dead reckoning

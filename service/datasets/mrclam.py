@@ -42,6 +42,7 @@ __all__ = [
     "mrclam_frames",
     "mrclam_noise",
     "relative_motion",
+    "surveyed_landmarks",
 ]
 
 logger = logging.getLogger(__name__)
@@ -132,6 +133,13 @@ def load_mrclam(directory: str | os.PathLike[str], robot: int) -> MrclamRobot:
         barcodes=_load_table(d, "Barcodes", 2).astype(np.int64),
         landmarks=landmarks,
     )
+
+
+def surveyed_landmarks(directory: str | os.PathLike[str]) -> dict[str, FloatArray]:
+    """The surveyed landmark positions (x, y metres, map frame of the ground truth) by
+    the label `mrclam_frames` gives their observations (the subject number)."""
+    table = _load_table(Path(directory), "Landmark_Groundtruth", 5)
+    return {str(int(row[0])): row[1:3].copy() for row in table}
 
 
 # --------------------------------------------------------------------------- odometry

@@ -88,7 +88,7 @@ def test_coverage_clusters_shapes_and_spreads() -> None:
 def test_coverage_protects_the_poorly_covered_room_information_does_not(seed: int) -> None:
     table = _two_rooms()
     assert table.information is not None
-    coverage = get_policy("coverage").select(table, rng=np.random.default_rng(seed))
+    coverage = get_policy("coverage_paper").select(table, rng=np.random.default_rng(seed))
     information = get_policy("information").select(table, rng=np.random.default_rng(seed))
 
     assert information.landmark_id == 113  # the least precise landmark, in room 2
@@ -111,33 +111,60 @@ def test_a_singleton_cluster_is_never_chosen_while_a_larger_one_exists() -> None
     observed = [[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.1, 0.1], [30.0, 30.0]]
     table = _table(observed, [100.0, 100.0, 100.0, 100.0, 0.5])
     for seed in range(10):
-        removal = get_policy("coverage").select(table, rng=np.random.default_rng(seed))
+        removal = get_policy("coverage_paper").select(table, rng=np.random.default_rng(seed))
         assert removal.landmark_id == 100  # all spreads 0: the larger cluster, lowest id
         assert removal.details["spreads"] == [0.0, 0.0]
     assert get_policy("information").select(table, rng=np.random.default_rng(0)).landmark_id == 104
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_coverage_keeps_a_lone_landmark_and_takes_the_least_informative_shared_one(
+    seed: int,
+) -> None:
+    # Two rooms of four (x=0 and x=50) and a lone landmark far away, the least precise.
+    # The paper's rule takes the lowest I of the widest-spread cluster (the one holding
+    # the best landmark, I=1000); the product's takes the lowest I of every shared one.
+    room = [[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]
+    observed = [*room, *([x + 50.0, y] for x, y in room), [200.0, 200.0]]  # k = 3
+    info = [1000.0, 50.0, 60.0, 70.0, 10.0, 20.0, 30.0, 40.0, 1.0]
+    table = _table(observed, info, ids=list(range(1, 10)))
+    rng = np.random.default_rng(seed)
+    removal = get_policy("coverage").select(table, rng=rng)
+    assert removal.landmark_id == 5
+    assert removal.details["protected"] == [9]
+    assert sorted(removal.details["cluster_members"]) == [5, 6, 7, 8]
+    paper = get_policy("coverage_paper").select(table, rng=np.random.default_rng(seed))
+    assert paper.landmark_id == 2
+    assert get_policy("information").select(table, rng=rng).landmark_id == 9
+
+
+def test_coverage_with_only_lone_landmarks_removes_the_least_informative() -> None:
+    table = _table([[0.0, 0.0], [90.0, 0.0]], [5.0, 2.0], ids=[1, 2])
+    removal = get_policy("coverage").select(table, rng=np.random.default_rng(0))
+    assert removal.landmark_id == 2
 
 
 def test_coverage_ties_prefer_the_larger_cluster_then_lowest_information_then_id() -> None:
     # cluster at x=0: three landmarks with spread 10; cluster at x=50: two with spread 10
     observed = [[50.0, 0.0], [50.0, 1.0], [0.0, 0.0], [0.0, 1.0], [1.0, 0.0]]
     table = _table(observed, [5.0, 15.0, 30.0, 20.0, 20.0], ids=[7, 3, 9, 8, 2])
-    removal = get_policy("coverage").select(table, rng=np.random.default_rng(0))
+    removal = get_policy("coverage_paper").select(table, rng=np.random.default_rng(0))
     assert removal.landmark_id == 2  # larger cluster; I = 20 twice, lowest id
     assert removal.details["cluster_spread"] == pytest.approx(10.0)
 
 
 def test_coverage_with_only_singletons_removes_the_lowest_information() -> None:
     table = _table([[1.0, 2.0]], [42.0])
-    removal = get_policy("coverage").select(table, rng=np.random.default_rng(0))
+    removal = get_policy("coverage_paper").select(table, rng=np.random.default_rng(0))
     assert removal.landmark_id == 100
     assert "single landmark" in removal.reason
 
 
 def test_coverage_reason_names_cluster_spread_and_information() -> None:
     table = _two_rooms()
-    removal = get_policy("coverage").select(table, rng=np.random.default_rng(0))
+    removal = get_policy("coverage_paper").select(table, rng=np.random.default_rng(0))
     d = removal.details
-    assert removal.policy == "coverage"
+    assert removal.policy == "coverage_paper"
     assert f"cluster {d['cluster']}" in removal.reason
     assert f"D={d['cluster_spread']:.4g}" in removal.reason
     assert f"{d['information']:.4g} 1/m²" in removal.reason
@@ -197,11 +224,19 @@ def test_random_is_reproducible_from_a_seed_and_uniform() -> None:
 
 
 def test_registry_lookup() -> None:
-    assert POLICY_NAMES == ("coverage", "information", "oldest", "least_observed", "random")
+    assert POLICY_NAMES == (
+        "coverage",
+        "coverage_paper",
+        "information",
+        "oldest",
+        "least_observed",
+        "random",
+    )
     for name in POLICY_NAMES:
         policy = get_policy(name)
         assert policy.name == name
     assert get_policy("coverage").needs_information
+    assert get_policy("coverage_paper").needs_information
     assert get_policy("information").needs_information
     assert not get_policy("oldest").needs_information
     assert not get_policy("least_observed").needs_information
