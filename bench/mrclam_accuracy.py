@@ -89,9 +89,16 @@ def map_landmarks(res: ReplayResult) -> dict[str, Any]:
     return out
 
 
-def run_uncapped(robot: int, noise: str, directory: Path) -> dict[str, Any]:
-    """Dead reckoning, covslam uncapped (every pose; bounded), and the batch reference."""
+def _frames(directory: Path, robot: int, limit: int | None) -> tuple[list[Any], Trajectory]:
     frames, gt = mrclam_frames(load_mrclam(directory, robot))
+    return (frames[:limit] if limit else frames), gt
+
+
+def run_uncapped(
+    robot: int, noise: str, directory: Path, limit: int | None = None
+) -> dict[str, Any]:
+    """Dead reckoning, covslam uncapped (every pose; bounded), and the batch reference."""
+    frames, gt = _frames(directory, robot, limit)
     surveyed = surveyed_landmarks(directory)
     name = f"r{robot}"
     out: dict[str, Any] = {"dead_reckoning": _judge(dead_reckoning(frames), gt, {}, surveyed)}
@@ -111,8 +118,10 @@ def run_uncapped(robot: int, noise: str, directory: Path) -> dict[str, Any]:
     return out
 
 
-def run_capped(robot: int, policy: str, seed: int, noise: str, directory: Path) -> dict[str, Any]:
-    frames, gt = mrclam_frames(load_mrclam(directory, robot))
+def run_capped(
+    robot: int, policy: str, seed: int, noise: str, directory: Path, limit: int | None = None
+) -> dict[str, Any]:
+    frames, gt = _frames(directory, robot, limit)
     surveyed = surveyed_landmarks(directory)
     t = time.perf_counter()
     cfg = SlamConfig(landmark_cap=CAP, policy=policy, **_noise(noise))
@@ -143,7 +152,7 @@ def summarise(rows: dict[str, dict[str, Any]], policies: list[str]) -> dict[str,
     """Means over robots, and the per-robot ratios to the batch the goals are read on."""
     methods = [*UNCAPPED, *(f"cap{CAP}_{p}" for p in policies)]
     mean = {
-        m: {k: float(np.mean([r[m][k] for r in rows.values()])) for k in MEASURES}
+        m: {k: float(np.nanmean([r[m].get(k, np.nan) for r in rows.values()])) for k in MEASURES}
         for m in methods
         if all(m in r for r in rows.values())
     }
@@ -152,7 +161,7 @@ def summarise(rows: dict[str, dict[str, Any]], policies: list[str]) -> dict[str,
         return {
             robot: r[method][measure] / r["batch_lm"][measure]
             for robot, r in rows.items()
-            if method in r
+            if measure in r.get(method, {}) and measure in r["batch_lm"]
         }
 
     out: dict[str, Any] = {"mean": mean, "ratio_to_batch": {}}
@@ -212,6 +221,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--name", default="mrclam_accuracy", help="file name of the results")
     parser.add_argument("--jobs", type=int, default=2, help="replays run in parallel")
+    parser.add_argument("--frames", type=int, default=None, help="first N frames only (smoke)")
     args = parser.parse_args()
     if not args.data.is_dir():
         raise SystemExit(f"MRCLAM data not found at {args.data} (set COVSLAM_DATA)")
@@ -224,11 +234,14 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures: dict[Any, tuple[str, str | None]] = {}
         for r in robots:
-            futures[pool.submit(run_uncapped, r, args.noise, args.data)] = (f"r{r}", None)
+            futures[pool.submit(run_uncapped, r, args.noise, args.data, args.frames)] = (
+                f"r{r}",
+                None,
+            )
         for r in robots:
             for p in policies:
                 for seed in range(args.seeds if p in STOCHASTIC else 1):
-                    job = pool.submit(run_capped, r, p, seed, args.noise, args.data)
+                    job = pool.submit(run_capped, r, p, seed, args.noise, args.data, args.frames)
                     futures[job] = (f"r{r}", p)
         for future in as_completed(futures):
             robot, policy = futures[future]
@@ -240,6 +253,7 @@ def main() -> None:
                 runs.append(future.result())
                 rows[robot][f"cap{CAP}_{policy}"] = _median_runs(runs)
     seconds = time.perf_counter() - t0
+    (args.out / f"{args.name}.rows.json").write_text(json.dumps(rows, indent=1))
     methods = [*UNCAPPED, *(f"cap{CAP}_{p}" for p in policies)]
     for robot, row in rows.items():
         print(f"{robot} cap {CAP}: " + _line(row, methods[len(UNCAPPED) :]))

@@ -42,16 +42,19 @@ def from_pose2(pose: gtsam.Pose2) -> Pose2D:
 
 
 def odometry_sigmas(odometry: Odometry, config: SlamConfig, dt_s: float = 0.0) -> np.ndarray:
-    """One-sigma noise (x m, y m, theta rad), shape (3,): given, or growing with the
-    motion and (in quadrature) with the square root of the time `dt_s` it took."""
+    """One-sigma noise (x m, y m, theta rad), shape (3,): given, or the map's model: a
+    floor plus terms linear in the step's distance and turn, and in quadrature random
+    walks in the distance, the turn and the time `dt_s` the step took (see SlamConfig)."""
     dist = math.hypot(odometry.dx, odometry.dy)
     floor = np.asarray(config.odometry_sigma_floor)
     per_m = np.asarray(config.odometry_sigma_per_metre)
     model = floor + per_m * dist
     model[2] += config.odometry_sigma_per_radian * abs(odometry.dtheta)
-    per_sqrt_s = np.asarray(config.odometry_sigma_per_sqrt_second)
-    if dt_s > 0 and per_sqrt_s.any():
-        model = np.sqrt(model**2 + per_sqrt_s**2 * dt_s)
+    variance = model**2 + np.square(config.odometry_sigma_per_sqrt_metre) * dist
+    variance[2] += config.odometry_sigma_per_sqrt_radian**2 * abs(odometry.dtheta)
+    if dt_s > 0:
+        variance += np.square(config.odometry_sigma_per_sqrt_second) * dt_s
+    model = np.sqrt(variance)
     given = (odometry.sigma_x, odometry.sigma_y, odometry.sigma_theta)
     return np.array([g if g is not None else m for g, m in zip(given, model, strict=True)])
 

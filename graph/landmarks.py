@@ -47,6 +47,12 @@ class CandidateTrack:
     rays: tuple[Ray, ...] = ()
     last_frame: int = 0
 
-    def with_ray(self, ray: Ray, max_rays: int) -> CandidateTrack:
-        rays = (*self.rays, ray)[-max_rays:]
+    def with_ray(self, ray: Ray, max_rays: int, first: int = 0) -> CandidateTrack:
+        """The track with `ray` added: at most `max_rays` rays, the `first` oldest ones
+        and the newest others (the oldest rays are the widest baseline, and they tie the
+        landmark to where its robot came from, e.g. the pose its initial pose anchors)."""
+        rays = (*self.rays, ray)
+        if len(rays) > max_rays:
+            keep = min(first, max_rays - 1)
+            rays = rays[:keep] + rays[len(rays) - (max_rays - keep) :]
         return CandidateTrack(self.label, rays, ray.frame)

@@ -512,7 +512,7 @@ class BearingSlam:
                 if obs.label not in self._label_to_id:
                     track = self._candidates.get(obs.label) or CandidateTrack(obs.label)
                     ray = Ray(key, frame_index, frame.stamp, obs.bearing_rad, self._sigma(obs))
-                    touched[obs.label] = track.with_ray(ray, cfg.max_rays)
+                    touched[obs.label] = track.with_ray(ray, cfg.max_rays, cfg.candidate_first_rays)
         chosen = self._factor_choice(observed)
         for i in chosen:
             lid, bearing = observed[i]
@@ -532,10 +532,16 @@ class BearingSlam:
                 or (r.pose_key in self._graph and r.pose_key not in leaving_keys)
             )
             touched[label] = CandidateTrack(label, rays, track.last_frame)
+            first = tuple(r for r in track.rays[: cfg.candidate_first_rays] if r in rays)
             tri = self._triangulate(rays, key, predicted)
+            if tri is None and first:
+                # The first rays may disagree with a chain that drifted since: start from
+                # the newer ones, and let the first rays' factors pull the chain.
+                tri = self._triangulate(rays[len(first) :], key, predicted)
             if tri is None:
                 continue
             triangulation, used = tri
+            used = (*(r for r in first if r not in used), *used)
             lid = self._next_landmark_id + len(new_landmarks)
             lkey = landmark_key(lid)
             values.insert(lkey, triangulation.point)

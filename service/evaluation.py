@@ -20,10 +20,10 @@ from graph.angles import wrap_angles
 from graph.types import FrameInput
 
 __all__ = [
+    "MapFit",
     "Trajectory",
     "align_se2",
     "associate",
-    "MapFit",
     "ate_rmse",
     "dead_reckoning",
     "fit_landmarks",
@@ -239,9 +239,7 @@ class MapFit:
         }
 
 
-def fit_landmarks(
-    estimated: Mapping[str, ArrayLike], surveyed: Mapping[str, ArrayLike]
-) -> MapFit:
+def fit_landmarks(estimated: Mapping[str, ArrayLike], surveyed: Mapping[str, ArrayLike]) -> MapFit:
     """Compare landmark positions (x, y metres, by label) with surveyed ones.
 
     Only labels in both are compared; at least two are needed (ValueError otherwise).

@@ -58,6 +58,22 @@ class NoiseConfig(BaseModel):
         ge=0,
         description="heading sigma growth per radian turned, rad/rad",
     )
+    odometry_sigma_per_sqrt_metre: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="random-walk growth of the odometry sigma with the distance travelled, "
+        "in quadrature, whatever the frame rate: x m/sqrt(m), y m/sqrt(m), theta "
+        "rad/sqrt(m). A map created without a noise model gets "
+        f"{_DEFAULTS.odometry_sigma_per_sqrt_metre!r} (sound for wheeled robots); a stored "
+        "config without it, none",
+    )
+    odometry_sigma_per_sqrt_radian: float = Field(
+        0.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="random-walk growth of the heading sigma with the angle turned, in "
+        "quadrature: rad/sqrt(rad). A map created without a noise model gets "
+        f"{_DEFAULTS.odometry_sigma_per_sqrt_radian:.4f}; a stored config without it, none",
+    )
     odometry_sigma_per_sqrt_second: tuple[float, float, float] = Field(
         _DEFAULTS.odometry_sigma_per_sqrt_second,
         description="odometry sigma growth with the step's duration, added in quadrature: "
@@ -71,6 +87,7 @@ class NoiseConfig(BaseModel):
     @field_validator(
         "odometry_sigma_floor",
         "odometry_sigma_per_metre",
+        "odometry_sigma_per_sqrt_metre",
         "odometry_sigma_per_sqrt_second",
         "initial_pose_sigma",
     )
@@ -159,6 +176,13 @@ CAMERA_LANDMARK_CAP = 200
 """The service's default landmark cap of a camera map created without one (its setting
 `default_camera_landmark_cap`). A camera map matches 45-60 landmarks a frame; at cap 50
 the rendered runs' image ATE was 0.0242 / 0.0267 m (seeds 0 / 1), at 200 0.0083 / 0.0138."""
+RANDOM_WALK_NOISE_DEFAULTS: dict[str, Any] = {
+    "odometry_sigma_per_sqrt_metre": _DEFAULTS.odometry_sigma_per_sqrt_metre,
+    "odometry_sigma_per_sqrt_radian": _DEFAULTS.odometry_sigma_per_sqrt_radian,
+}
+"""The odometry random walks a map created without them gets (MapConfig.for_new_map).
+A stored config without them is a map built before they existed: its log replays
+without them, as it was processed."""
 CAMERA_NOISE_DEFAULTS: dict[str, Any] = {"bearing_loss": "geman_mcclure", "huber_k": 1.0}
 """The `noise` fields a camera map created without them gets (MapConfig.for_new_map), and
 an in-process replay of image frames (see SlamConfig.bearing_loss)."""
@@ -324,21 +348,26 @@ class MapConfig(BaseModel):
         self, default_cap: int | None, camera_default_cap: int | None = CAMERA_LANDMARK_CAP
     ) -> MapConfig:
         """The config a map is created with: the service's default cap if the client gave
-        none (`camera_default_cap` for a camera map; None: uncapped); for a camera map,
+        none (`camera_default_cap` for a camera map; None: uncapped); the odometry random
+        walks of RANDOM_WALK_NOISE_DEFAULTS where the client gave none; for a camera map,
         graph_frame_distance_m and the noise's bearing loss and
         scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at
         creation: a stored config or an export without these fields is a map built with
         every frame in the graph and Huber's loss, and its frame log replays that way."""
+        given = self.noise.model_fields_set
+        noise = self.noise.model_copy(
+            update={k: v for k, v in RANDOM_WALK_NOISE_DEFAULTS.items() if k not in given}
+        )
         if self.camera is None:
-            return self.with_default_cap(default_cap)
+            return self.with_default_cap(default_cap).model_copy(update={"noise": noise})
         config = self.with_default_cap(camera_default_cap)
-        update: dict[str, Any] = {}
+        update: dict[str, Any] = {"noise": noise}
         if "graph_frame_distance_m" not in self.model_fields_set:
             update["graph_frame_distance_m"] = CAMERA_GRAPH_FRAME_DISTANCE_M
-        if not {"bearing_loss", "huber_k"} & self.noise.model_fields_set:
+        if not {"bearing_loss", "huber_k"} & given:
             # Loss and scale go together: a client who gave a huber_k meant Huber's.
-            update["noise"] = self.noise.model_copy(update=CAMERA_NOISE_DEFAULTS)
-        return config.model_copy(update=update) if update else config
+            update["noise"] = noise.model_copy(update=CAMERA_NOISE_DEFAULTS)
+        return config.model_copy(update=update)
 
     def with_default_cap(self, default_cap: int | None) -> MapConfig:
         """This config with the service's default cap if the client gave none."""
@@ -366,6 +395,8 @@ def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
         odometry_sigma_floor=cfg.noise.odometry_sigma_floor,
         odometry_sigma_per_metre=cfg.noise.odometry_sigma_per_metre,
         odometry_sigma_per_radian=cfg.noise.odometry_sigma_per_radian,
+        odometry_sigma_per_sqrt_metre=cfg.noise.odometry_sigma_per_sqrt_metre,
+        odometry_sigma_per_sqrt_radian=cfg.noise.odometry_sigma_per_sqrt_radian,
         odometry_sigma_per_sqrt_second=cfg.noise.odometry_sigma_per_sqrt_second,
         initial_pose_sigma=cfg.noise.initial_pose_sigma,
         optimizer=cfg.optimizer,

@@ -172,3 +172,37 @@ def test_a_camera_map_gets_the_camera_default_cap_unless_it_gives_one() -> None:
     assert own.for_new_map(50, 120).landmark_cap == 30
     uncapped = MapConfig.model_validate({"camera": "panorama", "landmark_cap": None})
     assert uncapped.for_new_map(50, 120).landmark_cap is None
+
+
+def test_a_new_map_gets_the_odometry_random_walks_and_a_stored_one_keeps_none() -> None:
+    created = MapConfig.model_validate({}).for_new_map(50)
+    estimator = slam_config(created.model_dump(mode="json"), "mapping")
+    defaults = SlamConfig()
+    assert estimator.odometry_sigma_per_sqrt_metre == defaults.odometry_sigma_per_sqrt_metre
+    assert estimator.odometry_sigma_per_sqrt_radian == defaults.odometry_sigma_per_sqrt_radian
+    assert defaults.odometry_sigma_per_sqrt_radian > 0
+    # A config stored before the random walks existed replays without them.
+    stored = MapConfig.model_validate({}).model_dump(mode="json")
+    for field in ("odometry_sigma_per_sqrt_metre", "odometry_sigma_per_sqrt_radian"):
+        del stored["noise"][field]
+    old = slam_config(stored, "mapping")
+    assert old.odometry_sigma_per_sqrt_metre == (0.0, 0.0, 0.0)
+    assert old.odometry_sigma_per_sqrt_radian == 0.0
+    # What a client states is kept, at creation as after.
+    given = MapConfig.model_validate({"noise": {"odometry_sigma_per_sqrt_radian": 0.01}})
+    kept = slam_config(given.for_new_map(50).model_dump(mode="json"), "mapping")
+    assert kept.odometry_sigma_per_sqrt_radian == 0.01
+    assert kept.odometry_sigma_per_sqrt_metre == defaults.odometry_sigma_per_sqrt_metre
+
+
+@pytest.mark.parametrize(
+    "noise",
+    [
+        {"odometry_sigma_per_sqrt_radian": -0.1},
+        {"odometry_sigma_per_sqrt_metre": [0.1, -0.1, 0.0]},
+        {"odometry_sigma_per_sqrt_metre": [0.1, 0.1]},
+    ],
+)
+def test_odometry_random_walks_are_validated(noise: dict[str, object]) -> None:
+    with pytest.raises(ValidationError, match="odometry_sigma_per_sqrt"):
+        MapConfig.model_validate({"noise": noise})
