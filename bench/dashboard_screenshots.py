@@ -24,17 +24,7 @@ from typing import Any
 
 import httpx
 
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    # The network is closed: without these Chromium stalls on refused connections.
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+from tests.e2e.chromium import CHROMIUM_ARGS
 
 
 def screenshot(
