@@ -1,4 +1,4 @@
-"""The REST frame (DESIGN.md, "A frame (JSON form)") as one pydantic model: the single
+"""The REST frame (docs/api.md, "A frame") as one pydantic model: the single
 validation of a frame's structure and the OpenAPI schema of a frame.
 
 `parse_frame` validates a decoded JSON object and returns the estimator's `FrameInput`,
