@@ -25,10 +25,11 @@ Units: metres, radians, seconds (stamps are seconds, any epoch).
 from __future__ import annotations
 
 import difflib
-from collections.abc import Mapping
-from typing import Annotated, Any
+from collections.abc import Callable, Mapping
+from typing import Annotated, Any, TypeVar
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -51,6 +52,8 @@ __all__ = [
     "OdometryIn",
     "parse_frame",
 ]
+
+T = TypeVar("T")
 
 SEQ_END = 2**63
 """seq must be below this: the store keeps it in a signed 64-bit integer."""
@@ -106,10 +109,14 @@ def _refuse(detail: str) -> PydanticCustomError:
     return PydanticCustomError("invalid_frame", "{detail}", {"detail": detail})
 
 
-def _limits(info: ValidationInfo) -> FrameLimits | None:
+def _limited(value: T, info: ValidationInfo, check: Callable[[T, FrameLimits], None]) -> T:
+    """`value`, once `check` passed with the limits of the validation's context (none
+    given: no check)."""
     context = info.context
     limits = context.get("limits") if isinstance(context, Mapping) else None
-    return limits if isinstance(limits, FrameLimits) else None
+    if isinstance(limits, FrameLimits):
+        check(value, limits)
+    return value
 
 
 def _number(value: object) -> float:
@@ -204,6 +211,11 @@ def _within(value: float, bound: float, unit: str) -> None:
         raise _refuse(f"must lie within +-{bound:g} {unit}, got {value!r}")
 
 
+def _at_most_items(items: list[Any], bound: int) -> None:
+    if len(items) > bound:
+        raise _refuse(f"must hold at most {bound}, got {len(items)}")
+
+
 def _at_most_chars(text: str, bound: int) -> None:
     if len(text) > bound:
         raise _refuse(f"must be at most {bound} characters, got {len(text)}")
@@ -211,6 +223,20 @@ def _at_most_chars(text: str, bound: int) -> None:
 
 Number = Annotated[float, BeforeValidator(_number)]
 OptionalNumber = Annotated[float | None, BeforeValidator(_optional_number)]
+
+
+def _bounded(bound: str, unit: str) -> AfterValidator:
+    """|value| <= the `FrameLimits` field `bound` (in `unit`), when limits are given."""
+
+    def check(value: float, info: ValidationInfo) -> float:
+        return _limited(value, info, lambda v, lim: _within(v, getattr(lim, bound), unit))
+
+    return AfterValidator(check)
+
+
+StepM = Annotated[float, BeforeValidator(_number), _bounded("max_odometry_step_m", "m")]
+CoordinateM = Annotated[float, BeforeValidator(_number), _bounded("max_coordinate_m", "m")]
+StampS = Annotated[float, BeforeValidator(_number), _bounded("max_abs_stamp_s", "s")]
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
@@ -222,20 +248,12 @@ class OdometryIn(BaseModel):
 
     model_config = _STRICT
 
-    dx: Number = Field(description="forward motion, metres (|dx| <= frames.max_odometry_step_m)")
-    dy: Number = Field(description="leftward motion, metres (|dy| <= frames.max_odometry_step_m)")
+    dx: StepM = Field(description="forward motion, metres (|dx| <= frames.max_odometry_step_m)")
+    dy: StepM = Field(description="leftward motion, metres (|dy| <= frames.max_odometry_step_m)")
     dtheta: Number = Field(description="heading change, radians, counter-clockwise, in [-pi, pi]")
     sigma_x: OptionalNumber = Field(None, description="one-sigma noise of dx, metres, > 0")
     sigma_y: OptionalNumber = Field(None, description="one-sigma noise of dy, metres, > 0")
     sigma_theta: OptionalNumber = Field(None, description="one-sigma noise of dtheta, radians, > 0")
-
-    @field_validator("dx", "dy")
-    @classmethod
-    def _step(cls, value: float, info: ValidationInfo) -> float:
-        limits = _limits(info)
-        if limits is not None:
-            _within(value, limits.max_odometry_step_m, "m")
-        return value
 
 
 class InitialPoseIn(BaseModel):
@@ -243,19 +261,11 @@ class InitialPoseIn(BaseModel):
 
     model_config = _STRICT
 
-    x: Number = Field(description="metres, map frame (|x| <= frames.max_coordinate_m)")
-    y: Number = Field(description="metres, map frame (|y| <= frames.max_coordinate_m)")
+    x: CoordinateM = Field(description="metres, map frame (|x| <= frames.max_coordinate_m)")
+    y: CoordinateM = Field(description="metres, map frame (|y| <= frames.max_coordinate_m)")
     theta: Number = Field(
         description="yaw, radians, counter-clockwise from the map's +x axis, in (-pi, pi]"
     )
-
-    @field_validator("x", "y")
-    @classmethod
-    def _coordinate(cls, value: float, info: ValidationInfo) -> float:
-        limits = _limits(info)
-        if limits is not None:
-            _within(value, limits.max_coordinate_m, "m")
-        return value
 
 
 class ObservationIn(BaseModel):
@@ -289,10 +299,7 @@ class ObservationIn(BaseModel):
     @field_validator("label")
     @classmethod
     def _label_length(cls, value: str, info: ValidationInfo) -> str:
-        limits = _limits(info)
-        if limits is not None:
-            _at_most_chars(value, limits.max_label_chars)
-        return value
+        return _limited(value, info, lambda v, lim: _at_most_chars(v, lim.max_label_chars))
 
 
 class FrameIn(BaseModel):
@@ -308,7 +315,7 @@ class FrameIn(BaseModel):
     seq: Annotated[int, BeforeValidator(_seq)] = Field(
         ge=0, lt=SEQ_END, description="per-robot sequence number, strictly increasing"
     )
-    stamp: Number = Field(
+    stamp: StampS = Field(
         description="seconds (any epoch), non-decreasing per robot; |stamp| <= "
         "frames.max_abs_stamp_s"
     )
@@ -332,26 +339,12 @@ class FrameIn(BaseModel):
     @field_validator("robot")
     @classmethod
     def _robot_length(cls, value: str, info: ValidationInfo) -> str:
-        limits = _limits(info)
-        if limits is not None:
-            _at_most_chars(value, limits.max_robot_chars)
-        return value
-
-    @field_validator("stamp")
-    @classmethod
-    def _stamp_window(cls, value: float, info: ValidationInfo) -> float:
-        limits = _limits(info)
-        if limits is not None:
-            _within(value, limits.max_abs_stamp_s, "s")
-        return value
+        return _limited(value, info, lambda v, lim: _at_most_chars(v, lim.max_robot_chars))
 
     @field_validator("observations")
     @classmethod
     def _observation_count(cls, value: list[ObservationIn], info: ValidationInfo) -> Any:
-        limits = _limits(info)
-        if limits is not None and len(value) > limits.max_observations:
-            raise _refuse(f"must hold at most {limits.max_observations}, got {len(value)}")
-        return value
+        return _limited(value, info, lambda v, lim: _at_most_items(v, lim.max_observations))
 
     def to_frame(self) -> FrameInput:
         """The estimator's frame (labels as strings; the descriptor is not kept)."""

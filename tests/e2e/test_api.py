@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import math
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 
 from service.mapconfig import CAMERA_LANDMARK_CAP
-from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
+from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(160))
 
@@ -386,3 +387,26 @@ def test_metrics_and_probes(client: httpx.Client, mapped: tuple[str, list[dict]]
         ln for ln in text.splitlines() if ln.startswith(f'covslam_frames_total{{map="{map_id}"}}')
     )
     assert float(line.split()[-1]) == len(FRAMES)
+
+
+def test_frame_limits_come_from_settings(tmp_path: Path) -> None:
+    """COVSLAM_FRAMES__* bound what one frame may hold; a frame beyond one is a 422."""
+    server = Server(tmp_path / "data", workers=1, env={"COVSLAM_FRAMES__MAX_LABEL_CHARS": "3"})
+    server.start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as client:
+            map_id = create_map(client, "limits")
+            frame = {
+                "robot": "r",
+                "seq": 0,
+                "stamp": 0.0,
+                "initial_pose": {"x": 0, "y": 0, "theta": 0},
+            }
+            long = {**frame, "observations": [{"bearing": 0.1, "label": "abcd"}]}
+            problem = _problem(client.post(f"/v1/maps/{map_id}/frames", json=long), 422)
+            assert problem["detail"] == "observations[0].label: must be at most 3 characters, got 4"
+            assert _frames_in(client, map_id) == 0
+            short = {**frame, "observations": [{"bearing": 0.1, "label": "abc"}]}
+            assert client.post(f"/v1/maps/{map_id}/frames", json=short).status_code == 200
+    finally:
+        server.stop()

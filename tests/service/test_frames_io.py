@@ -22,6 +22,7 @@ from service.frames_io import (
     read_frames,
     write_frames,
 )
+from service.settings import Settings
 
 DESIGN_EXAMPLE: dict[str, Any] = {
     "robot": "r1",
@@ -324,3 +325,12 @@ def test_limits_are_configurable() -> None:
     with pytest.raises(InvalidFrame) as info:
         parse_frame(_with("robot", "ab"), limits=tight)
     assert (info.value.field, info.value.detail) == ("observations", "must hold at most 0, got 1")
+
+
+def test_limits_are_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COVSLAM_FRAMES__MAX_OBSERVATIONS", "7")
+    settings = Settings()
+    assert settings.frames == FrameLimits(max_observations=7)
+    monkeypatch.setenv("COVSLAM_FRAMES__MAX_LABEL_CHARS", "0")
+    with pytest.raises(ValueError, match="max_label_chars"):
+        Settings()
