@@ -1,1 +1,1 @@
-"""The HTTP API (FastAPI). Arrives with issue 3."""
+"""The HTTP API (FastAPI): REST API v1, problem+json errors, metrics, the dashboard."""

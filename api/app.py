@@ -18,8 +18,8 @@ from fastapi_offline import FastAPIOffline
 from api import errors
 from api.docs import DOCS_ASSETS, DocsPolicy
 from api.metrics import Metrics
-from api.models import FrameIn
 from api.routes import events, frames, maps, places, queries, system
+from service.frame_model import FrameIn
 from service.maps import MapService
 from service.settings import Settings, get_settings
 

@@ -115,16 +115,8 @@ class MapBrief(BaseModel):
 
 # --------------------------------------------------------------------------- frames
 
-
-class OdometryIn(BaseModel):
-    """Motion since the robot's previous frame, expressed in the previous robot frame."""
-
-    dx: float = Field(description="forward motion, metres")
-    dy: float = Field(description="leftward motion, metres")
-    dtheta: float = Field(description="heading change, radians, counter-clockwise, in [-pi, pi]")
-    sigma_x: float | None = Field(None, description="one-sigma noise of dx, metres")
-    sigma_y: float | None = Field(None, description="one-sigma noise of dy, metres")
-    sigma_theta: float | None = Field(None, description="one-sigma noise of dtheta, radians")
+# A posted frame's model is service.frame_model.FrameIn: the one validation of a frame
+# (posted, in a frame file or in a map's log) and its OpenAPI schema.
 
 
 class PoseXYTheta(BaseModel):
@@ -134,37 +126,6 @@ class PoseXYTheta(BaseModel):
     y: float = Field(description="metres, map frame")
     theta: float = Field(
         description="yaw, radians, counter-clockwise from the map's +x axis, in (-pi, pi]"
-    )
-
-
-class ObservationIn(BaseModel):
-    bearing: float = Field(
-        description="radians in the robot frame, counter-clockwise from the robot's forward "
-        "axis (+x), in (-pi, pi]"
-    )
-    sigma: float | None = Field(None, description="one-sigma bearing noise, radians")
-    label: str | int = Field(description="known data association (e.g. a fiducial id)")
-    descriptor: str | None = Field(
-        None, description="base64 appearance descriptor (not used yet: label is required)"
-    )
-
-
-class FrameIn(BaseModel):
-    """One frame of one robot (JSON form). NaN and infinities are refused."""
-
-    robot: str = Field(description="robot name; one pose chain per robot")
-    seq: int = Field(ge=0, description="per-robot sequence number, strictly increasing")
-    stamp: float = Field(description="seconds (any epoch), non-decreasing per robot")
-    odometry: OdometryIn | None = Field(
-        None, description="required on every frame after the robot's first"
-    )
-    initial_pose: PoseXYTheta | None = Field(
-        None,
-        description="optional, only read on a robot's first frame; without it the robot is "
-        "'initialising' until the place localiser finds it",
-    )
-    observations: list[ObservationIn] = Field(
-        default_factory=list, description="bearings seen in this frame (absent = none)"
     )
 
 

@@ -29,113 +29,28 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
-from numpy.typing import NDArray
 
-from bench.turns import CAMERA, CONFIG, turn_path
 from graph.angles import wrap_angle
 from graph.localiser import INITIALISING, LOST, RELOCALISED
-from service.datasets.indoor_sim import make_world
-from service.datasets.mrclam import relative_motion
-from service.datasets.render import TexturedWorld, make_textured_world, render_panorama
+from service.datasets.camera_runs import (
+    CAMERA,
+    CONFIG,
+    Leg,
+    mapping_path,
+    pose_error,
+    render_leg,
+    scene,
+    start_pose,
+    straight,
+)
+from service.datasets.render import TexturedWorld
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
-
-FloatArray = NDArray[np.float64]
-ODOMETRY_NOISE = (0.02, 0.02, 0.02)
-"""Odometry sigmas (kx, ky per metre, kt per (metre + radian))."""
-STEP_M = 0.05
-"""A searching robot's step per frame."""
-
-
-@dataclass(frozen=True)
-class Leg:
-    """Frames of one robot: (meta, PNG bytes) each, and the true poses (F, 3)."""
-
-    frames: list[tuple[dict[str, Any], bytes]]
-    truth: FloatArray
-
-
-def scene(seed: int) -> TexturedWorld:
-    rng = np.random.default_rng(seed)
-    return make_textured_world(make_world(rooms=(1, 2), landmarks=2, rng=rng), rng=rng)
-
-
-def render_leg(
-    world: TexturedWorld,
-    truth: FloatArray,
-    *,
-    robot: str,
-    rng: np.random.Generator,
-    first_seq: int = 0,
-    initial_pose: bool = False,
-    moved_before: bool = False,
-    jumps: frozenset[int] = frozenset(),
-) -> Leg:
-    """Frames along `truth` ``(F, 3)``: odometry = true motion + noise (none across a
-    frame in `jumps`: the robot was carried there); the first frame has odometry only if
-    `moved_before` (zero motion), and the true pose as initial_pose if `initial_pose`."""
-    motion = relative_motion(truth)
-    kx, ky, kt = ODOMETRY_NOISE
-    frames = []
-    for k, pose in enumerate(truth):
-        image, _ = render_panorama(world, pose, CAMERA)
-        ok, png = cv2.imencode(".png", image)
-        if not ok:
-            raise RuntimeError("could not encode a panorama")
-        seq = first_seq + k
-        meta: dict[str, Any] = {"robot": robot, "seq": seq, "stamp": 0.1 * seq}
-        if k == 0:
-            if initial_pose:
-                meta["initial_pose"] = {"x": pose[0], "y": pose[1], "theta": pose[2]}
-            if moved_before:
-                meta["odometry"] = {"dx": 0.0, "dy": 0.0, "dtheta": 0.0}
-        else:
-            m = motion[k - 1]
-            if k in jumps:
-                m = np.zeros(3)
-            d = float(np.hypot(m[0], m[1]))
-            sig = np.array([kx * d, ky * d, kt * (d + abs(m[2]))])
-            dx, dy, dth = m + rng.normal(0.0, 1.0, 3) * sig
-            meta["odometry"] = {"dx": float(dx), "dy": float(dy), "dtheta": float(dth)}
-        frames.append((meta, png.tobytes()))
-    return Leg(frames, np.asarray(truth, dtype=np.float64))
-
-
-def straight(start: FloatArray, frames: int, step_m: float = STEP_M) -> FloatArray:
-    """``(frames, 3)`` poses driving straight ahead from `start`."""
-    k = np.arange(frames)[:, None]
-    heading = np.array([math.cos(start[2]), math.sin(start[2]), 0.0])
-    return np.asarray(start, dtype=np.float64)[None, :] + k * step_m * heading[None, :]
-
-
-def mapping_path() -> FloatArray:
-    poses, _ = turn_path(legs=6, turn_frames=1, spin_turns=4)
-    return poses
-
-
-def start_pose(path: FloatArray, rng: np.random.Generator, offset_m: float) -> FloatArray:
-    """A pose within `offset_m` of a random pose of `path`, heading towards the room's
-    middle (3, 3) within +-60 degrees (room to drive straight ahead)."""
-    p = path[rng.integers(len(path))]
-    r, a = offset_m * math.sqrt(rng.random()), rng.uniform(-math.pi, math.pi)
-    x, y = p[0] + r * math.cos(a), p[1] + r * math.sin(a)
-    heading = math.atan2(3.0 - y, 3.0 - x) + rng.uniform(-math.pi / 3, math.pi / 3)
-    return np.array([x, y, wrap_angle(heading)])
-
-
-def error(pose: dict[str, float], truth: FloatArray) -> tuple[float, float]:
-    """(position error m, heading error deg) of a result pose against the truth."""
-    return (
-        float(math.hypot(pose["x"] - truth[0], pose["y"] - truth[1])),
-        math.degrees(abs(wrap_angle(pose["theta"] - truth[2]))),
-    )
 
 
 def new_session(tmp: Path, name: str) -> MapSession:
@@ -150,7 +65,7 @@ def post(session: MapSession, leg: Leg) -> list[dict[str, Any]]:
         c0 = time.process_time()
         result = json.loads(session.submit(dict(meta), image)["result_json"])
         cpu_ms = 1e3 * (time.process_time() - c0)
-        err_m, err_deg = error(result["pose"], truth)
+        err_m, err_deg = pose_error(result["pose"], truth)
         rows.append(
             {
                 "seq": meta["seq"],

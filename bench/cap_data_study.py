@@ -15,7 +15,7 @@ Full batch Levenberg-Marquardt (bench.batch) then solves:
   estimate and batch_all's solution; the lowest graph error wins);
 - ``batch_fixed_subset``: a fixed random subset of `cap` of the robot's landmark labels
   kept for the whole run (median over `--subsets` subsets; starts: dead reckoning and
-  batch_all's solution), the case measured while issue 2 was planned;
+  batch_all's solution), the reference the cap-8 accuracy goal was set against;
 - ``batch_fixed_subset_dr_start``: the same subsets from dead reckoning alone (no
   start that has seen every landmark, which no online map has).
 

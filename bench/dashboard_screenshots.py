@@ -1,4 +1,4 @@
-"""Screenshots of the dashboard of a running `covslam serve` (for the README).
+"""Screenshots of the dashboard of a running `covslam serve`.
 
 Run from the repository root, against a server that holds the map::
 
@@ -9,8 +9,9 @@ Drives Debian's headless Chromium (``/usr/bin/chromium``, or ``--chromium``) thr
 Playwright; waits until the page shows the map's latest frame, then saves a PNG and
 prints what the page's layers hold (their data attributes) as JSON.
 
-The README's screenshots: ``bench.mrclam_http_all`` (MRCLAM-6, five robots, one map)
-and ``covslam simulate`` + ``covslam replay --url`` (a lifelong run) fill the maps;
+The maps of docs/measurements.md ("Whole runs through the service"):
+``bench.mrclam_http_all`` (MRCLAM-6, five robots, one map) and ``covslam simulate`` +
+``covslam replay --url`` (a lifelong run);
 ``--width 390 --height 844 --full-page`` gives the phone-width pictures.
 """
 
@@ -24,17 +25,7 @@ from typing import Any
 
 import httpx
 
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    # The network is closed: without these Chromium stalls on refused connections.
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+from tests.e2e.chromium import CHROMIUM_ARGS
 
 
 def screenshot(

@@ -529,7 +529,7 @@ def kidnap_shared(
     """As `kidnap`, in a map the five robots build together: every robot's frames of the
     first `before_s` seconds (interleaved by stamp, each from its initial pose), then
     robot N alone after its 60 s cut. Robot N then lands among landmarks the others
-    mapped, which is what makes a kidnap observable at all (see the README's notes)."""
+    mapped, which is what makes a kidnap observable at all."""
     runs = {r: mrclam_frames(load_mrclam(directory, r)) for r in range(1, 6)}
     frames, gt = runs[robot]
     t0 = frames[0].stamp

@@ -1,1 +1,1 @@
-"""Perception: images -> bearing observations (numpy/OpenCV only). Arrives with issue 4."""
+"""Perception: images -> bearing observations (numpy/OpenCV only)."""

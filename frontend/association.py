@@ -121,7 +121,7 @@ class AssociationConfig:
     (cap 200, `oldest`) were a second landmark's of a point already observed in the
     frame, and a landmark lived a median of 79 frames (114 with it). With the elevation
     gate below, the image map's ATE went from 0.71-2.15x the oracle's to 0.82-1.41x over
-    five worlds (README, issue 4). 0: off."""
+    five worlds (docs/measurements.md, "Vision front end"). 0: off."""
     landmark_elevation_gate: float = 1.0
     """A landmark with a learnt height takes features within this many elevation
     tolerances (`elevation_gate_rad` + gate_sigmas feature sigmas) of the elevation it

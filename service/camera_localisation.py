@@ -1,4 +1,4 @@
-"""Image frames through the place localiser (issue 5): camera robots initialise, get
+"""Image frames through the place localiser: camera robots initialise, get
 lost and relocalise as robots with labelled bearings do (service.localisation).
 
 `process_image(loc, slam, pipeline, frame, features, signature)` is one image frame:

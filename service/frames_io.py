@@ -1,9 +1,8 @@
-"""The REST frame format (DESIGN.md, "A frame (JSON form)") as Python objects and JSON lines.
+"""Frame documents as Python objects and JSON lines.
 
-`frame_from_dict` is strict about structure and types and names the offending
-field with a dotted path (``observations[2].bearing``). It does not check that
-numbers are finite or that bearings lie in (-pi, pi]: that is the graph
-validator's job, so that every entry point refuses the same frames.
+`frame_from_dict` parses a frame document through the frame model
+(`service.frame_model`: strict structure and types, the offending field named with a
+dotted path such as ``observations[2].bearing``); `frame_to_dict` is its inverse.
 
 Units: metres, radians, seconds (stamps are seconds, any epoch).
 
@@ -21,10 +20,13 @@ from pathlib import Path
 from typing import IO, Any
 
 from graph.errors import InvalidFrame
-from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
+from graph.types import FrameInput
+from service.errors import invalid_frame
+from service.frame_model import FrameLimits, parse_frame
 
 __all__ = [
     "FrameFileError",
+    "admit_frame",
     "frame_from_dict",
     "frame_to_dict",
     "read_frames",
@@ -50,154 +52,41 @@ class FrameFileError(ValueError):
 
 # --------------------------------------------------------------------------- parsing
 
-
-def _json_type(value: object) -> str:
-    """The JSON name of a Python value's type, for error details."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "boolean"
-    if isinstance(value, int | float):
-        return "number"
-    if isinstance(value, str):
-        return "string"
-    if isinstance(value, list | tuple):
-        return "array"
-    if isinstance(value, Mapping):
-        return "object"
-    return type(value).__name__
+IMAGE_MEMBER = "image"
+"""A frame document's reference to its image: a relative path in a frame file, the
+image's digest in a map's log and in exports. It is not part of the frame itself (the
+image comes beside it), so `frame_from_dict` sets it aside; a posted JSON frame must
+not have it."""
 
 
-def _object(value: object, field: str) -> Mapping[str, Any]:
-    if not isinstance(value, Mapping):
-        raise InvalidFrame(field, f"must be an object, got {_json_type(value)}")
-    return value
+def frame_from_dict(d: Mapping[str, Any], *, limits: FrameLimits | None = None) -> FrameInput:
+    """Parse one frame document (a frame object, perhaps with an ``image`` member).
 
-
-def _number(obj: Mapping[str, Any], key: str, path: str) -> float:
-    """A required number (int or float, not bool) as float."""
-    field = f"{path}.{key}" if path else key
-    if key not in obj:
-        raise InvalidFrame(field, "is required")
-    value = obj[key]
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InvalidFrame(field, f"must be a number, got {_json_type(value)}")
-    return float(value)
-
-
-def _optional_number(obj: Mapping[str, Any], key: str, path: str) -> float | None:
-    """An optional number; absent or null gives None."""
-    if obj.get(key) is None:
-        return None
-    return _number(obj, key, path)
-
-
-def _odometry(value: object) -> Odometry:
-    obj = _object(value, "odometry")
-    return Odometry(
-        dx=_number(obj, "dx", "odometry"),
-        dy=_number(obj, "dy", "odometry"),
-        dtheta=_number(obj, "dtheta", "odometry"),
-        sigma_x=_optional_number(obj, "sigma_x", "odometry"),
-        sigma_y=_optional_number(obj, "sigma_y", "odometry"),
-        sigma_theta=_optional_number(obj, "sigma_theta", "odometry"),
-    )
-
-
-def _pose(value: object) -> Pose2D:
-    obj = _object(value, "initial_pose")
-    return Pose2D(
-        x=_number(obj, "x", "initial_pose"),
-        y=_number(obj, "y", "initial_pose"),
-        theta=_number(obj, "theta", "initial_pose"),
-    )
-
-
-def _label(obj: Mapping[str, Any], path: str) -> str:
-    """A label as str; JSON integers are accepted and converted (17 -> "17")."""
-    field = f"{path}.label"
-    if obj.get("label") is None:
-        if "descriptor" in obj:
-            detail = "is required (descriptor-only observations are not supported yet)"
-        else:
-            detail = "is required"
-        raise InvalidFrame(field, detail)
-    value = obj["label"]
-    if isinstance(value, bool) or not isinstance(value, int | str):
-        raise InvalidFrame(field, f"must be a string or an integer, got {_json_type(value)}")
-    label = str(value)
-    if not label:
-        raise InvalidFrame(field, "must not be empty")
-    return label
-
-
-def _observation(value: object, index: int) -> BearingObservation:
-    path = f"observations[{index}]"
-    obj = _object(value, path)
-    bearing = _number(obj, "bearing", path)
-    sigma = _optional_number(obj, "sigma", path)
-    label = _label(obj, path)
-    descriptor = obj.get("descriptor")
-    if descriptor is not None and not isinstance(descriptor, str):
-        raise InvalidFrame(
-            f"{path}.descriptor", f"must be a base64 string, got {_json_type(descriptor)}"
-        )
-    return BearingObservation(bearing_rad=bearing, label=label, sigma_rad=sigma)
-
-
-def frame_from_dict(d: Mapping[str, Any]) -> FrameInput:
-    """Parse one frame from its JSON object (already decoded).
-
-    Required: ``robot`` (non-empty string), ``seq`` (integer >= 0), ``stamp``
-    (number, seconds). Optional: ``odometry`` {dx, dy [m], dtheta [rad],
-    sigma_x, sigma_y [m], sigma_theta [rad]}, ``initial_pose`` {x, y [m],
-    theta [rad]}, ``observations`` (array, absent means none) of {bearing [rad],
-    sigma [rad] (optional), label (string or integer, stored as string),
-    descriptor (optional base64 string, not kept)}. Optional fields may be null.
-    Unknown keys are ignored. Booleans are not numbers.
+    The frame is validated by `service.frame_model.FrameIn` (see `parse_frame`): with
+    `limits`, its bounds too. Units: metres, radians, seconds.
 
     Raises:
         InvalidFrame: with the dotted path of the first offending field.
     """
-    obj = _object(d, "frame")
+    if isinstance(d, Mapping) and IMAGE_MEMBER in d:
+        d = {k: v for k, v in d.items() if k != IMAGE_MEMBER}
+    return parse_frame(d, limits=limits)
 
-    if "robot" not in obj:
-        raise InvalidFrame("robot", "is required")
-    robot = obj["robot"]
-    if not isinstance(robot, str):
-        raise InvalidFrame("robot", f"must be a string, got {_json_type(robot)}")
-    if not robot:
-        raise InvalidFrame("robot", "must not be empty")
 
-    if "seq" not in obj:
-        raise InvalidFrame("seq", "is required")
-    seq = obj["seq"]
-    if isinstance(seq, bool) or not isinstance(seq, int):
-        kind = "non-integer number" if isinstance(seq, float) else _json_type(seq)
-        raise InvalidFrame("seq", f"must be an integer, got {kind}")
-    if seq < 0:
-        raise InvalidFrame("seq", f"must be >= 0, got {seq}")
+def admit_frame(doc: object, limits: FrameLimits, *, image_frame: bool = False) -> None:
+    """Check a posted frame against the frame model and `limits` before it goes to its
+    map: a JSON frame as it is, an image frame's `meta` as a frame document.
 
-    stamp = _number(obj, "stamp", "")
-
-    odometry = None if obj.get("odometry") is None else _odometry(obj["odometry"])
-    initial_pose = None if obj.get("initial_pose") is None else _pose(obj["initial_pose"])
-
-    raw_obs = obj.get("observations")
-    if raw_obs is None:
-        raw_obs = []
-    if not isinstance(raw_obs, list | tuple):
-        raise InvalidFrame("observations", f"must be an array, got {_json_type(raw_obs)}")
-    observations = tuple(_observation(o, i) for i, o in enumerate(raw_obs))
-
-    return FrameInput(
-        robot=robot,
-        seq=seq,
-        stamp=stamp,
-        odometry=odometry,
-        initial_pose=initial_pose,
-        observations=observations,
-    )
+    Raises:
+        ServiceError: 422 naming the field.
+    """
+    try:
+        if image_frame and isinstance(doc, Mapping):
+            frame_from_dict(doc, limits=limits)
+        else:
+            parse_frame(doc, limits=limits)
+    except InvalidFrame as exc:
+        raise invalid_frame(exc.field, exc.detail) from exc
 
 
 # --------------------------------------------------------------------------- writing

@@ -1,5 +1,6 @@
-"""Strict JSON for request bodies: malformed text, NaN, Infinity and numbers that
-overflow to infinity are refused with a precise 400 (ServiceError)."""
+"""Strict JSON for request bodies: malformed text, NaN, Infinity, numbers that
+overflow to infinity and integers too long to read are refused with a precise 400
+(ServiceError)."""
 
 from __future__ import annotations
 
@@ -36,6 +37,8 @@ def strict_loads(raw: bytes) -> Any:
         ) from exc
     except UnicodeDecodeError as exc:
         raise malformed(f"body: not UTF-8 text ({exc.reason})") from exc
+    except ValueError as exc:  # an integer literal beyond Python's 4300-digit limit
+        raise malformed("body: a number has too many digits to read") from exc
 
 
 def loads_object(raw: bytes, what: str) -> dict[str, Any]:

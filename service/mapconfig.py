@@ -260,8 +260,8 @@ class MapConfig(BaseModel):
     optimizer: Optimizer = Field(
         _DEFAULTS.optimizer,
         description="iSAM2 step: 'dogleg' (trust region: robust, but every update costs a "
-        "step over the whole graph; MRCLAM-6 r1 at cap 8: 11 ms/frame median) or "
-        "'gauss_newton' (undamped, partial updates: 2 ms/frame there, but a poorly "
+        "step over the whole graph; MRCLAM-6 r1 at cap 8: 3.0 ms/frame median) or "
+        "'gauss_newton' (undamped, partial updates: 1.3 ms/frame there, but a poorly "
         "linearised landmark can throw the estimate off for good)",
     )
     max_landmark_factors: int | None = Field(
@@ -283,7 +283,7 @@ class MapConfig(BaseModel):
         False,
         description="a pose leaving the window without becoming a keyframe loses its "
         "landmark observations instead of having them marginalised (cheaper with many "
-        "landmarks per frame, throws information away; see the README)",
+        "landmarks per frame, throws information away)",
     )
     graph_frame_distance_m: float | None = Field(
         None,

@@ -1,7 +1,8 @@
 """Service configuration: pydantic-settings, ``COVSLAM_*`` variables, nested with ``__``.
 
 Examples: ``COVSLAM_PORT=9000``, ``COVSLAM_DATA_DIR=/var/lib/covslam``,
-``COVSLAM_STORE__SYNCHRONOUS=FULL``, ``COVSLAM_WORKERS__COUNT=4``.
+``COVSLAM_STORE__SYNCHRONOUS=FULL``, ``COVSLAM_WORKERS__COUNT=4``,
+``COVSLAM_FRAMES__MAX_LABEL_CHARS=128``.
 Nothing is read at import time: call `get_settings()` (cached; tests clear it).
 """
 
@@ -15,6 +16,7 @@ from typing import Literal
 from pydantic import BaseModel, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.frame_model import FrameLimits
 from service.mapconfig import CAMERA_LANDMARK_CAP, DEFAULT_LANDMARK_CAP
 
 
@@ -114,6 +116,9 @@ class Settings(BaseSettings):
     store: StoreSettings = Field(default_factory=StoreSettings)
     workers: WorkerSettings = Field(default_factory=WorkerSettings)
     api: ApiSettings = Field(default_factory=ApiSettings)
+    frames: FrameLimits = Field(
+        default_factory=FrameLimits, description="bounds on what one posted frame may hold"
+    )
 
     @field_validator("default_landmark_cap", "default_camera_landmark_cap")
     @classmethod

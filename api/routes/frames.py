@@ -12,6 +12,7 @@ from starlette.exceptions import HTTPException
 from api.deps import MapId, MetricsDep, ServiceDep
 from api.models import FrameResult, Problem
 from service.errors import ServiceError
+from service.frames_io import admit_frame
 from service.jsonio import loads_object
 
 META_MAX_BYTES = 64 << 10
@@ -83,13 +84,16 @@ async def post_frame(
     t0 = time.perf_counter()
     service.record(map_id)
     ctype = request.headers.get("content-type", "")
+    settings = request.app.state.settings
     try:
         if ctype.lower().startswith(("multipart/", "application/x-www-form-urlencoded")):
-            limit = request.app.state.settings.api.max_image_bytes
+            limit = settings.api.max_image_bytes
             meta, image = await read_image_frame(request, max_image_bytes=limit)
+            admit_frame(meta, settings.frames, image_frame=True)
             reply = await service.submit(map_id, meta, image)
         else:
             body = loads_object(await request.body(), "a frame")
+            admit_frame(body, settings.frames)
             reply = await service.submit(map_id, body)
     except ServiceError as exc:
         metrics.rejected.labels(str(exc.status)).inc()

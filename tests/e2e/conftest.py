@@ -16,10 +16,10 @@ import httpx
 import numpy as np
 import pytest
 
-from bench.dashboard_screenshots import CHROMIUM_ARGS
 from graph.types import FrameInput
 from service.datasets.indoor_sim import make_world, simulate
 from service.frames_io import frame_to_dict
+from tests.e2e.chromium import CHROMIUM_ARGS
 
 REPO = Path(__file__).resolve().parents[2]
 CHROMIUM = Path(os.environ.get("COVSLAM_CHROMIUM", "/usr/bin/chromium"))

@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import math
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 
 from service.mapconfig import CAMERA_LANDMARK_CAP
-from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
+from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(160))
 
@@ -158,13 +159,13 @@ def test_idempotent_retry_and_out_of_order(
         (b'{"robot": "r1", "seq": 1.5, "stamp": 1}', 422, "non-integer"),
         (b'{"robot": "r1", "stamp": 1}', 422, "seq: is required"),
         (
-            b'{"robot": "r1", "seq": 999, "stamp": 1e12, "odometry": {"dx": 0, "dy": 0, '
+            b'{"robot": "r1", "seq": 999, "stamp": 1e9, "odometry": {"dx": 0, "dy": 0, '
             b'"dtheta": 0}, "observations": [{"bearing": 4.0, "label": "3"}]}',
             422,
             "observations[0].bearing",
         ),
         (
-            b'{"robot": "r1", "seq": 999, "stamp": 1e12, "odometry": {"dx": true, "dy": 0, '
+            b'{"robot": "r1", "seq": 999, "stamp": 1e9, "odometry": {"dx": true, "dy": 0, '
             b'"dtheta": 0}}',
             422,
             "odometry.dx",
@@ -175,7 +176,38 @@ def test_idempotent_retry_and_out_of_order(
             422,
             "initial_pose.y",
         ),
-        (b'{"robot": "r1", "seq": 999, "stamp": 1e12}', 422, "odometry: is required"),
+        (b'{"robot": "r1", "seq": 999, "stamp": 1e9}', 422, "odometry: is required"),
+        (b'{"robot": "r1", "seq": 1' + b"0" * 5000 + b', "stamp": 1}', 400, "too many digits"),
+        # An unknown field (here a typo of "observations") is refused, not ignored.
+        (
+            b'{"robot": "r1", "seq": 999, "stamp": 1e9, "odometry": {"dx": 0, "dy": 0, '
+            b'"dtheta": 0}, "observation": [{"bearing": 0.1, "label": "3"}]}',
+            422,
+            "observation: is not a field of a frame",
+        ),
+        # Bounds (settings `frames`): a name, a label, a stamp, odometry, a first pose.
+        (b'{"robot": "' + b"r" * 129 + b'", "seq": 0, "stamp": 1}', 422, "robot: must be at most"),
+        (
+            b'{"robot": "r1", "seq": 999, "stamp": 1e9, "odometry": {"dx": 0, "dy": 0, '
+            b'"dtheta": 0}, "observations": [{"bearing": 0.1, "label": "' + b"x" * 65 + b'"}]}',
+            422,
+            "observations[0].label: must be at most 64 characters",
+        ),
+        (b'{"robot": "r1", "seq": 999, "stamp": 1e308}', 422, "stamp: must lie within"),
+        (
+            b'{"robot": "r1", "seq": 999, "stamp": 1e9, "odometry": {"dx": 1e5, "dy": 0, '
+            b'"dtheta": 0}}',
+            422,
+            "odometry.dx: must lie within +-100 m",
+        ),
+        (
+            b'{"robot": "new", "seq": 0, "stamp": 1, "initial_pose": {"x": 0, "y": -3e6, '
+            b'"theta": 0}}',
+            422,
+            "initial_pose.y: must lie within",
+        ),
+        (b'{"robot": "r1", "seq": 9223372036854775808, "stamp": 1e9}', 422, "seq: must be < 2^63"),
+        (b'{"robot": "r\\ud800", "seq": 0, "stamp": 1}', 422, "robot: must be Unicode text"),
     ],
 )
 def test_bad_frames_are_refused_and_leave_the_map_unchanged(
@@ -188,7 +220,22 @@ def test_bad_frames_are_refused_and_leave_the_map_unchanged(
     )
     problem = _problem(r, status)
     assert needle in problem["detail"], problem
+    if status == 422:
+        assert problem["detail"].startswith(f"{problem['field']}: "), problem
     assert client.get(f"/v1/maps/{map_id}/pose").json() == before
+
+
+def test_too_many_observations_are_refused(
+    client: httpx.Client, mapped: tuple[str, list[dict]]
+) -> None:
+    map_id, _ = mapped
+    before = _frames_in(client, map_id)
+    frame = {**FRAMES[-1], "seq": 10**6, "stamp": 1e9}
+    frame["observations"] = [{"bearing": 0.0, "label": str(i)} for i in range(1001)]
+    problem = _problem(client.post(f"/v1/maps/{map_id}/frames", json=frame), 422)
+    assert problem["field"] == "observations"
+    assert problem["detail"] == "observations: must hold at most 1000, got 1001"
+    assert _frames_in(client, map_id) == before
 
 
 def test_oversized_body_is_413(client: httpx.Client, mapped: tuple[str, list[dict]]) -> None:
@@ -222,7 +269,7 @@ def test_image_frames_need_a_camera_and_places_are_documented(
     r = client.post(
         f"/v1/maps/{map_id}/frames",
         files={"image": ("p.png", b"\x89PNG", "image/png")},
-        data={"meta": json.dumps({"robot": "r1", "seq": 10**6, "stamp": 1e12})},
+        data={"meta": json.dumps({"robot": "r1", "seq": 10**6, "stamp": 1e9})},
     )
     assert _problem(r, 422)["type"].endswith(":no-camera")  # tests/e2e/test_images.py
     schema = client.get("/openapi.json").json()
@@ -340,3 +387,26 @@ def test_metrics_and_probes(client: httpx.Client, mapped: tuple[str, list[dict]]
         ln for ln in text.splitlines() if ln.startswith(f'covslam_frames_total{{map="{map_id}"}}')
     )
     assert float(line.split()[-1]) == len(FRAMES)
+
+
+def test_frame_limits_come_from_settings(tmp_path: Path) -> None:
+    """COVSLAM_FRAMES__* bound what one frame may hold; a frame beyond one is a 422."""
+    server = Server(tmp_path / "data", workers=1, env={"COVSLAM_FRAMES__MAX_LABEL_CHARS": "3"})
+    server.start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as client:
+            map_id = create_map(client, "limits")
+            frame = {
+                "robot": "r",
+                "seq": 0,
+                "stamp": 0.0,
+                "initial_pose": {"x": 0, "y": 0, "theta": 0},
+            }
+            long = {**frame, "observations": [{"bearing": 0.1, "label": "abcd"}]}
+            problem = _problem(client.post(f"/v1/maps/{map_id}/frames", json=long), 422)
+            assert problem["detail"] == "observations[0].label: must be at most 3 characters, got 4"
+            assert _frames_in(client, map_id) == 0
+            short = {**frame, "observations": [{"bearing": 0.1, "label": "abc"}]}
+            assert client.post(f"/v1/maps/{map_id}/frames", json=short).status_code == 200
+    finally:
+        server.stop()

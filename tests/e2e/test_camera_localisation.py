@@ -12,17 +12,17 @@ import httpx
 import numpy as np
 import pytest
 
-from bench.camera_localisation import (
+from graph.localiser import INITIALISING, RELOCALISED, TRACKING
+from service.datasets.camera_runs import (
     CONFIG,
     Leg,
-    error,
     mapping_path,
+    pose_error,
     render_leg,
     scene,
     start_pose,
     straight,
 )
-from graph.localiser import INITIALISING, RELOCALISED, TRACKING
 from tests.e2e.conftest import Server, create_map
 
 SEED = 11
@@ -82,7 +82,7 @@ def test_a_camera_robot_starts_without_initial_pose_over_http(
     assert k < 6, statuses
     assert set(statuses[:k]) == {INITIALISING} and set(statuses[k + 1 :]) == {TRACKING}
     for r, truth in zip(results[k:], newcomer.truth[k:], strict=True):
-        e_m, e_deg = error(r["pose"], truth)
+        e_m, e_deg = pose_error(r["pose"], truth)
         assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
     assert results[-1]["timing_ms"]["localise_cpu"] > 0
     pose = client.get(f"/v1/maps/{map_id}/pose").json()["robots"]["r2"]

@@ -192,6 +192,22 @@ def test_bad_image_frames_are_refused_precisely_and_change_nothing(
         ),
         (
             client.post(
+                url, data={"meta": _meta_with(meta, odometer=1.0)}, files={"image": ("x.png", png)}
+            ),
+            422,
+            "invalid-frame",
+            "odometer: is not a field of a frame",
+        ),
+        (
+            client.post(
+                url, data={"meta": _meta_with(meta, stamp=1e300)}, files={"image": ("x.png", png)}
+            ),
+            422,
+            "invalid-frame",
+            "stamp: must lie within",
+        ),
+        (
+            client.post(
                 url,
                 content=b"--xyz\r\nContent-Disposition: form-data; name=meta\r\n\r\n{}",
                 headers={"content-type": "multipart/form-data; boundary=xyz"},
@@ -205,8 +221,10 @@ def test_bad_image_frames_are_refused_precisely_and_change_nothing(
         body = _problem(response, status, slug)
         assert words in body["detail"], body
     assert _frames_in(client, map_id) == 1, "no refused frame reached the map"
-    # The map takes the same frame, with its real image, as if nothing happened.
-    r = client.post(url, **nxt)
+    # The map takes the same frame, with its real image, as if nothing happened; a meta
+    # that names its image (a line of a frame file) is the same frame.
+    named = {"meta": _meta_with(meta, image="images/000001.png")}
+    r = client.post(url, data=named, files=nxt["files"])
     assert r.status_code == 200, r.text
     assert r.json()["seq"] == frames[1].frame.seq
     # A retry with the same image is answered from the log; another image is a 409.

@@ -13,18 +13,18 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.camera_localisation import (
+from graph.angles import wrap_angle
+from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING
+from service.datasets.camera_runs import (
     CONFIG,
     Leg,
-    error,
     mapping_path,
+    pose_error,
     render_leg,
     scene,
     start_pose,
     straight,
 )
-from graph.angles import wrap_angle
-from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING
 from service.datasets.render import TexturedWorld
 from service.session import MapSession
 from service.settings import StoreSettings
@@ -75,7 +75,9 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     session = _session(tmp_path / "cam.sqlite")
     built = _post(session, mapping)
     assert {r["localisation"]["status"] for r in built} == {TRACKING}
-    assert max(error(r["pose"], t)[0] for r, t in zip(built, mapping.truth, strict=True)) < 0.05
+    assert (
+        max(pose_error(r["pose"], t)[0] for r, t in zip(built, mapping.truth, strict=True)) < 0.05
+    )
     assert len(session.loc.appearance.places) >= 3
 
     results = _post(session, newcomer)
@@ -84,11 +86,11 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     assert k + 1 <= RELOCALISE_WITHIN, statuses
     assert set(statuses[:k]) == {INITIALISING}
     assert set(statuses[k + 1 :]) == {TRACKING}
-    err_m, err_deg = error(results[k]["pose"], newcomer.truth[k])
+    err_m, err_deg = pose_error(results[k]["pose"], newcomer.truth[k])
     assert err_m < 0.3 and err_deg < 10.0, (err_m, err_deg)
     # Tracked by the graph from then on, close to the truth.
     for r, t in zip(results[k:], newcomer.truth[k:], strict=True):
-        e_m, e_deg = error(r["pose"], t)
+        e_m, e_deg = pose_error(r["pose"], t)
         assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
         assert len(r["landmarks"]["observed"]) > 20
     # The frames before were never in the graph: they carried no landmarks...
@@ -155,7 +157,7 @@ def test_a_kidnapped_camera_robot_goes_lost_and_recovers(
     assert back <= lost + 10, statuses
     assert set(statuses[back + 1 :]) == {TRACKING}
     for r, t in zip(results[back:], truth[back:], strict=True):
-        e_m, e_deg = error(r["pose"], t)
+        e_m, e_deg = pose_error(r["pose"], t)
         assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
     assert session.loc.localiser.robots["r1"].lost_count == 1
 
@@ -194,7 +196,7 @@ def test_a_searching_camera_robot_survives_a_snapshot_and_log_tail_reload(
     statuses = [r["localisation"]["status"] for r in results]
     k = statuses.index(RELOCALISED)
     assert k + 3 <= RELOCALISE_WITHIN
-    e_m, e_deg = error(results[k]["pose"], newcomer.truth[k + 2])
+    e_m, e_deg = pose_error(results[k]["pose"], newcomer.truth[k + 2])
     assert e_m < 0.3 and e_deg < 10.0
     assert reopened.pose()["robots"]["r2"]["localisation"]["status"] == TRACKING
     reopened.close()

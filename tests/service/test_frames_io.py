@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from graph.errors import InvalidFrame
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
+from service.frame_model import FrameLimits, parse_frame
 from service.frames_io import (
     FrameFileError,
     frame_from_dict,
@@ -21,6 +22,7 @@ from service.frames_io import (
     read_frames,
     write_frames,
 )
+from service.settings import Settings
 
 DESIGN_EXAMPLE: dict[str, Any] = {
     "robot": "r1",
@@ -90,17 +92,47 @@ def test_integer_label_is_stored_as_string() -> None:
     assert frame.observations[0].label == "14"
 
 
-def test_unknown_keys_ignored_and_descriptor_allowed() -> None:
-    d = _with("extra", {"anything": [1, 2]})
+def test_descriptor_is_allowed_and_not_kept() -> None:
+    d = copy.deepcopy(DESIGN_EXAMPLE)
     d["observations"][0]["descriptor"] = "AAECAw=="
-    d["observations"][0]["patch_id"] = 3
-    d["odometry"]["covariance"] = "ignored"
     assert frame_from_dict(d) == frame_from_dict(DESIGN_EXAMPLE)
 
 
-def test_nan_and_out_of_range_bearing_are_left_to_the_graph() -> None:
-    frame = frame_from_dict(_with("observations[0].bearing", float("nan")))
-    assert math.isnan(frame.observations[0].bearing_rad)
+@pytest.mark.parametrize(
+    ("path", "hint"),
+    [
+        ("observation", "did you mean observations?"),
+        ("extra", "its fields: robot, seq, stamp, odometry, initial_pose, observations"),
+        ("odometry.covariance", "is not a field of odometry"),
+        ("initial_pose.z", "is not a field of initial_pose"),
+        ("observations[0].patch_id", "is not a field of an observation"),
+    ],
+)
+def test_unknown_field_is_refused_and_named(path: str, hint: str) -> None:
+    """A typo is not silently ignored (the frame would be processed without its data)."""
+    with pytest.raises(InvalidFrame) as info:
+        frame_from_dict(_with(path, [{"bearing": 0.1, "label": "a"}]))
+    assert info.value.field == path
+    assert hint in info.value.detail
+
+
+def test_image_member_of_a_frame_document_is_set_aside() -> None:
+    """Frame files, the log and exports name the frame's image beside the frame."""
+    assert frame_from_dict(_with("image", "images/000001.png")) == frame_from_dict(DESIGN_EXAMPLE)
+    with pytest.raises(InvalidFrame) as info:
+        parse_frame(_with("image", "images/000001.png"))
+    assert info.value.field == "image"
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+def test_nan_and_infinity_are_refused(value: float) -> None:
+    with pytest.raises(InvalidFrame) as info:
+        frame_from_dict(_with("observations[0].bearing", value))
+    assert info.value.field == "observations[0].bearing"
+    assert info.value.detail == f"must be finite, got {value!r}"
+
+
+def test_out_of_range_bearing_is_left_to_the_graph() -> None:
     assert frame_from_dict(_with("observations[0].bearing", 7.0)).observations[0].bearing_rad == 7.0
 
 
@@ -136,6 +168,14 @@ def test_nan_and_out_of_range_bearing_are_left_to_the_graph() -> None:
         ("observations[0].label", True, "must be a string or an integer, got boolean"),
         ("observations[0].label", "", "must not be empty"),
         ("observations[0].descriptor", 12, "must be a base64 string, got number"),
+        ("seq", 2**63, f"must be < 2^63, got {2**63}"),
+        ("stamp", 10**400, "must be finite, got an integer beyond a double's range"),
+        ("robot", "r\ud800", "must be Unicode text: a lone surrogate \\ud800 at character 1"),
+        (
+            "observations[0].label",
+            "\udfff",
+            "must be Unicode text: a lone surrogate \\udfff at character 0",
+        ),
     ],
 )
 def test_invalid_field_is_named(path: str, value: object, detail: str) -> None:
@@ -234,3 +274,63 @@ def test_write_refuses_nan(tmp_path: Path) -> None:
     frame = FrameInput(robot="r1", seq=0, stamp=float("nan"))
     with pytest.raises(ValueError, match="JSON"):
         write_frames(tmp_path / "f.jsonl", [frame])
+
+
+LIMITS = FrameLimits()
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "detail"),
+    [
+        ("robot", "r" * 129, "must be at most 128 characters, got 129"),
+        ("observations[0].label", "l" * 65, "must be at most 64 characters, got 65"),
+        ("observations[0].label", 10**64, "must be at most 64 characters, got 65"),
+        (
+            "observations",
+            [{"bearing": 0.0, "label": str(i)} for i in range(1001)],
+            "must hold at most 1000, got 1001",
+        ),
+        ("stamp", 1e308, "must lie within +-1e+10 s, got 1e+308"),
+        ("stamp", -2e10, "must lie within +-1e+10 s, got -20000000000.0"),
+        ("odometry.dx", 100.5, "must lie within +-100 m, got 100.5"),
+        ("odometry.dy", -1e9, "must lie within +-100 m, got -1000000000.0"),
+        ("initial_pose.x", 2e6, "must lie within +-1e+06 m, got 2000000.0"),
+        ("initial_pose.y", -1e7, "must lie within +-1e+06 m, got -10000000.0"),
+    ],
+)
+def test_frame_beyond_a_limit_is_named(path: str, value: object, detail: str) -> None:
+    doc = _with(path, value)
+    with pytest.raises(InvalidFrame) as info:
+        parse_frame(doc, limits=LIMITS)
+    assert (info.value.field, info.value.detail) == (path, detail)
+    # Without limits (a frame already in a map's log) only the structure is checked.
+    assert parse_frame(doc).robot == doc["robot"]
+
+
+def test_frame_at_the_limits_is_taken_as_it_is() -> None:
+    doc = _with("robot", "r" * 128)
+    doc["stamp"] = -1e10
+    doc["odometry"] = {"dx": 100.0, "dy": -100, "dtheta": 0.0}
+    doc["initial_pose"] = {"x": 1e6, "y": -1e6, "theta": 0.0}
+    doc["observations"] = [{"bearing": 0.0, "label": "l" * 64}] * 1000
+    assert parse_frame(doc, limits=LIMITS) == frame_from_dict(doc)
+    assert frame_to_dict(parse_frame(doc, limits=LIMITS)) == {**doc, "stamp": -1e10}
+
+
+def test_limits_are_configurable() -> None:
+    tight = FrameLimits(max_robot_chars=2, max_observations=0)
+    with pytest.raises(InvalidFrame) as info:
+        parse_frame(_with("robot", "abc"), limits=tight)
+    assert info.value.detail == "must be at most 2 characters, got 3"
+    with pytest.raises(InvalidFrame) as info:
+        parse_frame(_with("robot", "ab"), limits=tight)
+    assert (info.value.field, info.value.detail) == ("observations", "must hold at most 0, got 1")
+
+
+def test_limits_are_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COVSLAM_FRAMES__MAX_OBSERVATIONS", "7")
+    settings = Settings()
+    assert settings.frames == FrameLimits(max_observations=7)
+    monkeypatch.setenv("COVSLAM_FRAMES__MAX_LABEL_CHARS", "0")
+    with pytest.raises(ValueError, match="max_label_chars"):
+        Settings()

@@ -1,4 +1,4 @@
-"""On-the-spot 90-degree turns through a camera map: the robot keeps track (bench.turns)."""
+"""On-the-spot 90-degree turns through a camera map: the robot keeps track."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from bench.turns import render_turn_run, run_turns, turn_path
 from graph.localiser import LOST
+from service.datasets.camera_runs import render_turn_run, run_turns, turn_path
 
 
 def test_turn_path_turns_on_the_spot_by_quarter_turns() -> None:
