@@ -252,8 +252,9 @@ def main() -> None:
                 runs = capped.setdefault((robot, policy), [])
                 runs.append(future.result())
                 rows[robot][f"cap{CAP}_{policy}"] = _median_runs(runs)
+            # Every finished run is on disk at once: a long run interrupted keeps its figures.
+            (args.out / f"{args.name}.rows.json").write_text(json.dumps(rows, indent=1))
     seconds = time.perf_counter() - t0
-    (args.out / f"{args.name}.rows.json").write_text(json.dumps(rows, indent=1))
     methods = [*UNCAPPED, *(f"cap{CAP}_{p}" for p in policies)]
     for robot, row in rows.items():
         print(f"{robot} cap {CAP}: " + _line(row, methods[len(UNCAPPED) :]))

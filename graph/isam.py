@@ -382,7 +382,8 @@ class IncrementalGraph:
             factor = remaining.at(i)
             if factor is None or len(factor.keys()) == 0:
                 continue
-            reference = choose_reference(list(factor.keys()), keys) if poses_only else None
+            relative = poses_only or self._config.relative_landmark_marginals
+            reference = choose_reference(list(factor.keys()), keys) if relative else None
             if self._relative and reference is not None:
                 marginals.append(relative_marginal(factor, theta, reference))
                 continue

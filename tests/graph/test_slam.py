@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -476,15 +477,19 @@ def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> N
     assert _rmse(slam.trajectory()["r1"], truth) < 1.0
 
 
-def test_by_default_only_an_uncapped_maps_window_grows() -> None:
-    """window_factor_bound: an uncapped map grows its window by
-    uncapped_window_observations; a capped one keeps pose_window unless it gives
-    window_observations, which applies capped or not."""
+def test_by_default_every_maps_window_grows_and_a_stored_capped_one_does_not() -> None:
+    """window_factor_bound: window_observations (900 by default), capped or not; where
+    it is None (maps stored before capped maps grew), an uncapped map grows by
+    uncapped_window_observations and a capped one keeps pose_window."""
     assert SlamConfig(landmark_cap=None).window_factor_bound == 900
+    assert SlamConfig(landmark_cap=8).window_factor_bound == 900
+    none: dict[str, Any] = {"window_observations": None}
+    assert SlamConfig(landmark_cap=None, **none).window_factor_bound == 900
     assert (
-        SlamConfig(landmark_cap=None, uncapped_window_observations=None).window_factor_bound is None
+        SlamConfig(landmark_cap=None, uncapped_window_observations=None, **none).window_factor_bound
+        is None
     )
-    assert SlamConfig(landmark_cap=8).window_factor_bound is None
+    assert SlamConfig(landmark_cap=8, **none).window_factor_bound is None
     assert SlamConfig(landmark_cap=8, window_observations=60).window_factor_bound == 60
     assert SlamConfig(landmark_cap=None, window_observations=60).window_factor_bound == 60
     with pytest.raises(ValueError, match="uncapped_window_observations"):
@@ -493,7 +498,9 @@ def test_by_default_only_an_uncapped_maps_window_grows() -> None:
     frames, _, _ = circle_frames(120, seed=3, n_landmarks=12, max_range=4.0)
     longest = {}
     for cap in (None, 40):
-        cfg = SlamConfig(landmark_cap=cap, pose_window=20, uncapped_window_observations=10**6)
+        cfg = SlamConfig(
+            landmark_cap=cap, pose_window=20, uncapped_window_observations=10**6, **none
+        )
         slam = BearingSlam(cfg, rng=np.random.default_rng(0))
         n = 0
         for f in frames:

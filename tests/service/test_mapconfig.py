@@ -69,7 +69,8 @@ def test_window_growth_defaults_and_a_window_given_alone() -> None:
 def test_an_uncapped_maps_window_grows_unless_its_config_says_otherwise() -> None:
     """A new uncapped map grows its window by uncapped_window_observations; a config
     giving window_observations (as every map stored before that default did, null
-    included) or pose_window alone keeps what it says; a capped map does not grow."""
+    included) or pose_window alone keeps what it says; a new capped map grows by
+    window_observations, one stored before that default keeps its window."""
     new = MapConfig.model_validate({"landmark_cap": None})
     assert slam_config(new.model_dump(mode="json"), "mapping").window_factor_bound == 900
     legacy = {**new.model_dump(mode="json"), "window_observations": None}
@@ -80,7 +81,9 @@ def test_an_uncapped_maps_window_grows_unless_its_config_says_otherwise() -> Non
     alone = MapConfig.model_validate({"landmark_cap": None, "pose_window": 40})
     assert slam_config(alone.model_dump(mode="json"), "mapping").window_factor_bound is None
     capped = MapConfig.model_validate({"landmark_cap": 8})
-    assert slam_config(capped.model_dump(mode="json"), "mapping").window_factor_bound is None
+    assert slam_config(capped.model_dump(mode="json"), "mapping").window_factor_bound == 900
+    stored = {**capped.model_dump(mode="json"), "window_observations": None}
+    assert slam_config(stored, "mapping").window_factor_bound is None
 
 
 def test_removal_margin_reaches_the_estimator_and_must_stay_below_the_cap() -> None:
