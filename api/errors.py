@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.errors import ServiceError, WorkerUnavailable
+from service.errors import ServiceError, WorkerUnavailable, internal_error
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,17 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ServiceError)
     async def _service(request: Request, exc: ServiceError) -> JSONResponse:
+        headers: dict[str, str] = dict(getattr(exc, "headers", None) or {})
+        if exc.status >= 500:
+            headers["Connection"] = "close"  # the server is in doubt: a fresh connection
         return problem(
-            exc.status, exc.slug, exc.title, exc.detail, instance=request.url.path, **exc.extra
+            exc.status,
+            exc.slug,
+            exc.title,
+            exc.detail,
+            instance=request.url.path,
+            headers=headers or None,
+            **exc.extra,
         )
 
     @app.exception_handler(WorkerUnavailable)
@@ -106,13 +115,7 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error on %s", request.url.path)
-        return problem(
-            500,
-            "internal",
-            "Internal error",
-            f"{type(exc).__name__}: {exc}",
-            instance=request.url.path,
-        )
+        return await _service(request, internal_error(exc))
 
 
 class _TooLarge(Exception):

@@ -9,6 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 
+from api.auth import AUTH_ERRORS, StreamRead
 from api.deps import MapId, ServiceDep
 from api.models import Problem
 from service.maps import MapService
@@ -49,8 +50,10 @@ async def _stream(
             "[m], frame_id}, `landmark_marginalised` (a removal record with reason); each has "
             "an `id` for Last-Event-ID",
         },
+        **AUTH_ERRORS,
         404: {"model": Problem},
     },
+    dependencies=[StreamRead],
 )
 async def stream_events(
     map_id: MapId,
