@@ -65,8 +65,8 @@ def _disk_full(exc: BaseException) -> bool:
 
 def internal_error(exc: BaseException) -> ServiceError:
     """What a client is told about an unexpected exception: 400 for a body nested too
-    deeply to parse, 507 when the disk is full, else a bare 500. Never the exception's class or message (GTSAM, SQLite and paths
-    stay in the server's log)."""
+    deeply to parse, 507 when the disk is full, else a bare 500. Never the exception's
+    class or message (GTSAM, SQLite and paths stay in the server's log)."""
     if isinstance(exc, RecursionError):  # json.loads of a deeply nested document
         return ServiceError(400, "malformed-body", "Malformed body", "body: JSON nested too deeply")
     if _disk_full(exc):
