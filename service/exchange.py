@@ -64,8 +64,8 @@ def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any], Any]:
         raise _bad_import("map", "must be an object with name, mode and config")
     name, mode = meta.get("name"), meta.get("mode")
     problem = name_problem(name)
-    if problem is not None:
-        raise _bad_import("map.name", problem)
+    if problem is not None or not isinstance(name, str):
+        raise _bad_import("map.name", problem or "must be a string")
     if mode not in ("mapping", "localisation"):
         raise _bad_import("map.mode", f"must be 'mapping' or 'localisation', got {mode!r}")
     try:
