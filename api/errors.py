@@ -112,6 +112,12 @@ def install(app: FastAPI) -> None:
             instance=request.url.path,
         )
 
+    @app.exception_handler(RecursionError)
+    async def _too_deep(request: Request, exc: RecursionError) -> JSONResponse:
+        # A JSON body nested deeper than the parser's recursion limit (handled here, not
+        # as a 500: the server is fine).
+        return await _service(request, internal_error(exc))
+
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error on %s", request.url.path)

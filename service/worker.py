@@ -22,6 +22,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from frontend.pipeline import FrontEnd
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import parse_export
 from service.mapconfig import camera_model, slam_config
@@ -77,8 +78,10 @@ def _ping(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
 
 def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     record = MapRecord.from_dict(payload["record"])
-    try:  # the camera's own checks, which its config model cannot all express
-        camera_model(record.config)
+    try:  # the camera's and front end's own checks, which the config model cannot express
+        camera = camera_model(record.config)
+        if camera is not None:
+            FrontEnd(camera).close()
     except ValueError as exc:
         detail = f"config.camera: {exc}"
         raise ServiceError(422, "invalid-config", "Invalid map config", detail) from exc
