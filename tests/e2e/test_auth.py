@@ -7,11 +7,13 @@ import hashlib
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
 from tests.e2e.conftest import Server, frame_dicts, sim_frames
+from tests.e2e.test_dashboard import _wait_for
 
 ADMIN_KEY = "test-admin-key-0123456789abcdef"
 FRAMES = frame_dicts(sim_frames(6))
@@ -242,3 +244,30 @@ def test_keys_survive_a_restart(tmp_path: Path) -> None:
             assert c.get(f"/v1/maps/{map_id}", headers=_bearer(key + "x")).status_code == 401
     finally:
         srv.stop()
+
+
+def test_dashboard_asks_for_a_key_once_and_follows_the_map_live(
+    browser: Any, secured: Server, admin: httpx.Client, maps: dict[str, str]
+) -> None:
+    """A map's read key, entered once in the dashboard: REST calls carry it as a header,
+    the event stream as access_token; it stays in this tab's sessionStorage."""
+    map_id = maps["A"]
+    key = _key(admin, map_id, "read")
+    frames = admin.get(f"/v1/maps/{map_id}").json()["counts"]["frames"]
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(f"{secured.url}/dashboard/?map={map_id}")
+    _wait_for(page, "app", "state", "key")
+    assert page.locator("#key-form").is_visible()
+    page.fill("#key-input", key)
+    page.click("#key-form button")
+    _wait_for(page, "app", "state", "live")
+    _wait_for(page, "app", "frame", frames)
+    assert not page.locator("#key-form").is_visible()
+    assert page.evaluate("() => sessionStorage.getItem('covslam.apiKey')") == key
+    more = frame_dicts(sim_frames(len(FRAMES) + 2))[len(FRAMES) :]
+    for frame in more:
+        assert admin.post(f"/v1/maps/{map_id}/frames", json=frame).status_code == 200
+    _wait_for(page, "app", "frame", frames + len(more))  # through the authenticated stream
+    page.reload()  # the key is remembered in this tab
+    _wait_for(page, "app", "state", "live")
+    page.close()

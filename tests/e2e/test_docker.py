@@ -47,7 +47,10 @@ def _docker(env: dict[str, str], *args: str, timeout: float = 60, check: bool = 
 def _answers(host: str) -> bool:
     env = {**os.environ, "DOCKER_HOST": host}
     try:
-        return _docker(env, "version", "--format", "{{.Server.Version}}", timeout=10, check=False) != ""
+        return (
+            _docker(env, "version", "--format", "{{.Server.Version}}", timeout=10, check=False)
+            != ""
+        )
     except (OSError, subprocess.TimeoutExpired):
         return False
 
@@ -63,10 +66,21 @@ def _start_daemon() -> tuple[str, subprocess.Popen[bytes]]:
     log = (OWN_DAEMON / "dockerd.log").open("ab")
     proc = subprocess.Popen(
         [
-            "dockerd", "--iptables=false", "--ip-forward=false", "--ip-masq=false",
-            "--bip", "10.213.0.1/24", "--storage-driver=overlay2",
-            "--data-root", str(CACHE / "docker"), "--exec-root", str(OWN_DAEMON / "exec"),
-            "--pidfile", str(OWN_DAEMON / "dockerd.pid"), "-H", host,
+            "dockerd",
+            "--iptables=false",
+            "--ip-forward=false",
+            "--ip-masq=false",
+            "--bip",
+            "10.213.0.1/24",
+            "--storage-driver=overlay2",
+            "--data-root",
+            str(CACHE / "docker"),
+            "--exec-root",
+            str(OWN_DAEMON / "exec"),
+            "--pidfile",
+            str(OWN_DAEMON / "dockerd.pid"),
+            "-H",
+            host,
         ],
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -74,7 +88,9 @@ def _start_daemon() -> tuple[str, subprocess.Popen[bytes]]:
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            pytest.skip(f"dockerd could not start: {(OWN_DAEMON / 'dockerd.log').read_text()[-500:]}")
+            pytest.skip(
+                f"dockerd could not start: {(OWN_DAEMON / 'dockerd.log').read_text()[-500:]}"
+            )
         if _answers(host):
             return host, proc
         time.sleep(0.2)
@@ -86,8 +102,11 @@ def _start_daemon() -> tuple[str, subprocess.Popen[bytes]]:
 def docker_env() -> Iterator[dict[str, str]]:
     if shutil.which("docker") is None:
         pytest.skip("no docker client (apt-get install docker.io; .ci/run does as root)")
-    candidates = [os.environ.get("DOCKER_HOST", ""), "unix:///var/run/docker.sock",
-                  "unix:///tmp/docker.sock"]
+    candidates = [
+        os.environ.get("DOCKER_HOST", ""),
+        "unix:///var/run/docker.sock",
+        "unix:///tmp/docker.sock",
+    ]
     host = next((h for h in candidates if h and _answers(h)), None)
     proc = None
     if host is None:
@@ -110,8 +129,16 @@ def image(docker_env: dict[str, str]) -> str:
         env = {**docker_env, "COVSLAM_BASE_CACHE": str(cached)}
         subprocess.run([str(REPO / "docker/base-image.sh")], env=env, check=True, timeout=1200)
     _docker(
-        docker_env, "build", "--network", "host", "-f", "docker/Dockerfile", "-t", IMAGE,
-        str(REPO), timeout=1800,
+        docker_env,
+        "build",
+        "--network",
+        "host",
+        "-f",
+        "docker/Dockerfile",
+        "-t",
+        IMAGE,
+        str(REPO),
+        timeout=1800,
     )
     return IMAGE
 
@@ -133,7 +160,10 @@ def test_image_is_lean_and_has_no_test_tools(docker_env: dict[str, str], image: 
     assert size_mb <= MAX_IMAGE_MB
     probe = subprocess.run(
         ["docker", "run", "--rm", "--entrypoint", "python", image, "-c", "import pytest"],
-        env=docker_env, capture_output=True, text=True, timeout=60,
+        env=docker_env,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert probe.returncode != 0 and "No module named 'pytest'" in probe.stderr
 
@@ -142,7 +172,10 @@ def test_container_refuses_an_open_bind_without_admin_key(
     docker_env: dict[str, str], image: str
 ) -> None:
     run = subprocess.run(
-        ["docker", "run", "--rm", image], env=docker_env, capture_output=True, text=True,
+        ["docker", "run", "--rm", image],
+        env=docker_env,
+        capture_output=True,
+        text=True,
         timeout=60,
     )
     assert run.returncode == 2
@@ -158,9 +191,22 @@ def test_frames_survive_a_container_restart_and_it_turns_healthy(
     volume = f"{name}-data"
     auth = {"Authorization": f"Bearer {ADMIN_KEY}"}
     _docker(
-        docker_env, "run", "-d", "--name", name, "-v", f"{volume}:/data",
-        "-e", f"COVSLAM_AUTH__ADMIN_KEY={ADMIN_KEY}", "-e", "COVSLAM_WORKERS__COUNT=1",
-        "--health-interval", "2s", "--health-start-period", "20s", image,
+        docker_env,
+        "run",
+        "-d",
+        "--name",
+        name,
+        "-v",
+        f"{volume}:/data",
+        "-e",
+        f"COVSLAM_AUTH__ADMIN_KEY={ADMIN_KEY}",
+        "-e",
+        "COVSLAM_WORKERS__COUNT=1",
+        "--health-interval",
+        "2s",
+        "--health-start-period",
+        "20s",
+        image,
     )
     try:
         healthy_s = _wait_health(docker_env, name)
