@@ -84,6 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             components = schema.setdefault("components", {}).setdefault("schemas", {})
             components.update(frame.pop("$defs", {}))
             components["FrameIn"] = frame
+            errors.declare_problem_responses(schema)
             app.openapi_schema = schema
         return app.openapi_schema
 

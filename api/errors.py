@@ -124,6 +124,22 @@ def install(app: FastAPI) -> None:
         return await _service(request, internal_error(exc))
 
 
+_PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+
+
+def declare_problem_responses(schema: dict[str, Any]) -> None:
+    """Every 4xx/5xx response of the OpenAPI document is application/problem+json with
+    the Problem schema (FastAPI's own 422 model included: its handler answers Problem)."""
+    for operations in schema.get("paths", {}).values():
+        for operation in operations.values():
+            for code, response in operation.get("responses", {}).items():
+                if str(code)[0] in "45":
+                    response["content"] = {PROBLEM_JSON: {"schema": _PROBLEM_REF}}
+    components = schema.get("components", {}).get("schemas", {})
+    for unused in ("HTTPValidationError", "ValidationError"):
+        components.pop(unused, None)
+
+
 class _TooLarge(Exception):
     pass
 

@@ -164,7 +164,9 @@ def test_probes_are_open_docs_declare_bearer(secured: Server) -> None:
     assert any(s == {**s, "type": "http", "scheme": "bearer"} for s in schemes.values())
     assert schema["paths"]["/v1/maps/{map_id}/pose"]["get"]["security"]
     assert "security" not in schema["paths"]["/healthz"]["get"]
-    assert "401" in schema["paths"]["/v1/maps"]["post"]["responses"]
+    refusals = schema["paths"]["/v1/maps"]["post"]["responses"]
+    for code in ("401", "403", "415", "422", "507"):
+        assert list(refusals[code]["content"]) == ["application/problem+json"], code
 
 
 def test_event_stream_takes_the_key_as_access_token(
