@@ -12,6 +12,7 @@ from typing import Any
 import httpx
 import pytest
 
+from service.http_client import API_KEY_VARIABLE, ReplayHTTPError, fetch_tum, replay_http
 from tests.e2e.conftest import Server, frame_dicts, sim_frames
 from tests.e2e.test_dashboard import _wait_for
 
@@ -273,3 +274,17 @@ def test_dashboard_asks_for_a_key_once_and_follows_the_map_live(
     page.reload()  # the key is remembered in this tab
     _wait_for(page, "app", "state", "live")
     page.close()
+
+
+def test_replay_client_sends_the_key_from_the_environment(
+    secured: Server, admin: httpx.Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    map_id = admin.post("/v1/maps", json={"name": "replayed"}).json()["id"]
+    frames = sim_frames(5)
+    with pytest.raises(ReplayHTTPError, match="401"):
+        replay_http(frames, url=secured.url, map_id=map_id, progress=False, attempts=1)
+    monkeypatch.setenv(API_KEY_VARIABLE, _key(admin, map_id, "write"))
+    run = replay_http(frames, url=secured.url, map_id=map_id, progress=False)
+    assert len(run.results) == len(frames)
+    tum = fetch_tum(secured.url, map_id, "r1")
+    assert len([ln for ln in tum.splitlines() if not ln.startswith("#")]) == len(frames)
