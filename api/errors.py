@@ -103,7 +103,12 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        titles = {404: "Not found", 405: "Method not allowed", 413: "Body too large"}
+        titles = {
+            400: "Malformed body",
+            404: "Not found",
+            405: "Method not allowed",
+            413: "Body too large",
+        }
         return problem(
             exc.status_code,
             "http-" + str(exc.status_code),
