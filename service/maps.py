@@ -12,6 +12,7 @@ import builtins
 import logging
 import secrets
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,10 @@ class Notifier:
         event = self._events.pop(map_id, None)
         if event is not None:
             event.set()
+
+
+def _imported_record(reply: dict[str, Any]) -> MapRecord:
+    return MapRecord.from_dict(reply["record"])
 
 
 class MapService:
@@ -105,16 +110,22 @@ class MapService:
                 "delete a map first",
             )
 
-    async def _new_map(self, map_id: str, op: str, payload: dict[str, Any]) -> Any:
-        """The worker's reply to a create or import; on any failure the worker is told to
-        remove whatever it wrote for `map_id`, so no orphan file stays behind."""
+    async def _new_map(
+        self, map_id: str, op: str, payload: dict[str, Any], record_of: Callable[[Any], MapRecord]
+    ) -> Any:
+        """The worker's reply to a create or import, the map in the catalogue. On any
+        failure (the worker's, or the catalogue's: a full disk) the worker is told to
+        remove whatever it wrote for `map_id`, so no orphan file stays behind.
+        `record_of(reply)` is the new map's MapRecord."""
         self._check_room()
         self._creating += 1
         try:
             timeout = (
                 None if op == "create" else max(self.settings.workers.request_timeout_s, 600.0)
             )
-            return await self.pool.call(map_id, op, payload, timeout_s=timeout)
+            reply = await self.pool.call(map_id, op, payload, timeout_s=timeout)
+            record: MapRecord = record_of(reply)
+            self._catalog.add(record)
         except Exception:
             try:
                 await self.pool.call(map_id, "delete")
@@ -123,16 +134,14 @@ class MapService:
             raise
         finally:
             self._creating -= 1
-
-    def _add_record(self, record: MapRecord) -> None:
-        self._catalog.add(record)
         self._records[record.id] = record
         self.pool.track(record.id)
+        return reply
 
     async def create(self, *, name: str, config: MapConfig, mode: Mode) -> dict[str, Any]:
         record = self._new_record(name, config, mode)
-        summary = await self._new_map(record.id, "create", {"record": record.as_dict()})
-        self._add_record(record)
+        payload = {"record": record.as_dict()}
+        summary = await self._new_map(record.id, "create", payload, lambda _: record)
         return {**summary, "worker": self.pool.worker_of(record.id)}
 
     async def summary(self, map_id: str) -> dict[str, Any]:
@@ -201,10 +210,8 @@ class MapService:
             "body": body,
             "default_cap": self.settings.default_landmark_cap,
         }
-        reply = await self._new_map(map_id, "import", payload)
-        record = MapRecord.from_dict(reply["record"])
-        self._add_record(record)
-        return {**reply["summary"], "worker": self.pool.worker_of(record.id)}
+        reply = await self._new_map(map_id, "import", payload, _imported_record)
+        return {**reply["summary"], "worker": self.pool.worker_of(map_id)}
 
     # ------------------------------------------------------------ API keys
     def create_key(self, map_id: str, scope: str) -> tuple[KeyRecord, str]:
