@@ -234,10 +234,15 @@ class MapService:
             if key.id == key_id:
                 self._catalog.remove_key(key_id)
                 del self._keys[key.hash]
+                self.notifier.notify(map_id)  # its open event streams end now
                 return
         raise ServiceError(
             404, "unknown-key", "Unknown key", f"map {map_id!r} has no key with id {key_id!r}"
         )
+
+    def key_alive(self, key: KeyRecord) -> bool:
+        """Whether `key` is still valid (not revoked, its map not deleted)."""
+        return self._keys.get(key.hash) == key
 
     def find_key(self, secret: str) -> KeyRecord | None:
         """The stored key whose hash is the secret's, or None."""

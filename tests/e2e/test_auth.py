@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import sqlite3
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -288,3 +289,22 @@ def test_replay_client_sends_the_key_from_the_environment(
     assert len(run.results) == len(frames)
     tum = fetch_tum(secured.url, map_id, "r1")
     assert len([ln for ln in tum.splitlines() if not ln.startswith("#")]) == len(frames)
+
+
+def test_revoking_a_key_ends_its_open_event_stream(
+    secured: Server, admin: httpx.Client, maps: dict[str, str]
+) -> None:
+    map_id = maps["A"]
+    created = admin.post(f"/v1/maps/{map_id}/keys", json={"scope": "read"}).json()
+    path = f"/v1/maps/{map_id}/events"
+    with httpx.Client(base_url=secured.url, timeout=10) as c:
+        params = {"since": 0, "access_token": created["key"]}
+        with c.stream("GET", path, params=params) as r:
+            assert r.status_code == 200
+            lines = r.iter_lines()
+            assert next(lines).startswith(": covslam events")
+            assert admin.delete(f"/v1/maps/{map_id}/keys/{created['id']}").status_code == 204
+            t0 = time.monotonic()
+            for _ in lines:  # the backlog, if not sent yet; then the server ends the stream
+                pass  # (a stream left open would raise httpx's 10 s read timeout here)
+            assert time.monotonic() - t0 < 5
