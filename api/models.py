@@ -24,6 +24,11 @@ COV3 = (
 )
 
 
+class FieldError(BaseModel):
+    field: str = Field(description="dotted path of the field")
+    message: str = Field(description="what is wrong with it")
+
+
 class Problem(BaseModel):
     """RFC 9457 problem details (media type application/problem+json)."""
 
@@ -35,6 +40,9 @@ class Problem(BaseModel):
     detail: str = Field(description="what exactly was wrong: the field (dotted path) and why")
     instance: str | None = Field(None, description="the request path")
     field: str | None = Field(None, description="dotted path of the offending field, if one")
+    errors: list[FieldError] | None = Field(
+        None, description="every wrong field, when a request fails validation (422)"
+    )
 
 
 # --------------------------------------------------------------------------- maps
