@@ -18,7 +18,7 @@ from fastapi_offline import FastAPIOffline
 from api import errors
 from api.docs import DOCS_ASSETS, DocsPolicy
 from api.metrics import Metrics
-from api.routes import events, frames, maps, places, queries, system
+from api.routes import events, frames, keys, maps, places, queries, system
 from service.frame_model import FrameIn
 from service.maps import MapService
 from service.settings import Settings, get_settings
@@ -30,6 +30,9 @@ counter-clockwise from +x (REP-103). A bearing is measured in the robot frame,
 counter-clockwise from the robot's forward axis (+x), wrapped to (-pi, pi].
 Odometry is the motion since the robot's previous frame, in the previous robot frame.
 Errors are RFC 9457 problem+json. The dashboard is served at /dashboard/.
+
+Authentication: `Authorization: Bearer <key>` (the admin key, or a map's key of scope
+read, write or admin; see docs/deployment.md). /healthz and /readyz are open.
 """
 
 DASHBOARD_DIR = Path(__file__).resolve().parent / "dashboard"
@@ -38,6 +41,7 @@ DASHBOARD_DIR = Path(__file__).resolve().parent / "dashboard"
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
+    settings.check_bind()
     metrics = Metrics()
 
     @asynccontextmanager
@@ -67,7 +71,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_image_frame_bytes=settings.api.max_image_bytes + (1 << 20),
     )
     app.add_middleware(DocsPolicy)
-    for module in (maps, frames, queries, events, places, system):
+    for module in (maps, keys, frames, queries, events, places, system):
         app.include_router(module.router)
     app.mount("/dashboard", StaticFiles(directory=DASHBOARD_DIR, html=True), name="dashboard")
 
@@ -80,6 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             components = schema.setdefault("components", {}).setdefault("schemas", {})
             components.update(frame.pop("$defs", {}))
             components["FrameIn"] = frame
+            errors.declare_problem_responses(schema)
             app.openapi_schema = schema
         return app.openapi_schema
 

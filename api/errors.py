@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.errors import ServiceError, WorkerUnavailable
+from service.errors import ServiceError, WorkerUnavailable, internal_error
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,17 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ServiceError)
     async def _service(request: Request, exc: ServiceError) -> JSONResponse:
+        headers: dict[str, str] = dict(getattr(exc, "headers", None) or {})
+        if exc.status >= 500:
+            headers["Connection"] = "close"  # the server is in doubt: a fresh connection
         return problem(
-            exc.status, exc.slug, exc.title, exc.detail, instance=request.url.path, **exc.extra
+            exc.status,
+            exc.slug,
+            exc.title,
+            exc.detail,
+            instance=request.url.path,
+            headers=headers or None,
+            **exc.extra,
         )
 
     @app.exception_handler(WorkerUnavailable)
@@ -94,7 +103,12 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        titles = {404: "Not found", 405: "Method not allowed", 413: "Body too large"}
+        titles = {
+            400: "Malformed body",
+            404: "Not found",
+            405: "Method not allowed",
+            413: "Body too large",
+        }
         return problem(
             exc.status_code,
             "http-" + str(exc.status_code),
@@ -103,16 +117,32 @@ def install(app: FastAPI) -> None:
             instance=request.url.path,
         )
 
+    @app.exception_handler(RecursionError)
+    async def _too_deep(request: Request, exc: RecursionError) -> JSONResponse:
+        # A JSON body nested deeper than the parser's recursion limit (handled here, not
+        # as a 500: the server is fine).
+        return await _service(request, internal_error(exc))
+
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error on %s", request.url.path)
-        return problem(
-            500,
-            "internal",
-            "Internal error",
-            f"{type(exc).__name__}: {exc}",
-            instance=request.url.path,
-        )
+        return await _service(request, internal_error(exc))
+
+
+_PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+
+
+def declare_problem_responses(schema: dict[str, Any]) -> None:
+    """Every 4xx/5xx response of the OpenAPI document is application/problem+json with
+    the Problem schema (FastAPI's own 422 model included: its handler answers Problem)."""
+    for operations in schema.get("paths", {}).values():
+        for operation in operations.values():
+            for code, response in operation.get("responses", {}).items():
+                if str(code)[0] in "45":
+                    response["content"] = {PROBLEM_JSON: {"schema": _PROBLEM_REF}}
+    components = schema.get("components", {}).get("schemas", {})
+    for unused in ("HTTPValidationError", "ValidationError"):
+        components.pop(unused, None)
 
 
 class _TooLarge(Exception):

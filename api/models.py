@@ -12,6 +12,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.exchange import MAP_NAME_MAX_CHARS
+from service.keys import Scope
 from service.mapconfig import MapConfig, Mode
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -20,6 +22,11 @@ COV3 = (
     "3x3 covariance of (x [m], y [m], theta [rad]) of the pose, x/y in the map frame, "
     "row-major, units m², m·rad, rad²"
 )
+
+
+class FieldError(BaseModel):
+    field: str = Field(description="dotted path of the field")
+    message: str = Field(description="what is wrong with it")
 
 
 class Problem(BaseModel):
@@ -33,6 +40,9 @@ class Problem(BaseModel):
     detail: str = Field(description="what exactly was wrong: the field (dotted path) and why")
     instance: str | None = Field(None, description="the request path")
     field: str | None = Field(None, description="dotted path of the offending field, if one")
+    errors: list[FieldError] | None = Field(
+        None, description="every wrong field, when a request fails validation (422)"
+    )
 
 
 # --------------------------------------------------------------------------- maps
@@ -43,7 +53,9 @@ class MapCreate(BaseModel):
 
     model_config = _STRICT
 
-    name: str = Field(min_length=1, max_length=200, description="human-readable name")
+    name: str = Field(
+        min_length=1, max_length=MAP_NAME_MAX_CHARS, description="human-readable name"
+    )
     config: MapConfig = Field(default_factory=MapConfig, description="how the map estimates")
     mode: Mode = Field(
         "mapping",
@@ -364,3 +376,33 @@ class PlaceLearnIn(BaseModel):
 
 class PlaceLearnt(PlacesOut):
     place: PlaceOut = Field(description="the place just learnt")
+
+
+# --------------------------------------------------------------------------- API keys
+
+
+class KeyCreate(BaseModel):
+    """A new key for one map."""
+
+    model_config = _STRICT
+
+    scope: Scope = Field(
+        description="'read': the map, its queries, export and events; 'write': also "
+        "frames and places; 'admin': also mode, delete and the map's keys"
+    )
+
+
+class KeyPublic(BaseModel):
+    """A key as listed: never the key itself."""
+
+    id: str = Field(description="the key's id (for DELETE)")
+    scope: Scope = Field(description="read, write or admin")
+    created: float = Field(description="creation time, Unix seconds")
+
+
+class KeyCreated(BaseModel):
+    """A key just made: `key` is shown this once (only its hash is stored)."""
+
+    id: str = Field(description="the key's id (for DELETE)")
+    key: str = Field(description="the secret: send it as 'Authorization: Bearer <key>'")
+    scope: Scope = Field(description="read, write or admin")

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from frontend.cameras import PanoramaCamera, camera_from_config
 from frontend.pipeline import FrontEnd
@@ -322,11 +323,19 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings_error(exc: ValidationError) -> str:
+    """One line per wrong setting: `workers.count: Input should be ... (got 0)`."""
+    return "; ".join(
+        f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})"
+        for e in exc.errors()
+    )
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from api.app import create_app
-    from service.settings import Settings
+    from service.settings import OpenBindError, Settings
 
     overrides: dict[str, object] = {}
     if args.host is not None:
@@ -335,9 +344,17 @@ def _serve(args: argparse.Namespace) -> int:
         overrides["port"] = args.port
     if args.data_dir is not None:
         overrides["data_dir"] = args.data_dir
-    settings = Settings(**overrides)  # type: ignore[arg-type]
-    if args.workers is not None:
-        settings.workers.count = args.workers
+    if args.workers is not None:  # validated like COVSLAM_WORKERS__COUNT (merged with it)
+        overrides["workers"] = {"count": args.workers}
+    try:
+        settings = Settings(**overrides)  # type: ignore[arg-type]
+        settings.check_bind()
+    except ValidationError as exc:
+        sys.stderr.write(f"covslam serve: {_settings_error(exc)}\n")
+        return 2
+    except OpenBindError as exc:
+        sys.stderr.write(f"covslam serve: {exc}\n")
+        return 2
     logging.getLogger().setLevel(settings.log_level.upper())
     log.info(
         "serving on http://%s:%d, store in %s", settings.host, settings.port, settings.data_dir

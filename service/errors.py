@@ -6,6 +6,8 @@ worker's refusal reaches the API process intact.
 
 from __future__ import annotations
 
+import errno
+import sqlite3
 from typing import Any
 
 
@@ -50,6 +52,35 @@ def invalid_frame(field: str, detail: str) -> ServiceError:
 def out_of_order(field: str, detail: str) -> ServiceError:
     return ServiceError(
         409, "out-of-order", "Frame out of order", f"{field}: {detail}", field=field
+    )
+
+
+def _disk_full(exc: BaseException) -> bool:
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return isinstance(exc, sqlite3.Error) and getattr(exc, "sqlite_errorcode", None) == getattr(
+        sqlite3, "SQLITE_FULL", 13
+    )
+
+
+def internal_error(exc: BaseException) -> ServiceError:
+    """What a client is told about an unexpected exception: 400 for a body nested too
+    deeply to parse, 507 when the disk is full, else a bare 500. Never the exception's
+    class or message (GTSAM, SQLite and paths stay in the server's log)."""
+    if isinstance(exc, RecursionError):  # json.loads of a deeply nested document
+        return ServiceError(400, "malformed-body", "Malformed body", "body: JSON nested too deeply")
+    if _disk_full(exc):
+        return ServiceError(
+            507,
+            "insufficient-storage",
+            "Insufficient storage",
+            "the service's disk is full; the request was not completed. Retry once space is freed",
+        )
+    return ServiceError(
+        500,
+        "internal",
+        "Internal error",
+        "the service failed on this request (the details are in the server's log)",
     )
 
 

@@ -33,6 +33,22 @@ def _bad_import(field: str, detail: str) -> ServiceError:
     )
 
 
+MAP_NAME_MAX_CHARS = 200
+"""Longest map name (POST /v1/maps and imports alike)."""
+
+
+def name_problem(name: Any) -> str | None:
+    """What is wrong with a map name, or None: a non-empty string of at most
+    MAP_NAME_MAX_CHARS characters of valid Unicode (no lone surrogate)."""
+    if not isinstance(name, str) or not name:
+        return "must be a non-empty string"
+    if len(name) > MAP_NAME_MAX_CHARS:
+        return f"must be at most {MAP_NAME_MAX_CHARS} characters, got {len(name)}"
+    if any("\ud800" <= c <= "\udfff" for c in name):
+        return "must be valid Unicode text (it holds a lone surrogate)"
+    return None
+
+
 def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any], Any]:
     """Check an export document: (name, mode, config, frames, front-end state or None);
     ServiceError 400/422. The front-end state is checked by the import itself."""
@@ -47,8 +63,9 @@ def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any], Any]:
     if not isinstance(meta, dict):
         raise _bad_import("map", "must be an object with name, mode and config")
     name, mode = meta.get("name"), meta.get("mode")
-    if not isinstance(name, str) or not name:
-        raise _bad_import("map.name", "must be a non-empty string")
+    problem = name_problem(name)
+    if problem is not None or not isinstance(name, str):
+        raise _bad_import("map.name", problem or "must be a string")
     if mode not in ("mapping", "localisation"):
         raise _bad_import("map.mode", f"must be 'mapping' or 'localisation', got {mode!r}")
     try:

@@ -2,7 +2,8 @@
 
 Retries on 503 (honouring Retry-After) and on connection errors, so a replay
 survives a worker restart or a service restart: `(robot, seq)` makes every retry
-safe. Used by ``covslam replay ... --url URL``. A frame with an image
+safe. Used by ``covslam replay ... --url URL``; with ``COVSLAM_API_KEY`` set, every
+request carries it (``Authorization: Bearer``). A frame with an image
 (`service.replay.ImageFrame`) is posted as multipart/form-data: ``meta`` (the
 frame JSON without observations) and ``image`` (the file's bytes).
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -84,6 +86,17 @@ def image_frame_parts(item: ImageFrame) -> dict[str, Any]:
     }
 
 
+API_KEY_VARIABLE = "COVSLAM_API_KEY"
+"""The environment variable with the key a client sends (a map key of scope write, or the
+admin key to create maps)."""
+
+
+def _client(url: str, timeout_s: float) -> httpx.Client:
+    key = os.environ.get(API_KEY_VARIABLE)
+    headers = {"Authorization": f"Bearer {key}"} if key else None
+    return httpx.Client(base_url=url.rstrip("/"), timeout=timeout_s, headers=headers)
+
+
 def replay_http(
     frames: Sequence[FrameInput | ImageFrame],
     *,
@@ -96,7 +109,7 @@ def replay_http(
     timeout_s: float = 60.0,
 ) -> HttpReplay:
     """Post `frames` in order to `url` (into `map_id`, or a new map with `config`)."""
-    with httpx.Client(base_url=url.rstrip("/"), timeout=timeout_s) as client:
+    with _client(url, timeout_s) as client:
         if map_id is None:
             body = {"name": name, "config": config or {}}
             r, _ = _request(client, "POST", "/v1/maps", json=body, attempts=attempts)
@@ -127,7 +140,7 @@ def replay_http(
 
 def fetch_tum(url: str, map_id: str, robot: str, *, attempts: int = 30) -> str:
     """One robot's trajectory as TUM text."""
-    with httpx.Client(base_url=url.rstrip("/"), timeout=60) as client:
+    with _client(url, 60.0) as client:
         r, _ = _request(
             client,
             "GET",

@@ -8,16 +8,22 @@ worker reported something new. Everything heavy happens in the workers.
 from __future__ import annotations
 
 import asyncio
+import builtins
+import logging
 import secrets
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from service.errors import ServiceError, unknown_map
+from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.mapconfig import MapConfig, Mode, slam_config
 from service.pool import WorkerPool
 from service.settings import Settings
-from service.store import Catalog, MapRecord, map_db_path
+from service.store import Catalog, KeyRecord, MapRecord, map_db_path
+
+log = logging.getLogger(__name__)
 
 
 class Notifier:
@@ -36,6 +42,10 @@ class Notifier:
             event.set()
 
 
+def _imported_record(reply: dict[str, Any]) -> MapRecord:
+    return MapRecord.from_dict(reply["record"])
+
+
 class MapService:
     """Maps: create, list, delete, frames, queries, export/import."""
 
@@ -44,6 +54,8 @@ class MapService:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         self._catalog = Catalog(settings.data_dir, synchronous=settings.store.synchronous)
         self._records: dict[str, MapRecord] = {r.id: r for r in self._catalog.all()}
+        self._keys: dict[str, KeyRecord] = {k.hash: k for k in self._catalog.keys()}
+        self._creating = 0
         self.pool = WorkerPool(settings, on_restart=on_worker_restart)
         self.notifier = Notifier()
         self.started = False
@@ -87,12 +99,49 @@ class MapService:
             raise ServiceError(422, "invalid-config", "Invalid map config", str(exc)) from exc
         return record
 
-    async def create(self, *, name: str, config: MapConfig, mode: Mode) -> dict[str, Any]:
-        record = self._new_record(name, config, mode)
-        summary = await self.pool.call(record.id, "create", {"record": record.as_dict()})
-        self._catalog.add(record)
+    def _check_room(self) -> None:
+        limit = self.settings.max_maps
+        if len(self._records) + self._creating >= limit:
+            raise ServiceError(
+                507,
+                "too-many-maps",
+                "Too many maps",
+                f"the service holds its limit of {limit} maps (setting max_maps); "
+                "delete a map first",
+            )
+
+    async def _new_map(
+        self, map_id: str, op: str, payload: dict[str, Any], record_of: Callable[[Any], MapRecord]
+    ) -> Any:
+        """The worker's reply to a create or import, the map in the catalogue. On any
+        failure (the worker's, or the catalogue's: a full disk) the worker is told to
+        remove whatever it wrote for `map_id`, so no orphan file stays behind.
+        `record_of(reply)` is the new map's MapRecord."""
+        self._check_room()
+        self._creating += 1
+        try:
+            timeout = (
+                None if op == "create" else max(self.settings.workers.request_timeout_s, 600.0)
+            )
+            reply = await self.pool.call(map_id, op, payload, timeout_s=timeout)
+            record: MapRecord = record_of(reply)
+            self._catalog.add(record)
+        except Exception:
+            try:
+                await self.pool.call(map_id, "delete")
+            except Exception:
+                log.exception("could not remove the files of the failed new map %s", map_id)
+            raise
+        finally:
+            self._creating -= 1
         self._records[record.id] = record
         self.pool.track(record.id)
+        return reply
+
+    async def create(self, *, name: str, config: MapConfig, mode: Mode) -> dict[str, Any]:
+        record = self._new_record(name, config, mode)
+        payload = {"record": record.as_dict()}
+        summary = await self._new_map(record.id, "create", payload, lambda _: record)
         return {**summary, "worker": self.pool.worker_of(record.id)}
 
     async def summary(self, map_id: str) -> dict[str, Any]:
@@ -102,8 +151,9 @@ class MapService:
 
     async def delete(self, map_id: str) -> None:
         self.record(map_id)
-        self._catalog.remove(map_id)
+        self._catalog.remove(map_id)  # and its keys
         del self._records[map_id]
+        self._keys = {h: k for h, k in self._keys.items() if k.map_id != map_id}
         self.pool.untrack(map_id)
         self.notifier.notify(map_id)
         await self.pool.call(map_id, "delete")
@@ -160,10 +210,42 @@ class MapService:
             "body": body,
             "default_cap": self.settings.default_landmark_cap,
         }
-        timeout = max(self.settings.workers.request_timeout_s, 600.0)
-        reply = await self.pool.call(map_id, "import", payload, timeout_s=timeout)
-        record = MapRecord.from_dict(reply["record"])
-        self._catalog.add(record)
-        self._records[record.id] = record
-        self.pool.track(record.id)
-        return {**reply["summary"], "worker": self.pool.worker_of(record.id)}
+        reply = await self._new_map(map_id, "import", payload, _imported_record)
+        return {**reply["summary"], "worker": self.pool.worker_of(map_id)}
+
+    # ------------------------------------------------------------ API keys
+    def create_key(self, map_id: str, scope: str) -> tuple[KeyRecord, str]:
+        """A new key of `scope` for the map: its record and the secret (shown only now)."""
+        self.record(map_id)
+        secret = new_key()
+        key = KeyRecord(new_key_id(), map_id, scope, key_hash(secret), time.time())
+        self._catalog.add_key(key)
+        self._keys[key.hash] = key
+        return key, secret
+
+    def keys(self, map_id: str) -> builtins.list[KeyRecord]:
+        self.record(map_id)
+        return sorted(
+            (k for k in self._keys.values() if k.map_id == map_id), key=lambda k: k.created
+        )
+
+    def delete_key(self, map_id: str, key_id: str) -> None:
+        for key in self.keys(map_id):
+            if key.id == key_id:
+                self._catalog.remove_key(key_id)
+                del self._keys[key.hash]
+                self.notifier.notify(map_id)  # its open event streams end now
+                return
+        raise ServiceError(
+            404, "unknown-key", "Unknown key", f"map {map_id!r} has no key with id {key_id!r}"
+        )
+
+    def key_alive(self, key: KeyRecord) -> bool:
+        """Whether `key` is still valid (not revoked, its map not deleted)."""
+        return self._keys.get(key.hash) == key
+
+    def find_key(self, secret: str) -> KeyRecord | None:
+        """The stored key whose hash is the secret's, or None."""
+        digest = key_hash(secret)
+        key = self._keys.get(digest)
+        return key if key is not None and same_hash(key.hash, digest) else None

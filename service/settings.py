@@ -8,12 +8,13 @@ Nothing is read at import time: call `get_settings()` (cached; tests clear it).
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, Field, SecretStr, ValidationInfo, field_serializer, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.frame_model import FrameLimits
@@ -90,6 +91,50 @@ class ApiSettings(BaseModel):
     )
 
 
+ADMIN_KEY_MIN_CHARS = 16
+"""Shortest admin key accepted (a guessable key is no key)."""
+
+
+class AuthSettings(BaseModel):
+    """API keys (`Authorization: Bearer <key>`). Setting the admin key turns auth on."""
+
+    admin_key: SecretStr | None = Field(
+        None,
+        description="the admin key: creates, lists and imports maps, manages every map's "
+        f"keys, reads /metrics (at least {ADMIN_KEY_MIN_CHARS} characters). Unset: auth "
+        "is off, which only a loopback bind allows",
+    )
+
+    @field_validator("admin_key")
+    @classmethod
+    def _long_enough(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and len(value.get_secret_value()) < ADMIN_KEY_MIN_CHARS:
+            raise ValueError(
+                f"must be at least {ADMIN_KEY_MIN_CHARS} characters (e.g. "
+                "python3 -c 'import secrets; print(secrets.token_urlsafe(32))')"
+            )
+        return value
+
+    @field_serializer("admin_key")
+    def _never_dumped(self, value: SecretStr | None) -> None:
+        """Dumps (e.g. the settings a worker process gets) never carry the key."""
+        return None
+
+
+class OpenBindError(ValueError):
+    """A non-loopback bind without an admin key."""
+
+
+def is_loopback(host: str) -> bool:
+    """True for an address only this machine reaches (127.0.0.0/8, ::1, localhost)."""
+    if host.strip().lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
 class Settings(BaseSettings):
     """Everything `covslam serve` can be told."""
 
@@ -119,6 +164,25 @@ class Settings(BaseSettings):
     frames: FrameLimits = Field(
         default_factory=FrameLimits, description="bounds on what one posted frame may hold"
     )
+    auth: AuthSettings = Field(default_factory=AuthSettings)
+    max_maps: int = Field(
+        1000,
+        ge=1,
+        description="most maps the service holds; creating or importing one more is a 507",
+    )
+
+    @property
+    def auth_enabled(self) -> bool:
+        """Requests need a key: an admin key is set (on any bind)."""
+        return self.auth.admin_key is not None
+
+    def check_bind(self) -> None:
+        """Raises OpenBindError when the service would answer a network without keys."""
+        if not self.auth_enabled and not is_loopback(self.host):
+            raise OpenBindError(
+                f"refusing to serve on {self.host} without authentication: set "
+                "COVSLAM_AUTH__ADMIN_KEY, or bind a loopback address (127.0.0.1)"
+            )
 
     @field_validator("default_landmark_cap", "default_camera_landmark_cap")
     @classmethod

@@ -2,7 +2,8 @@
 
 Layout under the data directory::
 
-    catalog.sqlite          maps(id, name, mode, config, created)
+    catalog.sqlite          maps(id, name, mode, config, created),
+                            keys(id, map_id, scope, hash, created): API keys, hashed
     maps/<id>.sqlite        frames (the durable log), snapshots, removals, events, meta
 
 Every database runs in WAL mode; ``synchronous`` is NORMAL (survives a killed
@@ -50,6 +51,13 @@ CREATE TABLE IF NOT EXISTS maps (
     name TEXT NOT NULL,
     mode TEXT NOT NULL,
     config TEXT NOT NULL,
+    created REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS keys (
+    id TEXT PRIMARY KEY,
+    map_id TEXT NOT NULL,
+    scope TEXT NOT NULL,
+    hash TEXT NOT NULL UNIQUE,
     created REAL NOT NULL
 );
 """
@@ -165,8 +173,19 @@ class MapRecord:
         return cls(d["id"], d["name"], d["mode"], dict(d["config"]), float(d["created"]))
 
 
+@dataclass(frozen=True, slots=True)
+class KeyRecord:
+    """A map's API key as stored: its sha256 `hash` (hex), never the key itself."""
+
+    id: str
+    map_id: str
+    scope: str
+    hash: str
+    created: float
+
+
 class Catalog:
-    """The list of maps (API process)."""
+    """The list of maps and their API keys (API process)."""
 
     def __init__(self, data_dir: Path, *, synchronous: str) -> None:
         self._conn = connect(data_dir / "catalog.sqlite", synchronous=synchronous)
@@ -183,8 +202,10 @@ class Catalog:
             )
 
     def remove(self, map_id: str) -> None:
+        """Delete a map's record and its keys."""
         with transaction(self._conn):
             self._conn.execute("DELETE FROM maps WHERE id = ?", (map_id,))
+            self._conn.execute("DELETE FROM keys WHERE map_id = ?", (map_id,))
 
     def set_mode(self, map_id: str, mode: str) -> None:
         with transaction(self._conn):
@@ -195,6 +216,23 @@ class Catalog:
             "SELECT id, name, mode, config, created FROM maps ORDER BY created, id"
         ).fetchall()
         return [MapRecord(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
+
+    def add_key(self, key: KeyRecord) -> None:
+        with transaction(self._conn):
+            self._conn.execute(
+                "INSERT INTO keys (id, map_id, scope, hash, created) VALUES (?, ?, ?, ?, ?)",
+                (key.id, key.map_id, key.scope, key.hash, key.created),
+            )
+
+    def remove_key(self, key_id: str) -> None:
+        with transaction(self._conn):
+            self._conn.execute("DELETE FROM keys WHERE id = ?", (key_id,))
+
+    def keys(self) -> list[KeyRecord]:
+        rows = self._conn.execute(
+            "SELECT id, map_id, scope, hash, created FROM keys ORDER BY created, id"
+        ).fetchall()
+        return [KeyRecord(*r) for r in rows]
 
 
 # --------------------------------------------------------------------------- one map

@@ -62,8 +62,7 @@ def trajectory_doc(
             404,
             "unknown-robot",
             "Unknown robot",
-            f"robot: map {map_id!r} has no robot {robot!r} "
-            f"(robots: {', '.join(slam.robots) or 'none'})",
+            f"robot: map {map_id!r} has no robot {robot!r} (GET /pose lists its robots)",
             field="robot",
         )
     out = {}

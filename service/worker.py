@@ -22,9 +22,10 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from service.errors import ServiceError, unknown_map
+from frontend.pipeline import FrontEnd
+from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import parse_export
-from service.mapconfig import slam_config
+from service.mapconfig import camera_model, slam_config
 from service.session import MapSession, remove_map_files
 from service.settings import Settings
 from service.store import MapRecord, map_db_path
@@ -77,6 +78,13 @@ def _ping(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
 
 def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     record = MapRecord.from_dict(payload["record"])
+    try:  # the camera's and front end's own checks, which the config model cannot express
+        camera = camera_model(record.config)
+        if camera is not None:
+            FrontEnd(camera).close()
+    except ValueError as exc:
+        detail = f"config.camera: {exc}"
+        raise ServiceError(422, "invalid-config", "Invalid map config", detail) from exc
     old = _sessions.pop(map_id, None)
     if old is not None:
         old.close()
@@ -228,5 +236,4 @@ def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
         return {"ok": False, "error": exc.as_dict()}
     except Exception as exc:
         log.exception("op %s on map %s failed", op, map_id)
-        error = ServiceError(500, "internal", "Internal error", f"{type(exc).__name__}: {exc}")
-        return {"ok": False, "error": error.as_dict()}
+        return {"ok": False, "error": internal_error(exc).as_dict()}

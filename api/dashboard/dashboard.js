@@ -54,8 +54,38 @@ class HttpError extends Error {
   }
 }
 
+// ------------------------------------------------------------------ API key
+// With auth on, every request carries the key the user entered once (sessionStorage:
+// this tab only, gone when it closes). EventSource cannot set headers: the event
+// stream takes the key as its access_token query parameter.
+const KEY_ITEM = "covslam.apiKey";
+const apiKey = () => sessionStorage.getItem(KEY_ITEM);
+
+function authHeaders() {
+  const key = apiKey();
+  return key ? { Authorization: `Bearer ${key}` } : {};
+}
+
+function askForKey(message) {
+  const form = $("key-form");
+  form.hidden = false;
+  app.dataset.state = "key";
+  $("summary").textContent = message;
+  $("key-input").focus();
+}
+
+$("key-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  sessionStorage.setItem(KEY_ITEM, $("key-input").value.trim());
+  $("key-input").value = "";
+  $("key-form").hidden = true;
+  start();
+});
+
 async function getJSON(path) {
-  const r = await fetch(new URL(path, API), { headers: { Accept: "application/json" } });
+  const r = await fetch(new URL(path, API), {
+    headers: { Accept: "application/json", ...authHeaders() },
+  });
   if (!r.ok) {
     let detail = r.statusText;
     try {
@@ -103,10 +133,22 @@ function parsePlaces(body) {
 }
 
 // ------------------------------------------------------------------ maps
+/** Every map (admin key, or auth off); a map's own key may not list them: then the
+ * one map named by ?map= in the page's address. */
+async function listMaps(wanted) {
+  try {
+    return await getJSON("maps");
+  } catch (err) {
+    if (err.status !== 403 || !wanted) throw err;
+    const map = await getJSON(`maps/${encodeURIComponent(wanted)}`);
+    return [map];
+  }
+}
+
 async function loadMapList() {
   const select = $("map-select");
-  const maps = await getJSON("maps");
   const wanted = new URLSearchParams(window.location.search).get("map");
+  const maps = await listMaps(wanted);
   maps.sort((a, b) => b.created - a.created);
   const current = state?.mapId ?? wanted;
   select.replaceChildren(...maps.map((m) => {
@@ -144,8 +186,10 @@ function setConn(s, text) {
 
 function connect(since) {
   const st = state;
-  const path = `maps/${encodeURIComponent(st.mapId)}/events` + (since != null ? `?since=${since}` : "");
-  const source = new EventSource(new URL(path, API));
+  const url = new URL(`maps/${encodeURIComponent(st.mapId)}/events`, API);
+  if (since != null) url.searchParams.set("since", since);
+  if (apiKey()) url.searchParams.set("access_token", apiKey());
+  const source = new EventSource(url);
   st.source = source;
   setConn("connecting", "connecting");
   const opened = new Promise((resolve) => {
@@ -614,6 +658,14 @@ async function start() {
     if (id) await openMap(id);
     else setTimeout(start, 5000);
   } catch (err) {
+    if (err.status === 401) {
+      askForKey(apiKey() ? "that key is not valid: enter an API key" : "enter an API key");
+      return;
+    }
+    if (err.status === 403 && !new URLSearchParams(window.location.search).get("map")) {
+      askForKey("this key reaches one map: open /dashboard/?map=<id>, or enter the admin key");
+      return;
+    }
     showError(err);
     setTimeout(start, 5000);
   }

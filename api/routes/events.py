@@ -9,6 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 
+from api.auth import AUTH_ERRORS, Principal, StreamRead
 from api.deps import MapId, ServiceDep
 from api.models import Problem
 from service.maps import MapService
@@ -20,11 +21,15 @@ KEEPALIVE_S = 15.0
 
 
 async def _stream(
-    service: MapService, map_id: str, after: int, request: Request
+    service: MapService, map_id: str, after: int, request: Request, who: Principal
 ) -> AsyncIterator[bytes]:
+    """The map's events after `after`; ends when the client goes, the map is deleted, or
+    the key the stream was opened with is revoked."""
     path = service.events_path(map_id)
     yield b": covslam events\n\n"
     while True:
+        if who.key is not None and not service.key_alive(who.key):
+            return
         wake = service.notifier.handle(map_id)
         rows = await asyncio.to_thread(read_events, path, after)
         for event_id, kind, data in rows:
@@ -49,6 +54,7 @@ async def _stream(
             "[m], frame_id}, `landmark_marginalised` (a removal record with reason); each has "
             "an `id` for Last-Event-ID",
         },
+        **AUTH_ERRORS,
         404: {"model": Problem},
     },
 )
@@ -56,6 +62,7 @@ async def stream_events(
     map_id: MapId,
     request: Request,
     service: ServiceDep,
+    who: Annotated[Principal, StreamRead],
     last_event_id: Annotated[
         str | None, Header(description="resume after this event id (set by EventSource)")
     ] = None,
@@ -77,7 +84,7 @@ async def stream_events(
     else:
         after = await asyncio.to_thread(latest_event_id, path)
     return StreamingResponse(
-        _stream(service, map_id, after, request),
+        _stream(service, map_id, after, request, who),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )

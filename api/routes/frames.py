@@ -9,7 +9,8 @@ from fastapi import APIRouter, Request, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
-from api.deps import MapId, MetricsDep, ServiceDep
+from api.auth import AUTH_ERRORS, MapWrite
+from api.deps import MapId, MetricsDep, ServiceDep, media_type, unsupported_media
 from api.models import FrameResult, Problem
 from service.errors import ServiceError
 from service.frames_io import admit_frame
@@ -18,7 +19,7 @@ from service.jsonio import loads_object
 META_MAX_BYTES = 64 << 10
 """Largest `meta` part of an image frame, bytes."""
 
-router = APIRouter(prefix="/v1/maps/{map_id}/frames", tags=["frames"])
+router = APIRouter(prefix="/v1/maps/{map_id}/frames", tags=["frames"], dependencies=[MapWrite])
 
 _BODY = {
     "requestBody": {
@@ -56,6 +57,7 @@ _BODY = {
     response_model=FrameResult,
     openapi_extra=_BODY,
     responses={
+        **AUTH_ERRORS,
         400: {"model": Problem, "description": "malformed JSON, NaN/Infinity"},
         404: {"model": Problem, "description": "unknown map"},
         409: {
@@ -64,6 +66,10 @@ _BODY = {
             "frame with an already used (robot, seq)",
         },
         413: {"model": Problem, "description": "body or image too large"},
+        415: {
+            "model": Problem,
+            "description": "body neither application/json nor multipart/form-data",
+        },
         422: {
             "model": Problem,
             "description": "a field is missing or wrong (see `field`); an image that does "
@@ -83,10 +89,12 @@ async def post_frame(
     """
     t0 = time.perf_counter()
     service.record(map_id)
-    ctype = request.headers.get("content-type", "")
+    ctype = media_type(request)
+    if ctype not in ("application/json", "multipart/form-data"):
+        raise unsupported_media(request, "application/json or multipart/form-data")
     settings = request.app.state.settings
     try:
-        if ctype.lower().startswith(("multipart/", "application/x-www-form-urlencoded")):
+        if ctype == "multipart/form-data":
             limit = settings.api.max_image_bytes
             meta, image = await read_image_frame(request, max_image_bytes=limit)
             admit_frame(meta, settings.frames, image_frame=True)

@@ -6,12 +6,19 @@ from typing import Any
 
 from fastapi import APIRouter, Request, Response, status
 
-from api.deps import MapId, MetricsDep, ServiceDep
+from api.auth import AUTH_ERRORS, AdminOnly, MapAdmin, MapRead
+from api.deps import JsonOnly, MapId, MetricsDep, ServiceDep
 from api.models import MapBrief, MapCreate, MapPatch, MapPublic, Problem
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
+_FULL: dict[int | str, dict[str, Any]] = {
+    413: {"model": Problem, "description": "body over the limit"},
+    415: {"model": Problem, "description": "body not application/json"},
+    507: {"model": Problem, "description": "the service holds max_maps maps, or its disk is full"},
+}
 _ERRORS: dict[int | str, dict[str, Any]] = {
+    **AUTH_ERRORS,
     404: {"model": Problem, "description": "unknown map"},
     503: {"model": Problem, "description": "the map's worker is restarting; see Retry-After"},
 }
@@ -21,7 +28,8 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=MapPublic,
-    responses={422: {"model": Problem}},
+    responses={**AUTH_ERRORS, **_FULL, 422: {"model": Problem}},
+    dependencies=[AdminOnly, JsonOnly],
 )
 async def create_map(body: MapCreate, service: ServiceDep, response: Response) -> dict[str, Any]:
     """Create a map; its `id` names it in every other path."""
@@ -30,7 +38,7 @@ async def create_map(body: MapCreate, service: ServiceDep, response: Response) -
     return summary
 
 
-@router.get("", response_model=list[MapBrief])
+@router.get("", response_model=list[MapBrief], responses=AUTH_ERRORS, dependencies=[AdminOnly])
 async def list_maps(service: ServiceDep) -> list[dict[str, Any]]:
     """Every map (id, name, mode, config, created)."""
     return [r.as_dict() for r in service.list()]
@@ -40,7 +48,13 @@ async def list_maps(service: ServiceDep) -> list[dict[str, Any]]:
     "/import",
     status_code=status.HTTP_201_CREATED,
     response_model=MapPublic,
-    responses={400: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}},
+    responses={
+        **AUTH_ERRORS,
+        **_FULL,
+        400: {"model": Problem, "description": "malformed JSON"},
+        422: {"model": Problem, "description": "not a valid map document"},
+    },
+    dependencies=[AdminOnly, JsonOnly],
     openapi_extra={
         "requestBody": {
             "required": True,
@@ -58,19 +72,26 @@ async def import_map(request: Request, service: ServiceDep, response: Response) 
     return summary
 
 
-@router.get("/{map_id}", response_model=MapPublic, responses=_ERRORS)
+@router.get("/{map_id}", response_model=MapPublic, responses=_ERRORS, dependencies=[MapRead])
 async def get_map(map_id: MapId, service: ServiceDep) -> dict[str, Any]:
     """Summary: counts, config, estimator parameters, timing stats."""
     return await service.summary(map_id)
 
 
-@router.patch("/{map_id}", response_model=MapPublic, responses=_ERRORS)
+@router.patch(
+    "/{map_id}", response_model=MapPublic, responses=_ERRORS, dependencies=[MapAdmin, JsonOnly]
+)
 async def patch_map(map_id: MapId, body: MapPatch, service: ServiceDep) -> dict[str, Any]:
     """Switch between mapping and localisation (frozen map: no new landmarks)."""
     return await service.set_mode(map_id, body.mode)
 
 
-@router.delete("/{map_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_ERRORS)
+@router.delete(
+    "/{map_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses=_ERRORS,
+    dependencies=[MapAdmin],
+)
 async def delete_map(map_id: MapId, service: ServiceDep, metrics: MetricsDep) -> Response:
     """Delete a map and its store."""
     await service.delete(map_id)
@@ -78,7 +99,7 @@ async def delete_map(map_id: MapId, service: ServiceDep, metrics: MetricsDep) ->
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-@router.get("/{map_id}/export", responses=_ERRORS)
+@router.get("/{map_id}/export", responses=_ERRORS, dependencies=[MapRead])
 async def export_map(map_id: MapId, service: ServiceDep) -> Response:
     """The whole map as one versioned JSON document (format covslam.map, version 1):
     map record and config, estimator parameters, landmarks with covariances and

@@ -6,14 +6,16 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Response
 
+from api.auth import AUTH_ERRORS, MapRead
 from api.deps import MapId, ServiceDep
 from api.models import CoverageOut, LandmarkOut, PoseOut, Problem, TrajectoryOut
 from service.errors import ServiceError
 from service.views import tum_text
 
-router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"])
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"], dependencies=[MapRead])
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
+    **AUTH_ERRORS,
     404: {"model": Problem, "description": "unknown map or robot"},
     503: {"model": Problem, "description": "the map's worker is restarting; see Retry-After"},
 }

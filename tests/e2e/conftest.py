@@ -36,6 +36,9 @@ class Server:
 
     def __init__(self, data_dir: Path, *, workers: int = 2, env: dict[str, str] | None = None):
         self.data_dir = data_dir
+        admin_key = (env or {}).get("COVSLAM_AUTH__ADMIN_KEY")
+        self.auth = {"Authorization": f"Bearer {admin_key}"} if admin_key else {}
+        """Headers that carry the admin key, if the server has one."""
         self.workers = workers
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -100,7 +103,7 @@ class Server:
             self.kill9()
 
     def worker_pids(self) -> list[int]:
-        body = httpx.get(self.url + "/readyz", timeout=5).json()
+        body = httpx.get(self.url + "/v1/workers", timeout=5, headers=self.auth).json()
         return [w["pid"] for w in body["workers"] if w["pid"] is not None]
 
 

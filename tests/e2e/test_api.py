@@ -372,7 +372,9 @@ def test_two_maps_in_parallel_match_a_lone_run(
 def test_metrics_and_probes(client: httpx.Client, mapped: tuple[str, list[dict]]) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
     ready = client.get("/readyz")
-    assert ready.status_code == 200 and len(ready.json()["workers"]) == 2
+    assert ready.status_code == 200 and ready.json()["workers"] == 2
+    assert "pid" not in ready.text  # open to anyone: counts only
+    assert len(client.get("/v1/workers").json()["workers"]) == 2
     text = client.get("/metrics").text
     for name in (
         "covslam_frames_total",

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.settings import Settings, get_settings
+from service.cli import main as cli_main
+from service.settings import OpenBindError, Settings, get_settings, is_loopback
 
 
 def test_nested_environment_variables(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -49,3 +50,74 @@ def test_unsafe_values_are_refused(monkeypatch: pytest.MonkeyPatch, name: str, v
     monkeypatch.setenv(name, value)
     with pytest.raises(ValidationError):
         Settings()
+
+
+# --------------------------------------------------------------------------- auth and bind
+
+
+@pytest.mark.parametrize(
+    ("host", "loopback"),
+    [
+        ("127.0.0.1", True),
+        ("127.8.9.1", True),
+        ("::1", True),
+        ("[::1]", True),
+        ("localhost", True),
+        ("0.0.0.0", False),
+        ("::", False),
+        ("10.1.2.3", False),
+        ("example.org", False),
+    ],
+)
+def test_loopback_rule(host: str, loopback: bool) -> None:
+    assert is_loopback(host) is loopback
+    open_settings = Settings(host=host)
+    assert not open_settings.auth_enabled
+    if loopback:
+        open_settings.check_bind()  # auth off, allowed
+    else:
+        with pytest.raises(OpenBindError, match="COVSLAM_AUTH__ADMIN_KEY"):
+            open_settings.check_bind()
+    keyed = Settings(host=host, auth={"admin_key": "k" * 32})  # type: ignore[arg-type]
+    assert keyed.auth_enabled
+    keyed.check_bind()  # a key turns auth on, on any bind
+
+
+def test_admin_key_from_the_environment_is_never_dumped(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COVSLAM_AUTH__ADMIN_KEY", "a-long-enough-admin-key")
+    s = Settings()
+    assert s.auth.admin_key is not None
+    assert s.auth.admin_key.get_secret_value() == "a-long-enough-admin-key"
+    assert "a-long-enough-admin-key" not in repr(s)
+    dumped = s.model_dump(mode="json")  # what a worker process gets
+    assert dumped["auth"]["admin_key"] is None
+    assert "a-long-enough-admin-key" not in str(dumped)
+
+
+def test_short_admin_key_refused() -> None:
+    with pytest.raises(ValidationError, match="at least 16"):
+        Settings(auth={"admin_key": "short"})  # type: ignore[arg-type]
+
+
+def _serve_refusal(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    assert cli_main(["serve", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("covslam serve: ")
+    return err
+
+
+def test_serve_refuses_workers_0_like_the_variable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    err = _serve_refusal(["--workers", "0", "--data-dir", str(tmp_path)], capsys)
+    assert "workers.count" in err and "0" in err
+    monkeypatch.setenv("COVSLAM_WORKERS__COUNT", "0")
+    assert "workers.count" in _serve_refusal(["--data-dir", str(tmp_path)], capsys)
+
+
+def test_serve_refuses_an_open_bind_without_admin_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("COVSLAM_AUTH__ADMIN_KEY", raising=False)
+    err = _serve_refusal(["--host", "0.0.0.0", "--data-dir", str(tmp_path)], capsys)
+    assert "0.0.0.0" in err and "COVSLAM_AUTH__ADMIN_KEY" in err
