@@ -286,6 +286,26 @@ class LandmarkOut(BaseModel):
     last_stamp: float = Field(description="stamp of the latest observation, seconds")
 
 
+class ArchivedLandmarkOut(BaseModel):
+    id: int = Field(description="stable landmark id, never reused; it comes back under it")
+    label: str = Field(description="the observations' label")
+    x: float = Field(description="last estimate before its removal, metres, map frame")
+    y: float = Field(description="last estimate before its removal, metres, map frame")
+    covariance: list[list[float]] = Field(description="2x2 marginal covariance then, m²")
+    information: float = Field(description="I = 1/var_x + 1/var_y then, 1/m²")
+    observed_from: ObservedFrom = Field(
+        description="running mean E(X) of the robot positions it was observed from (metres)"
+    )
+    first_stamp: float = Field(description="stamp of the first observation, seconds")
+    last_stamp: float = Field(description="stamp of the latest observation, seconds")
+    removed_frame: int = Field(description="estimator frame index of its latest removal")
+    removed_stamp: float = Field(description="stamp of that frame, seconds")
+    policy: str = Field(description="the policy that removed it")
+    reason: str = Field(description="the policy's reason")
+    removals: int = Field(description="times it was removed")
+    restorations: int = Field(description="times it came back from the archive")
+
+
 class Cluster(BaseModel):
     index: int = Field(description="cluster index, referenced by LandmarkOut.cluster")
     members: list[int] = Field(description="landmark ids")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -187,6 +188,34 @@ def landmarks_doc(slam: BearingSlam, seed: int) -> list[dict[str, Any]]:
             }
         )
     return out
+
+
+def restored_events(
+    slam: BearingSlam, restored: Sequence[int], frame_id: int
+) -> list[tuple[str, str]]:
+    """`landmark_restored` events {id, label, x, y [m], restorations, frame_id} of the
+    landmarks that came back from the archive in a frame (x, y: the estimate after it;
+    a landmark the budget removed again in the same frame: its archived one)."""
+    events = []
+    for lid in restored:
+        record = slam.landmarks.get(lid)
+        if record is not None:
+            x, y = (float(v) for v in slam.landmark_position(lid))
+            label, restorations = record.label, record.restorations
+        else:
+            entry = slam.archive.get(lid)
+            assert entry is not None  # removed again: archived again
+            (x, y), label, restorations = entry.position, entry.label, entry.restorations
+        doc = {
+            "id": lid,
+            "label": label,
+            "x": x,
+            "y": y,
+            "restorations": restorations,
+            "frame_id": frame_id,
+        }
+        events.append(("landmark_restored", json.dumps(doc)))
+    return events
 
 
 def coverage_doc(
