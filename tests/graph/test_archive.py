@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,8 @@ from graph.slam import BearingSlam
 from graph.snapshot import capture, restore
 from tests.graph._world import circle_frames
 
-_CFG = SlamConfig(landmark_cap=6, pose_window=20)
+_CFG = SlamConfig(landmark_cap=6, pose_window=20, restore_after_frames=0, restore_min_rays=1)
+"""Restoration at a landmark's first observation after its removal (no hysteresis)."""
 
 
 def _labels(frame) -> set[str]:
@@ -118,7 +121,7 @@ def test_without_restoration_a_returning_landmark_gets_a_new_id_and_both_stay_ar
     """...and the map's landmarks are less accurate than with restoration (a landmark
     churning through the cap is re-triangulated from a few rays each time)."""
     frames, _, truth = circle_frames(300, seed=3, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=6, pose_window=20, restore_archived=False)
+    cfg = dataclasses.replace(_CFG, restore_archived=False)
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     for f in frames:
         out = slam.process(f, with_covariance=False)
@@ -164,7 +167,7 @@ def test_the_archive_survives_a_snapshot_and_the_restored_map_goes_on_alike() ->
     frames, _, _ = circle_frames(220, seed=3, n_landmarks=30)
     # "oldest" chooses by age alone: the rebuilt iSAM2 (which agrees to ~1 cm) makes the
     # same choices, so both maps must restore, add and remove alike
-    cfg = SlamConfig(landmark_cap=6, pose_window=20, policy="oldest")
+    cfg = dataclasses.replace(_CFG, policy="oldest")
     original = BearingSlam(cfg, rng=np.random.default_rng(0))
     for f in frames[:120]:
         original.process(f, with_covariance=False)
