@@ -271,7 +271,7 @@ class ObservedFrom(BaseModel):
     n: int = Field(description="number of observations in the mean")
 
 
-class LandmarkOut(BaseModel):
+class _Landmark(BaseModel):
     id: int = Field(description="stable landmark id, never reused")
     label: str = Field(description="the observations' label")
     x: float = Field(description="metres, map frame")
@@ -281,21 +281,19 @@ class LandmarkOut(BaseModel):
     observed_from: ObservedFrom = Field(
         description="running mean E(X) of the robot positions it was observed from (metres)"
     )
+
+
+class LandmarkOut(_Landmark):
     cluster: int = Field(description="coverage cluster index (see /coverage)")
     first_stamp: float = Field(description="stamp of the first observation, seconds")
     last_stamp: float = Field(description="stamp of the latest observation, seconds")
 
 
-class ArchivedLandmarkOut(BaseModel):
-    id: int = Field(description="stable landmark id, never reused; it comes back under it")
-    label: str = Field(description="the observations' label")
-    x: float = Field(description="last estimate before its removal, metres, map frame")
-    y: float = Field(description="last estimate before its removal, metres, map frame")
-    covariance: list[list[float]] = Field(description="2x2 marginal covariance then, m²")
-    information: float = Field(description="I = 1/var_x + 1/var_y then, 1/m²")
-    observed_from: ObservedFrom = Field(
-        description="running mean E(X) of the robot positions it was observed from (metres)"
-    )
+class ArchivedLandmarkOut(_Landmark):
+    """A removed landmark: x, y, covariance and information are its estimate when it was
+    removed (of a landmark removed again after a restoration, the better determined of
+    that and the one it had been archived with); seen again, it comes back under its id."""
+
     first_stamp: float = Field(description="stamp of the first observation, seconds")
     last_stamp: float = Field(description="stamp of the latest observation, seconds")
     removed_frame: int = Field(description="estimator frame index of its latest removal")

@@ -2,28 +2,17 @@
 
 from __future__ import annotations
 
-import threading
-
 import httpx
 
-from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
-from tests.e2e.test_events_export import _collect
+from tests.e2e.conftest import Server, create_map, frame_dicts, sim_frames
+from tests.e2e.test_events_export import post_and_collect
 
 FRAMES = frame_dicts(sim_frames(160, seed=3))
 
 
 def test_archived_landmarks_and_restore_events(server: Server, client: httpx.Client) -> None:
     map_id = create_map(client, "archive", config={"landmark_cap": 4})
-    path = f"/v1/maps/{map_id}/events"
-    events: list[dict] = []
-    ready = threading.Event()
-    reader = threading.Thread(
-        target=_collect, args=(server.url, path, {}, len(FRAMES), events, ready)
-    )
-    reader.start()
-    assert ready.wait(10)
-    post_all(client, map_id, FRAMES)
-    reader.join(timeout=60)
+    _, events = post_and_collect(server, client, map_id, FRAMES)
 
     live = client.get(f"/v1/maps/{map_id}/landmarks")
     default = client.get(f"/v1/maps/{map_id}/landmarks?state=live")
