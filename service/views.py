@@ -90,7 +90,8 @@ def attach_frame_stats(
     ``covariance`` (3x3, as the frame's result reported it when the frame was
     processed), ``live``, ``ms`` and ``uncapped``: the landmarks there would be without
     the cap, i.e. the distinct labels among the landmarks initialised up to that frame
-    (one seen again after its removal is a new landmark with a new id, but counts once).
+    (one seen again after its removal comes back under its id; re-triangulated under a
+    new id instead, with SlamConfig.restore_archived off, it still counts once).
     """
     if every <= 0 or not stats:
         return
