@@ -4,7 +4,8 @@
 labelled observations: association by label, delayed landmark initialisation,
 one iSAM2 update (which also marginalises the pose leaving each robot's window),
 then the landmark budget: while more landmarks are live than the cap, the
-policy picks one and it is marginalised out (Schur complement, see graph.isam).
+policy picks one and it is marginalised out (Schur complement, see graph.isam) and
+archived; seen again, it comes back under its id (graph.archive).
 With `graph_frame_distance_m` set, only some frames enter the graph; the others are
 tracked against it (`_track`, graph.tracking) and follow it.
 """
@@ -603,11 +604,12 @@ class BearingSlam:
         the graph, in the marginal its removal left on the poses that saw it. A prior
         with the archived covariance would count that information a second time, so
         the archive gives the initial value only (no re-triangulation: restored at its
-        first observation). The prior (restore_prior_sigma_m, 5 m: information 0.04 per
-        m^2, against ~100 of a landmark located to 0.1 m) is what keeps a landmark seen
-        by a single bearing well-posed (unobservable along the ray otherwise, which
-        iSAM2 refuses as an indeterminant system); the double counting it adds is that
-        small, the same weak prior a new landmark gets (landmark_prior_sigma_m)."""
+        first observation, unless the hysteresis holds it back). The prior
+        (restore_prior_sigma_m, 5 m: information 0.04 per m^2, against ~100 of a
+        landmark located to 0.1 m) is what keeps a landmark seen by a single bearing
+        well-posed (unobservable along the ray otherwise, which iSAM2 refuses as an
+        indeterminant system); the double counting it adds is that small, the same weak
+        prior a new landmark gets (landmark_prior_sigma_m)."""
         cfg = self.config
         lkey = landmark_key(entry.id)
         point = np.array(entry.position, dtype=np.float64)
