@@ -75,7 +75,9 @@ class MapCounts(BaseModel):
     robots: int = Field(description="robots that posted frames")
     live_landmarks: int = Field(description="landmarks currently in the graph")
     candidates: int = Field(description="observed labels not yet triangulated")
-    removals: int = Field(description="landmarks marginalised by the budget so far")
+    removals: int = Field(
+        description="removals by the budget so far (a restored landmark removed again counts again)"
+    )
     graph_variables: int = Field(description="variables in the factor graph")
     graph_factors: int = Field(description="factors in the factor graph")
     replay_errors: int = Field(description="log frames that failed when the map was reloaded")
@@ -352,7 +354,9 @@ class CoverageOut(BaseModel):
         description="each live landmark's E(X) and information content"
     )
     grid: CoverageGrid = Field(description="coverage grid over the explored area, with holes")
-    removal_count: int = Field(description="landmarks marginalised so far")
+    removal_count: int = Field(
+        description="removals so far (a landmark may be removed more than once)"
+    )
     removals: list[dict[str, Any]] = Field(
         description="the latest removals with reasons: frame, stamp, landmark_id, label, "
         "x, y (m), observed_from, policy, reason, details"
