@@ -87,7 +87,9 @@ class MapCounts(BaseModel):
     robots: int = Field(description="robots that posted frames")
     live_landmarks: int = Field(description="landmarks currently in the graph")
     candidates: int = Field(description="observed labels not yet triangulated")
-    removals: int = Field(description="landmarks marginalised by the budget so far")
+    removals: int = Field(
+        description="removals by the budget so far (a restored landmark removed again counts again)"
+    )
     graph_variables: int = Field(description="variables in the factor graph")
     graph_factors: int = Field(description="factors in the factor graph")
     replay_errors: int = Field(description="log frames that failed when the map was reloaded")
@@ -244,7 +246,7 @@ class ObservedFrom(BaseModel):
     n: int = Field(description="number of observations in the mean")
 
 
-class LandmarkOut(BaseModel):
+class _Landmark(BaseModel):
     id: int = Field(description="stable landmark id, never reused")
     label: str = Field(description="the observations' label")
     x: float = Field(description="metres, map frame")
@@ -254,9 +256,27 @@ class LandmarkOut(BaseModel):
     observed_from: ObservedFrom = Field(
         description="running mean E(X) of the robot positions it was observed from (metres)"
     )
+
+
+class LandmarkOut(_Landmark):
     cluster: int = Field(description="coverage cluster index (see /coverage)")
     first_stamp: float = Field(description="stamp of the first observation, seconds")
     last_stamp: float = Field(description="stamp of the latest observation, seconds")
+
+
+class ArchivedLandmarkOut(_Landmark):
+    """A removed landmark: x, y, covariance and information are its estimate when it was
+    removed (of a landmark removed again after a restoration, the better determined of
+    that and the one it had been archived with); seen again, it comes back under its id."""
+
+    first_stamp: float = Field(description="stamp of the first observation, seconds")
+    last_stamp: float = Field(description="stamp of the latest observation, seconds")
+    removed_frame: int = Field(description="estimator frame index of its latest removal")
+    removed_stamp: float = Field(description="stamp of that frame, seconds")
+    policy: str = Field(description="the policy that removed it")
+    reason: str = Field(description="the policy's reason")
+    removals: int = Field(description="times it was removed")
+    restorations: int = Field(description="times it came back from the archive")
 
 
 class Cluster(BaseModel):
@@ -307,7 +327,9 @@ class CoverageOut(BaseModel):
         description="each live landmark's E(X) and information content"
     )
     grid: CoverageGrid = Field(description="coverage grid over the explored area, with holes")
-    removal_count: int = Field(description="landmarks marginalised so far")
+    removal_count: int = Field(
+        description="removals so far (a landmark may be removed more than once)"
+    )
     removals: list[dict[str, Any]] = Field(
         description="the latest removals with reasons: frame, stamp, landmark_id, label, "
         "x, y (m), observed_from, policy, reason, details"

@@ -90,6 +90,23 @@ class SlamConfig:
     """Largest one-sigma position error of a triangulated landmark."""
     candidate_ttl_frames: int = 200
     """A candidate not observed for this many frames (of any robot) expires."""
+    restore_archived: bool = True
+    """A removed landmark seen again by label comes back from the archive under its own
+    id, initialised at its archived estimate at once (graph.archive); False: it is a
+    new candidate track, re-triangulated under a new id (it stays archived under the old)."""
+    restore_after_frames: int = 200
+    """Hysteresis: a landmark removed fewer than this many frames ago comes back only
+    once it was observed restore_min_rays times since (0: at its first observation).
+    Without it a landmark the policy has just judged least useful comes straight back
+    and is removed again: MRCLAM-6 robot 2 at cap 8 (information policy) made 1230
+    removals in 2229 frames and took twice the CPU time; with 200 frames / 10 rays, 124
+    (docs/measurements/archive.md)."""
+    restore_min_rays: int = 10
+    restore_prior_sigma_m: float = 5.0
+    """Weak prior (isotropic, metres) at the archived estimate on a restored landmark:
+    with a single bearing a landmark is unobservable along the ray, and this keeps
+    the graph well-posed. Deliberately weak: the archived covariance's information is
+    already in the marginal its removal left on the poses (see BearingSlam)."""
     optimizer: Optimizer = "dogleg"
     """iSAM2 step: 'dogleg' (Powell's trust region) or 'gauss_newton'. Gauss-Newton has
     no damping, and on bearing-only graphs a poor linearisation (a new landmark seen
@@ -247,3 +264,7 @@ class SlamConfig:
             raise ValueError("max_pose_window must be >= 2")
         if self.candidate_ttl_frames < 1:
             raise ValueError("candidate_ttl_frames must be >= 1")
+        if self.restore_after_frames < 0 or self.restore_min_rays < 1:
+            raise ValueError("need restore_after_frames >= 0 and restore_min_rays >= 1")
+        if not (self.restore_prior_sigma_m > 0 and math.isfinite(self.restore_prior_sigma_m)):
+            raise ValueError("restore_prior_sigma_m must be a positive finite number")

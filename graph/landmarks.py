@@ -20,6 +20,10 @@ class LandmarkRecord:
     last_stamp: float
     observed_from: np.ndarray = field(default_factory=lambda: np.zeros(2))
     count: int = 0
+    removals: int = 0
+    """Times the budget removed it before (it came back from the archive, graph.archive)."""
+    restorations: int = 0
+    """Times it came back from the archive."""
 
     def observe(self, position_xy: np.ndarray, stamp: float) -> None:
         """E_n(X) = E_{n-1}(X) + (X_n - E_{n-1}(X)) / n."""

@@ -4,7 +4,8 @@
 labelled observations: association by label, delayed landmark initialisation,
 one iSAM2 update (which also marginalises the pose leaving each robot's window),
 then the landmark budget: while more landmarks are live than the cap, the
-policy picks one and it is marginalised out (Schur complement, see graph.isam).
+policy picks one and it is marginalised out (Schur complement, see graph.isam) and
+archived; seen again, it comes back under its id (graph.archive).
 With `graph_frame_distance_m` set, only some frames enter the graph; the others are
 tracked against it (`_track`, graph.tracking) and follow it.
 """
@@ -25,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.angles import wrap_angles
+from graph.archive import ArchivedLandmark, LandmarkArchive
 from graph.config import SlamConfig
 from graph.factors import (
     anchor_prior_factor,
@@ -125,6 +127,8 @@ class FrameOutcome:
     marginalised: tuple[int, ...]
     live: int
     timing_ms: dict[str, float]
+    restored: tuple[int, ...] = ()
+    """Archived landmarks that came back into the graph this frame (graph.archive)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +150,8 @@ class _Plan:
     """Whether `exiting` stays in the graph as a keyframe."""
     leaving: tuple[tuple[int, int], ...]
     """Poses (key, frame) marginalised this frame: `exiting` or the oldest keyframe."""
+    restored: tuple[tuple[int, tuple[Ray, ...]], ...] = ()
+    """Archived landmarks (id, the rays that got a factor) coming back this frame."""
 
 
 class BearingSlam:
@@ -183,6 +189,9 @@ class BearingSlam:
         self._landmarks: dict[int, LandmarkRecord] = {}
         self._label_to_id: dict[str, int] = {}
         self._candidates: dict[str, CandidateTrack] = {}
+        self._archive = LandmarkArchive()
+        self.restoration_count = 0
+        """Archived landmarks that came back into the graph, in all."""
         self._next_landmark_id = 0
         self._frames = 0
         self.gated_observations = 0
@@ -221,6 +230,11 @@ class BearingSlam:
     def landmarks(self) -> dict[int, LandmarkRecord]:
         """Live landmarks by id (read-only view; do not mutate)."""
         return self._landmarks
+
+    @property
+    def archive(self) -> LandmarkArchive:
+        """Removed landmarks that are not live (read-only view; see graph.archive)."""
+        return self._archive
 
     @property
     def robots(self) -> list[str]:
@@ -348,6 +362,7 @@ class BearingSlam:
             ),
             marginalised=marginalised,
             live=len(self._landmarks),
+            restored=tuple(lid for lid, _ in plan.restored),
             timing_ms={
                 "prepare": 1e3 * (t1 - t0),
                 "update": 1e3 * (t2 - t1),
@@ -524,6 +539,7 @@ class BearingSlam:
 
         leaving_keys = {k for k, _ in leaving}
         new_landmarks: list[tuple[str, Triangulation, tuple[Ray, ...]]] = []
+        restored: list[tuple[int, tuple[Ray, ...]]] = []
         for label, track in list(touched.items()):
             rays = tuple(
                 r
@@ -532,6 +548,18 @@ class BearingSlam:
                 or (r.pose_key in self._graph and r.pose_key not in leaving_keys)
             )
             touched[label] = CandidateTrack(label, rays, track.last_frame)
+            archived = self._archive.by_label(label) if cfg.restore_archived else None
+            if archived is not None:
+                if LandmarkArchive.admits(
+                    archived,
+                    frame_index,
+                    len(rays),
+                    after_frames=cfg.restore_after_frames,
+                    min_rays=cfg.restore_min_rays,
+                ):
+                    factors.extend(self._restore_factors(archived, rays, values))
+                    restored.append((archived.id, rays))
+                continue
             first = tuple(r for r in track.rays[: cfg.candidate_first_rays] if r in rays)
             tri = self._triangulate(rays, key, predicted)
             if tri is None and first:
@@ -568,7 +596,38 @@ class BearingSlam:
             exiting,
             promoted,
             leaving,
+            restored=tuple(restored),
         )
+
+    def _restore_factors(
+        self, entry: ArchivedLandmark, rays: tuple[Ray, ...], values: gtsam.Values
+    ) -> list[gtsam.NonlinearFactor]:
+        """An archived landmark back in the graph (its initial value goes into `values`):
+        a new variable under its own key (the old one was marginalised), initialised at
+        the archived estimate, with a bearing factor per ray and a weak prior there.
+
+        No double counting: what the landmark's earlier observations said is already in
+        the graph, in the marginal its removal left on the poses that saw it. A prior
+        with the archived covariance would count that information a second time, so
+        the archive gives the initial value only (no re-triangulation: restored at its
+        first observation, unless the hysteresis holds it back). The prior
+        (restore_prior_sigma_m, 5 m: information 0.04 per m^2, against ~100 of a
+        landmark located to 0.1 m) is what keeps a landmark seen by a single bearing
+        well-posed (unobservable along the ray otherwise, which iSAM2 refuses as an
+        indeterminant system); the double counting it adds is that small, the same weak
+        prior a new landmark gets (landmark_prior_sigma_m)."""
+        cfg = self.config
+        lkey = landmark_key(entry.id)
+        point = np.array(entry.position, dtype=np.float64)
+        values.insert(lkey, point)
+        factors: list[gtsam.NonlinearFactor] = [
+            bearing_factor(
+                r.pose_key, lkey, r.bearing_rad, r.sigma_rad, cfg.huber_k, cfg.bearing_loss
+            )
+            for r in rays
+        ]
+        factors.append(landmark_prior_factor(lkey, point, cfg.restore_prior_sigma_m))
+        return factors
 
     def _sigma(self, obs: BearingObservation) -> float:
         return obs.sigma_rad if obs.sigma_rad is not None else self.config.bearing_sigma_rad
@@ -781,8 +840,23 @@ class BearingSlam:
             self._last_factor[lid] = frame_index
             self._label_to_id[label] = lid
             del self._candidates[label]
+        for lid, rays in plan.restored:
+            self._reinstate(lid, rays, frame_index)
         self._count_frame()
         return robot
+
+    def _reinstate(self, lid: int, rays: tuple[Ray, ...], frame_index: int) -> None:
+        """Bookkeeping of an archived landmark back in the graph: its live record again
+        (same id, E(X) and count, which its rays extend)."""
+        record = self._archive.take(lid, frame_index)
+        for r in rays:
+            p = self._graph.pose(r.pose_key)
+            record.observe(np.array([p.x(), p.y()]), r.stamp)
+        self._landmarks[lid] = record
+        self._last_factor[lid] = frame_index
+        self._label_to_id[record.label] = lid
+        self._candidates.pop(record.label, None)
+        self.restoration_count += 1
 
     def _count_frame(self) -> None:
         """One more frame; every _SWEEP_EVERY frames, candidates left unseen expire."""
@@ -985,12 +1059,22 @@ class BearingSlam:
                 information=None if table.information is None else table.information[keep],
             )
         positions = {r.landmark_id: self.landmark_position(r.landmark_id) for r in chosen}
+        covariances = self.landmark_covariances([r.landmark_id for r in chosen])
         self._marginalise_with_thinning([landmark_key(r.landmark_id) for r in chosen])
-        for removal in chosen:
+        for removal, covariance in zip(chosen, covariances, strict=True):
             record = self._landmarks.pop(removal.landmark_id)
             self._last_factor.pop(removal.landmark_id, None)
             del self._label_to_id[record.label]
             pos = positions[removal.landmark_id]
+            self._archive.put(
+                record,
+                position=pos,
+                covariance=covariance,
+                frame=self._frames - 1,
+                stamp=frame.stamp,
+                policy=removal.policy,
+                reason=removal.reason,
+            )
             entry = RemovalRecord(
                 frame=self._frames - 1,
                 stamp=frame.stamp,

@@ -6,7 +6,8 @@ factors and linearisation point do. A snapshot stores the current factors as one
 own linearisation point; a relative marginal, whose error is a Python callback,
 is stored as its `RelativeSpec`), the linearisation point as ``Values``, and the
 bookkeeping of `BearingSlam` (robots and their pose windows, landmark records,
-candidate tracks, the trajectory rows it holds, removal log tail, the policy's rng state).
+candidate tracks, the archive of removed landmarks, the trajectory rows it holds, removal log
+tail, the policy's rng state).
 `restore` builds a fresh iSAM2 from the factors at the stored linearisation
 point in one update, so the estimate after a restore equals the one before up to
 iSAM2's relinearisation state (one full step from the same linearisation point).
@@ -28,8 +29,9 @@ from graph.relative import RelativeMarginalFactor, RelativeSpec
 from graph.slam import BearingSlam, RemovalRecord
 from graph.trajectory import PoseRow
 
-SNAPSHOT_VERSION = 3
-"""3: the trajectory is a graph.trajectory.Trajectory (held rows + kept final rows)."""
+SNAPSHOT_VERSION = 4
+"""3: the trajectory is a graph.trajectory.Trajectory (held rows + kept final rows).
+4: the estimator keeps its removed landmarks in a graph.archive.LandmarkArchive."""
 
 _SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng", "_trajectory_sink"})
 """BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is

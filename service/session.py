@@ -41,6 +41,7 @@ from service.views import (
     coverage_doc,
     landmarks_doc,
     pose_doc,
+    restored_events,
     trajectory_doc,
 )
 from service.vision import parse_state_doc
@@ -559,12 +560,27 @@ class MapSession:
                 x, y = (float(v) for v in slam.landmark_position(lid))
                 doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
                 events.append(("landmark_added", json.dumps({**doc, "frame_id": log_id})))
+        restored = () if localised.outcome is None else localised.outcome.restored
+        events.extend(restored_events(slam, restored, log_id))
         rows = []
+        archived = []
         for r in removals:
             doc = {**r.as_dict(), "frame_id": log_id}
             events.append(("landmark_marginalised", json.dumps(doc)))
             rows.append((r.landmark_id, r.frame, json.dumps(doc)))
-        return self.store.complete_frame(log_id, result_json, events, rows, observations, poses)
+            entry = slam.archive.get(r.landmark_id)
+            if entry is not None:
+                archived.append((r.landmark_id, r.frame, json.dumps(entry.as_dict())))
+        return self.store.complete_frame(
+            log_id,
+            result_json,
+            events,
+            rows,
+            observations,
+            poses,
+            archived=archived,
+            restored=restored,
+        )
 
     # ------------------------------------------------------------ queries
     def summary(self) -> dict[str, Any]:
@@ -673,7 +689,10 @@ class MapSession:
             attach_frame_stats(rows, self.store.frame_stats(), labels, every=stats_every)
         return rows
 
-    def landmarks(self) -> list[dict[str, Any]]:
+    def landmarks(self, state: str = "live") -> list[dict[str, Any]]:
+        """The live landmarks, or (`state` "archived") those in the archive."""
+        if state == "archived":
+            return self.store.archived()
         return landmarks_doc(self.slam, self._seed())
 
     def coverage(self, *, cell_m: float, radius_m: float, removals: int) -> dict[str, Any]:

@@ -27,6 +27,13 @@ marginalised, graph.trajectory) are written to ``poses`` with the frame that
 finalised them, and the estimator forgets them: its memory and its snapshots hold
 only the rows still in play. ``poses`` is keyed by (robot, seq), so a replay of the
 log that finalises a row again replaces it.
+
+The removal log (``removal_log``, one row per removal: a landmark restored from the
+archive may be removed again; the older ``removals`` table, one row per landmark, is
+moved into it when a map's file is opened) and the archive of removed landmarks
+(``archive``, graph.archive: one row per landmark that is not live, its last
+estimate, covariance, E(X), count; a restored landmark's row is deleted) are written
+with the frame that removed or restored them.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,6 +100,17 @@ CREATE TABLE IF NOT EXISTS snapshots (
     state BLOB NOT NULL
 );
 CREATE TABLE IF NOT EXISTS removals (
+    landmark_id INTEGER PRIMARY KEY,
+    frame INTEGER NOT NULL,
+    record TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS removal_log (
+    frame INTEGER NOT NULL,
+    landmark_id INTEGER NOT NULL,
+    record TEXT NOT NULL,
+    PRIMARY KEY (frame, landmark_id)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS archive (
     landmark_id INTEGER PRIMARY KEY,
     frame INTEGER NOT NULL,
     record TEXT NOT NULL
@@ -274,6 +292,13 @@ class MapStore:
         self.path = path
         self._conn = connect(path, synchronous=synchronous)
         self._conn.executescript(_MAP_SCHEMA)
+        if self._conn.execute("SELECT 1 FROM removals LIMIT 1").fetchone() is not None:
+            with transaction(self._conn):  # a file from before the removal log
+                self._conn.execute(
+                    "INSERT OR IGNORE INTO removal_log (frame, landmark_id, record) "
+                    "SELECT frame, landmark_id, record FROM removals"
+                )
+                self._conn.execute("DELETE FROM removals")
 
     def close(self) -> None:
         self._conn.close()
@@ -359,10 +384,15 @@ class MapStore:
         removals: list[tuple[int, int, str]],
         observations: str | None = None,
         poses: list[PoseRow] | None = None,
+        *,
+        archived: Sequence[tuple[int, int, str]] = (),
+        restored: Sequence[int] = (),
     ) -> list[int]:
-        """Store a frame's result, its events and removals, the trajectory rows it made
-        final (and, for an image frame, the observations its image gave, JSON text) in one
-        transaction; event ids."""
+        """Store a frame's result, its events and removals (landmark id, frame, record
+        JSON), the trajectory rows it made final (and, for an image frame, the observations
+        its image gave, JSON text) in one transaction; event ids. `restored`: landmark ids
+        that left the archive in the frame; `archived`: (landmark id, frame, record JSON)
+        of those that entered it (after `restored`: a landmark may do both)."""
         now = time.time()
         ids: list[int] = []
         with transaction(self._conn):
@@ -374,8 +404,15 @@ class MapStore:
                     (frame_id, observations),
                 )
             self._conn.executemany(
-                "INSERT OR IGNORE INTO removals (landmark_id, frame, record) VALUES (?, ?, ?)",
+                "INSERT OR IGNORE INTO removal_log (landmark_id, frame, record) VALUES (?, ?, ?)",
                 removals,
+            )
+            self._conn.executemany(
+                "DELETE FROM archive WHERE landmark_id = ?", [(lid,) for lid in restored]
+            )
+            self._conn.executemany(
+                "INSERT OR REPLACE INTO archive (landmark_id, frame, record) VALUES (?, ?, ?)",
+                archived,
             )
             if poses:
                 self._put_poses(poses)
@@ -530,7 +567,7 @@ class MapStore:
     def removals(self, limit: int | None = None) -> list[dict[str, Any]]:
         """The most recent `limit` removals (all if None), oldest first."""
         rows = self._conn.execute(
-            "SELECT record FROM (SELECT frame, landmark_id, record FROM removals "
+            "SELECT record FROM (SELECT frame, landmark_id, record FROM removal_log "
             "ORDER BY frame DESC, landmark_id DESC LIMIT ?) ORDER BY frame, landmark_id",
             (-1 if limit is None else limit,),
         ).fetchall()
@@ -539,12 +576,17 @@ class MapStore:
     def removed_labels(self) -> dict[int, str]:
         """Label of every landmark in the removal log, by landmark id."""
         rows = self._conn.execute(
-            "SELECT landmark_id, json_extract(record, '$.label') FROM removals"
+            "SELECT DISTINCT landmark_id, json_extract(record, '$.label') FROM removal_log"
         ).fetchall()
         return {int(i): str(label) for i, label in rows}
 
     def removal_count(self) -> int:
-        return int(self._conn.execute("SELECT count(*) FROM removals").fetchone()[0])
+        return int(self._conn.execute("SELECT count(*) FROM removal_log").fetchone()[0])
+
+    def archived(self) -> list[dict[str, Any]]:
+        """The archived landmarks (graph.archive documents), by landmark id."""
+        rows = self._conn.execute("SELECT record FROM archive ORDER BY landmark_id").fetchall()
+        return [json.loads(r[0]) for r in rows]
 
     def prune_events(self, keep: int) -> None:
         with transaction(self._conn):

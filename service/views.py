@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -88,7 +89,8 @@ def attach_frame_stats(
     ``covariance`` (3x3, as the frame's result reported it when the frame was
     processed), ``live``, ``ms`` and ``uncapped``: the landmarks there would be without
     the cap, i.e. the distinct labels among the landmarks initialised up to that frame
-    (one seen again after its removal is a new landmark with a new id, but counts once).
+    (one seen again after its removal comes back under its id; re-triangulated under a
+    new id instead, with SlamConfig.restore_archived off, it still counts once).
     """
     if every <= 0 or not stats:
         return
@@ -186,6 +188,34 @@ def landmarks_doc(slam: BearingSlam, seed: int) -> list[dict[str, Any]]:
             }
         )
     return out
+
+
+def restored_events(
+    slam: BearingSlam, restored: Sequence[int], frame_id: int
+) -> list[tuple[str, str]]:
+    """`landmark_restored` events {id, label, x, y [m], restorations, frame_id} of the
+    landmarks that came back from the archive in a frame (x, y: the estimate after it;
+    a landmark the budget removed again in the same frame: its archived one)."""
+    events = []
+    for lid in restored:
+        record = slam.landmarks.get(lid)
+        if record is not None:
+            x, y = (float(v) for v in slam.landmark_position(lid))
+            label, restorations = record.label, record.restorations
+        else:
+            entry = slam.archive.get(lid)
+            assert entry is not None  # removed again: archived again
+            (x, y), label, restorations = entry.position, entry.label, entry.restorations
+        doc = {
+            "id": lid,
+            "label": label,
+            "x": x,
+            "y": y,
+            "restorations": restorations,
+            "frame_id": frame_id,
+        }
+        events.append(("landmark_restored", json.dumps(doc)))
+    return events
 
 
 def coverage_doc(

@@ -149,7 +149,7 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "trajectory": lambda m, p: _session(m).trajectory(
         p.get("robot"), stats_every=p.get("stats_every", 0)
     ),
-    "landmarks": lambda m, p: _session(m).landmarks(),
+    "landmarks": lambda m, p: _session(m).landmarks(p.get("state", "live")),
     "coverage": lambda m, p: _session(m).coverage(**p),
     "places": lambda m, p: _session(m).places(),
     "learn_place": lambda m, p: _session(m).learn_place(p.get("robot")),

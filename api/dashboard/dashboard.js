@@ -10,7 +10,7 @@ import { MapView, ROBOT_COLOURS, clusterColour, ellipse2 } from "./mapview.js";
 import { linePlot } from "./plots.js";
 
 const API = new URL("../v1/", window.location.href);
-const GHOSTS_LIMIT = 2000; // removals fetched (the latest) and drawn as ghosts
+const REMOVALS_LIMIT = 2000; // removals fetched (the latest) for the removal log
 const TABLE_ROWS = 300; // removal-log rows rendered (the latest)
 const SERIES_MAX = 6000; // time-plot points kept (older ones thinned)
 const STATS_POINTS = 500; // time-plot points per robot asked of /trajectory
@@ -30,7 +30,7 @@ function freshState(mapId) {
     mapId, generation: (state?.generation ?? 0) + 1, source: null, lastEventId: null,
     loading: true, reconnecting: false, buffer: [], retryMs: 1000, retryTimer: 0, refreshTimer: 0, refreshing: false,
     refreshAgain: false, lastRefresh: 0, refreshCost: 0, lastTrajectoryLoad: 0, statsEvery: 1, ellipseFrames: 10,
-    landmarks: [], clusters: [], grid: null, removals: [], removalCount: 0,
+    landmarks: [], clusters: [], grid: null, removals: [], removalCount: 0, archived: [],
     trajectories: {}, ellipses: [], lastEllipse: {}, series: [], lastFrame: 0, uncapped: 0,
     knownLabels: new Set(),
     robots: [], localisation: {}, places: [], transitions: [], summary: null,
@@ -203,7 +203,7 @@ function connect(since) {
     });
     setTimeout(resolve, 4000);
   });
-  for (const kind of ["frame", "landmark_added", "landmark_marginalised"]) {
+  for (const kind of ["frame", "landmark_added", "landmark_marginalised", "landmark_restored"]) {
     source.addEventListener(kind, (e) => {
       if (st !== state) return;
       st.lastEventId = Number(e.lastEventId);
@@ -238,6 +238,7 @@ function handle({ kind, data }) {
   if (kind === "frame") onFrame(data);
   else if (kind === "landmark_added") countLabel(data.label, data.frame_id);
   else if (kind === "landmark_marginalised") onRemoval(data);
+  else if (kind === "landmark_restored") state.archived = state.archived.filter((g) => g.landmark_id !== data.id);
   scheduleRefresh();
   render();
 }
@@ -290,10 +291,21 @@ function onRemoval(doc) {
   const st = state;
   countLabel(doc.label, doc.frame_id); // initialised and removed by the same frame
   st.landmarks = st.landmarks.filter((l) => l.id !== doc.landmark_id);
-  if (!st.removals.some((g) => g.landmark_id === doc.landmark_id)) {
+  if (!st.removals.some((g) => g.landmark_id === doc.landmark_id && g.frame === doc.frame)) {
     st.removals.push(doc);
     st.removalCount += 1;
   }
+  // the archive holds it now (until the next re-read brings its archived document)
+  st.archived = st.archived.filter((g) => g.landmark_id !== doc.landmark_id);
+  st.archived.push({ ...doc, removals: null });
+}
+
+/** A ghost: an archived landmark (GET landmarks?state=archived) as the map draws it. */
+function ghost(a) {
+  return {
+    landmark_id: a.id, label: a.label, x: a.x, y: a.y, frame: a.removed_frame,
+    policy: a.policy, reason: a.reason, removals: a.removals,
+  };
 }
 
 const xy = (cov) => [[cov[0][0], cov[0][1]], [cov[1][0], cov[1][1]]];
@@ -355,11 +367,12 @@ async function loadState(st, { trajectory }) {
   const jobs = [
     getJSON(`maps/${id}`),
     getJSON(`maps/${id}/landmarks`),
-    getJSON(`maps/${id}/coverage?removals=${GHOSTS_LIMIT}`),
+    getJSON(`maps/${id}/coverage?removals=${REMOVALS_LIMIT}`),
+    getJSON(`maps/${id}/landmarks?state=archived`),
     getJSON(`maps/${id}/pose`),
     placesImplemented().then((ok) => (ok ? getJSON(`maps/${id}/places`).catch(() => null) : null)),
   ];
-  const [summary, landmarks, coverage, pose, places] = await Promise.all(jobs);
+  const [summary, landmarks, coverage, archived, pose, places] = await Promise.all(jobs);
   if (st !== state) return;
   st.summary = summary;
   if (trajectory) {
@@ -373,6 +386,7 @@ async function loadState(st, { trajectory }) {
   st.grid = coverage.grid;
   st.removals = coverage.removals;
   st.removalCount = coverage.removal_count;
+  st.archived = archived.map(ghost);
   for (const l of landmarks) st.knownLabels.add(String(l.label));
   for (const r of coverage.removals) st.knownLabels.add(String(r.label));
   for (const [robot, p] of Object.entries(pose.robots)) {
@@ -478,10 +492,10 @@ function drawNow(plots = false) {
   Object.assign(view.data, {
     landmarks: st.landmarks, grid: st.grid, trajectories: st.trajectories, poseEllipses: st.ellipses,
     places: st.places, transitions: st.transitions, robotColour,
-    ghosts: st.removals.filter((g) => Number.isFinite(g.x) && Number.isFinite(g.y)),
+    ghosts: st.archived.filter((g) => Number.isFinite(g.x) && Number.isFinite(g.y)),
   });
   view.flush();
-  $("layer-ghosts").dataset.total = String(st.removalCount);
+  $("layer-ghosts").dataset.total = String(st.archived.length);
   app.dataset.frame = String(st.lastFrame);
   drawSummary(st);
   drawLegend(st);
@@ -528,8 +542,7 @@ function drawLegend(st) {
     [swatch("dot", "#1d232b"), `landmarks ${st.landmarks.length} (2σ ellipses)`],
     [[...clusters].slice(0, 6).map((c) => swatch("dot", clusterColour(c))).join(""),
       `E(X) by cluster: ${clusters.size} clusters`],
-    [swatch("ring", "#8a939c"), `ghosts ${st.removals.length}` +
-      (st.removalCount > st.removals.length ? ` (latest of ${st.removalCount})` : "") + " — hover for the reason"],
+    [swatch("ring", "#8a939c"), `archived ${st.archived.length} (removed; seen again, one comes back) — hover for the reason`],
     ...Object.keys(st.trajectories).sort(byName).map((r) => [swatch("line", robotColour(r)),
       `${r} ${st.trajectories[r].length} poses`]),
     [swatch("ellipse", "#56606b"), "2σ pose ellipses"],

@@ -339,8 +339,8 @@ export class MapView {
       const [x, y] = [this.sx(g.x), this.sy(g.y)];
       const c = el("circle", { class: "ghost", cx: x.toFixed(1), cy: y.toFixed(1), r: 4.5, "data-id": g.landmark_id }, gh);
       if (!visible(x, y)) c.setAttribute("visibility", "hidden");
-      title(c, `marginalised landmark ${g.landmark_id} (label ${g.label}) at frame ${g.frame_id ?? g.frame}` +
-        `, ${g.policy} policy: ${g.reason}`);
+      title(c, `marginalised landmark ${g.landmark_id} (label ${g.label}), archived at frame ${g.frame_id ?? g.frame}` +
+        `${g.removals > 1 ? ` (removed ${g.removals} times)` : ""}, ${g.policy} policy: ${g.reason}`);
     }
     gh.dataset.count = String(d.ghosts.length);
 

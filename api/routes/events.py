@@ -51,7 +51,9 @@ async def _stream(
         200: {
             "content": {"text/event-stream": {"schema": {"type": "string"}}},
             "description": "events `frame` (a frame result), `landmark_added` {id, label, x, y "
-            "[m], frame_id}, `landmark_marginalised` (a removal record with reason); each has "
+            "[m], frame_id}, `landmark_marginalised` (a removal record with reason), "
+            "`landmark_restored` {id, label, x, y [m], restorations, frame_id} (an archived "
+            "landmark back under its id); each has "
             "an `id` for Last-Event-ID",
         },
         **AUTH_ERRORS,

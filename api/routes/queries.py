@@ -8,7 +8,14 @@ from fastapi import APIRouter, Query, Response
 
 from api.auth import AUTH_ERRORS, MapRead
 from api.deps import MapId, ServiceDep
-from api.models import CoverageOut, LandmarkOut, PoseOut, Problem, TrajectoryOut
+from api.models import (
+    ArchivedLandmarkOut,
+    CoverageOut,
+    LandmarkOut,
+    PoseOut,
+    Problem,
+    TrajectoryOut,
+)
 from service.errors import ServiceError
 from service.views import tum_text
 
@@ -75,10 +82,26 @@ async def get_trajectory(
     return {"map_id": map_id, "robots": rows}
 
 
-@router.get("/landmarks", response_model=list[LandmarkOut], responses=_ERRORS)
-async def get_landmarks(map_id: MapId, service: ServiceDep) -> Any:
+@router.get(
+    "/landmarks",
+    response_model=list[LandmarkOut] | list[ArchivedLandmarkOut],
+    responses=_ERRORS,
+)
+async def get_landmarks(
+    map_id: MapId,
+    service: ServiceDep,
+    state: Annotated[
+        Literal["live", "archived"],
+        Query(description="live: the graph's landmarks; archived: those the budget removed"),
+    ] = "live",
+) -> Any:
     """Live landmarks with marginal covariance, information content, mean observation
-    position E(X) and coverage cluster."""
+    position E(X) and coverage cluster; with `state=archived`, the landmarks the budget
+    removed that have not come back (their last estimate and covariance, E(X), count, the
+    latest removal's reason). Seen again, an archived landmark comes back under its id
+    (event `landmark_restored`)."""
+    if state == "archived":
+        return await service.query(map_id, "landmarks", state=state)
     return await service.query(map_id, "landmarks")
 
 

@@ -43,20 +43,30 @@ def _collect(
                 return
 
 
+def post_and_collect(
+    server: Server, client: httpx.Client, map_id: str, frames: list[dict]
+) -> tuple[list[dict], list[dict]]:
+    """Post `frames` while reading the map's event stream: (frame results, events up to
+    the last frame's result)."""
+    path = f"/v1/maps/{map_id}/events"
+    events: list[dict] = []
+    ready = threading.Event()
+    reader = threading.Thread(
+        target=_collect, args=(server.url, path, {}, len(frames), events, ready)
+    )
+    reader.start()
+    assert ready.wait(10)
+    results = post_all(client, map_id, frames)
+    reader.join(timeout=60)
+    return results, events
+
+
 def test_events_stream_frame_results_and_resume_after_last_event_id(
     server: Server, client: httpx.Client
 ) -> None:
     map_id = create_map(client, "live", config={"landmark_cap": 6})
     path = f"/v1/maps/{map_id}/events"
-    events: list[dict] = []
-    ready = threading.Event()
-    reader = threading.Thread(
-        target=_collect, args=(server.url, path, {}, len(FRAMES), events, ready)
-    )
-    reader.start()
-    assert ready.wait(10)
-    results = post_all(client, map_id, FRAMES)
-    reader.join(timeout=60)
+    results, events = post_and_collect(server, client, map_id, FRAMES)
     frames = [e for e in events if e["event"] == "frame"]
     assert [e["data"] for e in frames] == results
     ids = [e["id"] for e in events]

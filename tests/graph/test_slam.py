@@ -46,12 +46,16 @@ def test_bounded_graph_over_many_seeds(seed: int, policy: str) -> None:
         for lid in out.marginalised:
             assert landmark_key(lid) not in slam.graph
     assert len(slam.removals) > 0
-    assert {r.landmark_id for r in slam.removals}.isdisjoint(slam.landmarks)
+    # a removed landmark is archived, or live again under its id (graph.archive)
+    archived = {entry.id for entry in slam.archive}
+    assert {r.landmark_id for r in slam.removals} <= archived | set(slam.landmarks)
+    assert archived.isdisjoint(slam.landmarks)
 
 
-def test_removed_landmark_returns_with_new_id() -> None:
+def test_removed_landmark_returns_with_new_id_without_restoration() -> None:
     frames, _, _ = circle_frames(400, seed=3, n_landmarks=30)
-    slam = _run(frames, SlamConfig(landmark_cap=6, pose_window=20))
+    slam = _run(frames, SlamConfig(landmark_cap=6, pose_window=20, restore_archived=False))
+    assert slam.restoration_count == 0
     removed_labels = [r.label for r in slam.removals]
     relabelled = {lab for lab in removed_labels if removed_labels.count(lab) > 1}
     live_labels = {rec.label: rec.id for rec in slam.landmarks.values()}
@@ -139,6 +143,7 @@ def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> Non
         max_keyframes=200,
         keyframe_distance_m=0.2,
         max_linked_keyframes=6,
+        policy="coverage_paper",  # its choices exercise removal thinning on this run
     )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     # A removal that would link too many keyframes takes the oldest with it in the
