@@ -1,0 +1,76 @@
+"""A map's config over REST: every estimator parameter a client sets reaches the worker's
+estimator, bad values are refused naming the field, configs stored before the estimator
+groups existed still load."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+
+import httpx
+
+from graph.config import SlamConfig
+from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
+from service.mapconfig import slam_config, slam_config_dict
+from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
+from tests.service.test_mapconfig import LEGACY_STORED_CONFIG, non_default_config
+
+
+def test_every_estimator_parameter_set_over_rest_reaches_the_workers_estimator(
+    client: httpx.Client,
+) -> None:
+    body, values = non_default_config()
+    map_id = create_map(client, "every-parameter", config=body, mode="localisation")
+    summary = client.get(f"/v1/maps/{map_id}").json()
+    # `estimator` is the SlamConfig the map's worker process built and runs with.
+    assert summary["estimator"] == {**values, "allow_new_landmarks": False}
+    assert set(summary["estimator"]) == {f.name for f in fields(SlamConfig)}
+    defaults = json.loads(json.dumps(slam_config_dict(SlamConfig())))
+    assert all(summary["estimator"][k] != defaults[k] for k in values)
+    assert summary["config"]["triangulation"] == body["triangulation"]
+
+
+def test_bad_estimator_values_are_422_naming_the_field(client: httpx.Client) -> None:
+    for config, field in [
+        ({"triangulation": {"max_depth_m": -1}}, "config.triangulation.max_depth_m"),
+        ({"gating": {"gate_confirm_rad": "wide"}}, "config.gating.gate_confirm_rad"),
+        ({"keyframes": {"max_linked_keyframes": 0}}, "config.keyframes.max_linked_keyframes"),
+        ({"solver": {"relinearize_skip": 0}}, "config.solver.relinearize_skip"),
+        ({"triangulation": {"max_range_m": 9}}, "config.triangulation.max_range_m"),
+    ]:
+        r = client.post("/v1/maps", json={"name": "bad", "config": config})
+        assert r.status_code == 422, r.text
+        assert r.headers["content-type"].startswith("application/problem+json")
+        assert r.json()["field"] == field
+    r = client.post(
+        "/v1/maps",
+        json={"name": "bad", "config": {"triangulation": {"min_depth_m": 50, "max_depth_m": 20}}},
+    )
+    assert r.status_code == 422 and "min_depth_m < max_depth_m" in r.json()["detail"]
+    assert all(m["name"] != "bad" for m in client.get("/v1/maps").json())  # nothing created
+
+
+def test_a_map_stored_before_the_estimator_groups_imports_with_the_defaults(
+    client: httpx.Client,
+) -> None:
+    frames = frame_dicts(sim_frames(30))
+    doc = {
+        "format": EXPORT_FORMAT,
+        "version": EXPORT_VERSION,
+        "map": {"name": "legacy", "mode": "mapping", "config": LEGACY_STORED_CONFIG},
+        "frames": [{"frame": f, "result": None} for f in frames],
+    }
+    r = client.post(
+        "/v1/maps/import",
+        content=json.dumps(doc).encode(),
+        headers={"content-type": "application/json"},
+    )
+    assert r.status_code == 201, r.text
+    map_id = r.json()["id"]
+    summary = client.get(f"/v1/maps/{map_id}").json()
+    expected = slam_config_dict(slam_config(LEGACY_STORED_CONFIG, "mapping"))
+    assert summary["estimator"] == json.loads(json.dumps(expected))
+    assert summary["estimator"]["max_depth_m"] == SlamConfig().max_depth_m
+    assert summary["counts"]["frames"] == len(frames)
+    more = [{**f, "seq": f["seq"] + len(frames), "stamp": f["stamp"] + 100.0} for f in frames[1:4]]
+    assert len(post_all(client, map_id, more)) == 3
