@@ -21,6 +21,7 @@ import math
 import os
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -29,6 +30,9 @@ from graph.angles import wrap_angle, wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
 from service.evaluation import Trajectory, write_tum
 from service.frames_io import write_frames
+
+if TYPE_CHECKING:
+    from service.datasets.outdoor_sim import OutdoorWorld
 
 __all__ = [
     "IndoorWorld",
@@ -229,14 +233,15 @@ class SimRun:
         ground_truth: the true pose at each frame's stamp.
         landmarks: (M, 2) true landmark positions, metres.
         landmark_ids: (M,) their ids (observation labels are ``str(id)``).
-        world: the world the run took place in.
+        world: the world the run took place in (this module's, or the outdoor one of
+            service.datasets.outdoor_sim).
     """
 
     frames: list[FrameInput]
     ground_truth: Trajectory
     landmarks: FloatArray
     landmark_ids: IntArray
-    world: IndoorWorld
+    world: IndoorWorld | OutdoorWorld
 
 
 def simulate(
