@@ -22,7 +22,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from graph.angles import wrap_angle, wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
@@ -66,7 +66,7 @@ class OutdoorWorld:
         r = self.corner_radius_m
         return 2.0 * (self.length_m + self.width_m - 4.0 * r) + 2.0 * math.pi * r
 
-    def road_pose(self, s_m: FloatArray) -> FloatArray:
+    def road_pose(self, s_m: ArrayLike) -> FloatArray:
         """(N, 3) poses on the road at arc lengths (N,) metres (wrapped to one lap)."""
         r = self.corner_radius_m
         s = np.mod(np.asarray(s_m, dtype=np.float64), self.loop_m)

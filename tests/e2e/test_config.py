@@ -1,6 +1,6 @@
 """A map's config over REST: every estimator parameter a client sets reaches the worker's
 estimator, bad values are refused naming the field, configs stored before the estimator
-groups existed still load."""
+groups existed still load, an outdoor-scale world maps by config alone."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ from dataclasses import fields
 
 import httpx
 
+from bench.outdoor import CONFIGS, map_figures, outdoor_run
 from graph.config import SlamConfig
+from service.evaluation import ate_rmse, dead_reckoning
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.mapconfig import slam_config, slam_config_dict
 from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
@@ -74,3 +76,26 @@ def test_a_map_stored_before_the_estimator_groups_imports_with_the_defaults(
     assert summary["counts"]["frames"] == len(frames)
     more = [{**f, "seq": f["seq"] + len(frames), "stamp": f["stamp"] + 100.0} for f in frames[1:4]]
     assert len(post_all(client, map_id, more)) == 3
+
+
+def test_an_outdoor_world_maps_by_config_alone(client: httpx.Client) -> None:
+    """Trees 5-80 m from a 334 m loop: with the defaults (depth to 15 m, position sigma
+    0.3 m) few become landmarks; with the outdoor triangulation set in the map's config
+    most do, and the map is accurate where it stands (unaligned) and in shape."""
+    run = outdoor_run(3, small=True)
+    frames = frame_dicts(run.frames)
+    figures = {}
+    for name, config in CONFIGS.items():
+        map_id = create_map(client, f"outdoor-{name}", config=config)
+        post_all(client, map_id, frames)
+        figures[name] = map_figures(client, map_id, run)
+    observed = figures["outdoor"]["trees_observed"]
+    assert observed == len(run.landmarks)
+    assert figures["default"]["landmarks_initialised"] <= 0.2 * observed
+    outdoor = figures["outdoor"]
+    assert outdoor["landmarks_initialised"] >= 0.85 * observed
+    dead = dead_reckoning(run.frames)
+    assert outdoor["ate_rmse_m"] < min(1.5, 0.25 * ate_rmse(dead, run.ground_truth))
+    assert outdoor["ate_rmse_aligned_m"] < 1.0
+    assert outdoor["landmark_rmse_m"] < 1.5
+    assert outdoor["config"]["triangulation"]["max_depth_m"] == 100.0
