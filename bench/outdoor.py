@@ -10,12 +10,15 @@ else's benchmark)::
 World (service.datasets.outdoor_sim, seed ``--seed``, the run ``--seed + 1``): a
 rounded-rectangle loop road 160 x 80 m (445 m a lap), 150 trees 5-80 m from it;
 1.5 laps at 0.75 m a frame (892 frames), up to 12 bearings a frame (sigma 1 deg) to
-trees within 100 m, wheel odometry with 2 % noise and a 1 % scale error. Two maps, both
-uncapped so that the triangulation alone decides which trees become landmarks:
+trees within 100 m, wheel odometry with 2 % noise and a 1 % scale error. Four maps, the first
+three uncapped so that the triangulation alone decides which trees become landmarks:
 
 ``default``  ``{"landmark_cap": null}``: the estimator's defaults (max_depth_m 15,
              max_position_sigma_m 0.3);
-``outdoor``  ``{"landmark_cap": null, "triangulation": OUTDOOR_TRIANGULATION}``.
+``outdoor``  ``{"landmark_cap": null, "triangulation": OUTDOOR_TRIANGULATION}``;
+``depth_only`` ``{"landmark_cap": null, "triangulation": {"max_depth_m": 100}}``;
+``outdoor_default_cap`` the outdoor triangulation under the service's default cap
+             (its setting default_landmark_cap, 50): what a bounded map keeps.
 
 Per map, from the REST API (GET /v1/maps/{id}, /trajectory, /landmarks): trees
 initialised (of those observed), ATE RMSE unaligned and SE(2)-aligned (no scale),
@@ -51,7 +54,11 @@ far tree's depth known to 2 m, and 80 rays kept (a long baseline for far trees).
 CONFIGS: dict[str, dict[str, Any]] = {
     "default": {"landmark_cap": None},
     "outdoor": {"landmark_cap": None, "triangulation": OUTDOOR_TRIANGULATION},
+    "depth_only": {"landmark_cap": None, "triangulation": {"max_depth_m": 100.0}},
+    "outdoor_default_cap": {"triangulation": OUTDOOR_TRIANGULATION},
 }
+"""The maps the benchmark makes: the defaults, the outdoor triangulation, the depth range
+alone, and the outdoor triangulation under the service's default landmark cap."""
 
 
 def outdoor_run(seed: int, *, small: bool = False) -> SimRun:
@@ -73,8 +80,11 @@ def outdoor_run(seed: int, *, small: bool = False) -> SimRun:
     )
 
 
-def map_figures(client: httpx.Client, map_id: str, run: SimRun) -> dict[str, Any]:
-    """What a map made of `run`: trees initialised, ATE, landmark errors (from REST)."""
+def map_figures(
+    client: httpx.Client, map_id: str, run: SimRun, results: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """What a map made of `run` (whose frame results are `results`): trees initialised
+    (distinct landmark ids the frames added), ATE, live landmarks' errors (from REST)."""
     summary = client.get(f"/v1/maps/{map_id}").json()
     counts = summary["counts"]
     rows = client.get(f"/v1/maps/{map_id}/trajectory").json()["robots"]["r1"]
@@ -91,7 +101,8 @@ def map_figures(client: httpx.Client, map_id: str, run: SimRun) -> dict[str, Any
         "config": summary["config"],
         "trees": len(truth),
         "trees_observed": len(observed),
-        "landmarks_initialised": counts["live_landmarks"] + counts["removals"],
+        "landmarks_initialised": len({i for r in results for i in r["landmarks"]["added"]}),
+        "landmarks_live": counts["live_landmarks"],
         "ate_rmse_m": ate_rmse(est, run.ground_truth),
         "ate_rmse_aligned_m": ate_rmse(est, run.ground_truth, align=True),
         "landmark_rmse_m": float(np.sqrt(np.mean(err**2))) if len(err) else None,
@@ -122,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     with httpx.Client(base_url=args.url.rstrip("/"), timeout=120) as client:
         for name, config in CONFIGS.items():
             posted = replay_http(run.frames, url=args.url, name=f"outdoor-{name}", config=config)
-            figures = map_figures(client, posted.map_id, run)
+            figures = map_figures(client, posted.map_id, run, posted.results)
             figures["http_ms_per_frame_p50"] = float(np.median(posted.latency_ms))
             doc["maps"][name] = figures
     args.out.mkdir(parents=True, exist_ok=True)
