@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import fields, replace
+from pathlib import Path
 from typing import Any, cast, get_args
 
 import pytest
@@ -360,3 +361,9 @@ def test_the_estimator_refuses_what_the_map_config_refuses(
 ) -> None:
     with pytest.raises(ValueError, match=match):
         replace(SlamConfig(), **change)
+
+
+def test_the_configuration_guide_lists_every_estimator_parameter() -> None:
+    guide = (Path(__file__).resolve().parents[2] / "docs" / "configuration.md").read_text()
+    missing = [".".join(p) for p in SLAM_FIELD_PATHS.values() if f"`{'.'.join(p)}`" not in guide]
+    assert not missing, f"docs/configuration.md lacks {missing}"
