@@ -39,6 +39,7 @@ __all__ = [
     "SimRun",
     "bearings_from_pose",
     "make_world",
+    "noisy_observations",
     "simulate",
     "write_run",
 ]
@@ -224,6 +225,25 @@ def bearings_from_pose(pose_xytheta: ArrayLike, points_xy: ArrayLike) -> FloatAr
     return wrap_angles(np.arctan2(p[:, 1] - y, p[:, 0] - x) - theta)
 
 
+def noisy_observations(
+    rel_xy: FloatArray,
+    theta: float,
+    labels: list[str],
+    bearing_sigma_rad: float,
+    rng: np.random.Generator,
+) -> tuple[BearingObservation, ...]:
+    """Observations of (K,) points at (K, 2) offsets `rel_xy` (metres, map axes) from a
+    robot heading `theta` (rad): bearing = truth + N(0, bearing_sigma_rad), wrapped;
+    ``sigma`` = bearing_sigma_rad (None if 0); the given labels."""
+    true = np.arctan2(rel_xy[:, 1], rel_xy[:, 0]) - theta
+    bearing = wrap_angles(true + rng.normal(0.0, bearing_sigma_rad, len(rel_xy)))
+    sigma = bearing_sigma_rad if bearing_sigma_rad > 0 else None
+    return tuple(
+        BearingObservation(bearing_rad=b, label=label, sigma_rad=sigma)
+        for b, label in zip(bearing.tolist(), labels, strict=True)
+    )
+
+
 @dataclass(frozen=True)
 class SimRun:
     """A simulated run: the frames a robot would send and what really happened.
@@ -287,7 +307,6 @@ def simulate(
     kx, ky, kt = odometry_noise
     size, margin = world.room_size_m, world.drive_margin_m
     per_room = [np.flatnonzero(world.landmark_rooms == r) for r in range(world.n_rooms)]
-    sigma = bearing_sigma_rad if bearing_sigma_rad > 0 else None
 
     def random_point(room: int) -> FloatArray:
         return world.room_origin(room) + margin + rng.random(2) * (size - 2.0 * margin)
@@ -304,11 +323,8 @@ def simulate(
         dist = np.hypot(rel[:, 0], rel[:, 1])
         near = np.flatnonzero(dist <= max_range_m)
         near = near[np.argsort(dist[near], kind="stable")][:max_observations]
-        true = np.arctan2(rel[near, 1], rel[near, 0]) - theta
-        bearing = wrap_angles(true + rng.normal(0.0, bearing_sigma_rad, len(near)))
-        return tuple(
-            BearingObservation(bearing_rad=b, label=labels[i], sigma_rad=sigma)
-            for b, i in zip(bearing.tolist(), idx[near].tolist(), strict=True)
+        return noisy_observations(
+            rel[near], theta, [labels[i] for i in idx[near].tolist()], bearing_sigma_rad, rng
         )
 
     pos = random_point(0)

@@ -22,17 +22,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from graph.angles import wrap_angle, wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
-from service.datasets.indoor_sim import SimRun
+from service.datasets.indoor_sim import FloatArray, IntArray, SimRun, noisy_observations
 from service.evaluation import Trajectory
 
 __all__ = ["OutdoorWorld", "make_outdoor_world", "simulate_outdoor"]
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 _ROAD_SPACING_M = 0.25
 """Spacing of the road's sample points (tree clearances are measured to them)."""
@@ -184,18 +181,14 @@ def simulate_outdoor(
         raise ValueError("laps too short for one step")
     truth = world.road_pose(np.arange(frames) * step_m)
     kx, ky, kt = odometry_noise
-    sigma = bearing_sigma_rad if bearing_sigma_rad > 0 else None
     labels = [str(i) for i in world.landmark_ids.tolist()]
 
     def observe(pose: FloatArray) -> tuple[BearingObservation, ...]:
         rel = world.landmarks - pose[:2]
         in_range = np.flatnonzero(np.hypot(rel[:, 0], rel[:, 1]) <= max_range_m)
         seen = np.sort(rng.permutation(in_range)[:max_observations])
-        true = np.arctan2(rel[seen, 1], rel[seen, 0]) - pose[2]
-        bearing = wrap_angles(true + rng.normal(0.0, bearing_sigma_rad, len(seen)))
-        return tuple(
-            BearingObservation(bearing_rad=b, label=labels[i], sigma_rad=sigma)
-            for b, i in zip(bearing.tolist(), seen.tolist(), strict=True)
+        return noisy_observations(
+            rel[seen], float(pose[2]), [labels[i] for i in seen.tolist()], bearing_sigma_rad, rng
         )
 
     x0, y0, t0 = truth[0].tolist()
