@@ -403,10 +403,23 @@ class MapConfig(BaseModel):
         "means a default 2048x512 panorama",
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
-    triangulation: TriangulationConfig = Field(default_factory=TriangulationConfig)
-    gating: GatingConfig = Field(default_factory=GatingConfig)
-    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
-    solver: SolverConfig = Field(default_factory=SolverConfig)
+    triangulation: TriangulationConfig = Field(
+        default_factory=TriangulationConfig,
+        description="when an observation track becomes a landmark: rays, parallax, depth "
+        "range (metres), residual, position sigma (metres)",
+    )
+    gating: GatingConfig = Field(
+        default_factory=GatingConfig,
+        description="the innovation gate against wrong matches (radians, frames)",
+    )
+    keyframes: KeyframeConfig = Field(
+        default_factory=KeyframeConfig,
+        description="which poses leaving the window stay as keyframes (metres, radians)",
+    )
+    solver: SolverConfig = Field(
+        default_factory=SolverConfig,
+        description="iSAM2 relinearisation and how old poses' marginals are kept",
+    )
     optimizer: Optimizer = Field(
         _DEFAULTS.optimizer,
         description="iSAM2 step: 'dogleg' (trust region: robust, but every update costs a "

@@ -13,7 +13,7 @@ from bench.outdoor import CONFIGS, map_figures, outdoor_run
 from graph.config import SlamConfig
 from service.evaluation import ate_rmse, dead_reckoning
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
-from service.mapconfig import slam_config, slam_config_dict
+from service.mapconfig import SLAM_FIELD_PATHS, slam_config, slam_config_dict
 from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
 from tests.service.test_mapconfig import LEGACY_STORED_CONFIG, non_default_config
 
@@ -99,3 +99,15 @@ def test_an_outdoor_world_maps_by_config_alone(client: httpx.Client) -> None:
     assert outdoor["ate_rmse_aligned_m"] < 1.0
     assert outdoor["landmark_rmse_m"] < 1.5
     assert outdoor["config"]["triangulation"]["max_depth_m"] == 100.0
+
+
+def test_the_openapi_schema_documents_every_estimator_parameter(client: httpx.Client) -> None:
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    for name, path in SLAM_FIELD_PATHS.items():
+        model = "MapConfig"
+        for key in path[:-1]:
+            model = schemas[model]["properties"][key]["$ref"].rsplit("/", 1)[-1]
+        text = schemas[model]["properties"][name].get("description", "")
+        assert text, (model, name)
+        unit = {"_m": "metres", "_rad": "radians"}.get(name[name.rfind("_") :])
+        assert unit is None or unit in text, (model, name, text)
