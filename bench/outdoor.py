@@ -8,21 +8,24 @@ else's benchmark)::
     python -m bench.outdoor --url http://127.0.0.1:8000 [--seed 0] [--out bench/results]
 
 World (service.datasets.outdoor_sim, seed ``--seed``, the run ``--seed + 1``): a
-rounded-rectangle loop road 160 x 80 m (445 m a lap), 150 trees 5-80 m from it;
-1.5 laps at 0.75 m a frame (892 frames), up to 12 bearings a frame (sigma 1 deg) to
-trees within 100 m, wheel odometry with 2 % noise and a 1 % scale error. Four maps, the first
-three uncapped so that the triangulation alone decides which trees become landmarks:
+rounded-rectangle loop road 160 x 80 m (445 m a lap), 150 trees 5-80 m from it; 1.5
+laps at 0.75 m a frame (892 frames), up to 12 bearings a frame (sigma 1 deg) to trees
+within 100 m, wheel odometry with 2 % noise and a 1 % scale error. Four maps, the
+first three uncapped so that the triangulation alone decides which trees become
+landmarks:
 
-``default``  ``{"landmark_cap": null}``: the estimator's defaults (max_depth_m 15,
-             max_position_sigma_m 0.3);
-``outdoor``  ``{"landmark_cap": null, "triangulation": OUTDOOR_TRIANGULATION}``;
-``depth_only`` ``{"landmark_cap": null, "triangulation": {"max_depth_m": 100}}``;
-``outdoor_default_cap`` the outdoor triangulation under the service's default cap
-             (its setting default_landmark_cap, 50): what a bounded map keeps.
+``default``     ``{"landmark_cap": null}``: the estimator's defaults (max_depth_m 15,
+                max_position_sigma_m 0.3);
+``outdoor``     ``{"landmark_cap": null, "triangulation": OUTDOOR_TRIANGULATION}``;
+``depth_only``  ``{"landmark_cap": null, "triangulation": {"max_depth_m": 100}}``;
+``outdoor_default_cap`` the outdoor triangulation under the service's default cap (its
+                setting default_landmark_cap, 50): what a bounded map keeps.
 
-Per map, from the REST API (GET /v1/maps/{id}, /trajectory, /landmarks): trees
-initialised (of those observed), ATE RMSE unaligned and SE(2)-aligned (no scale),
-landmark RMSE and max error (unaligned: where the map put them, against the
+Per map, from the REST API (GET /v1/maps/{id}, /trajectory, /landmarks) and the frame
+results: trees initialised (of those observed; distinct labels), landmark
+initialisations (distinct ids: a capped map re-initialises a removed tree seen again
+under a new id), ATE RMSE unaligned and SE(2)-aligned (no scale), landmark RMSE and
+max error of the live landmarks (unaligned: where the map put them, against the
 simulator's trees), HTTP ms a frame. Dead reckoning's ATE for reference. Writes
 ``<out>/outdoor.json``.
 """
@@ -84,10 +87,12 @@ def map_figures(
     client: httpx.Client, map_id: str, run: SimRun, results: list[dict[str, Any]]
 ) -> dict[str, Any]:
     """What a map made of `run` (whose frame results are `results`): trees initialised
-    (distinct landmark ids the frames added), ATE, live landmarks' errors (from REST)."""
+    (distinct labels) and landmark ids the frames added, ATE, live landmarks' errors."""
     summary = client.get(f"/v1/maps/{map_id}").json()
     counts = summary["counts"]
-    rows = client.get(f"/v1/maps/{map_id}/trajectory").json()["robots"]["r1"]
+    # stats_every beyond the run: the latest pose alone carries the frame's figures.
+    traj = client.get(f"/v1/maps/{map_id}/trajectory", params={"stats_every": 1_000_000})
+    rows = traj.json()["robots"]["r1"]
     est = Trajectory.from_poses(
         [p["stamp"] for p in rows], [[p["x"], p["y"], p["theta"]] for p in rows]
     )
@@ -101,7 +106,9 @@ def map_figures(
         "config": summary["config"],
         "trees": len(truth),
         "trees_observed": len(observed),
-        "landmarks_initialised": len({i for r in results for i in r["landmarks"]["added"]}),
+        # A capped map re-initialises a removed tree seen again under a new id: count trees.
+        "trees_initialised": rows[-1]["uncapped"],
+        "landmark_initialisations": len({i for r in results for i in r["landmarks"]["added"]}),
         "landmarks_live": counts["live_landmarks"],
         "ate_rmse_m": ate_rmse(est, run.ground_truth),
         "ate_rmse_aligned_m": ate_rmse(est, run.ground_truth, align=True),

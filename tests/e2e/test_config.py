@@ -90,10 +90,11 @@ def test_an_outdoor_world_maps_by_config_alone(client: httpx.Client) -> None:
         figures[name] = map_figures(client, map_id, run, post_all(client, map_id, frames))
     observed = figures["outdoor"]["trees_observed"]
     assert observed == len(run.landmarks)
-    assert figures["default"]["landmarks_initialised"] <= 0.2 * observed
+    assert figures["default"]["trees_initialised"] <= 0.2 * observed
     outdoor = figures["outdoor"]
-    assert outdoor["landmarks_initialised"] >= 0.85 * observed
-    assert outdoor["landmarks_live"] == outdoor["landmarks_initialised"]  # uncapped
+    assert outdoor["trees_initialised"] >= 0.85 * observed
+    assert outdoor["landmarks_live"] == outdoor["landmark_initialisations"]  # uncapped
+    assert outdoor["landmarks_live"] == outdoor["trees_initialised"]
     dead = dead_reckoning(run.frames)
     assert outdoor["ate_rmse_m"] < min(1.5, 0.25 * ate_rmse(dead, run.ground_truth))
     assert outdoor["ate_rmse_aligned_m"] < 1.0
