@@ -83,7 +83,11 @@ class SlamConfig:
     min_parallax_rad: float = math.radians(5.0)
     """Smallest spread of ray directions that counts as enough parallax."""
     min_depth_m: float = 0.2
+    """Nearest a triangulated landmark may lie from every pose that saw it, metres."""
     max_depth_m: float = 15.0
+    """Farthest a triangulated landmark may lie from every pose that saw it, metres. Suits
+    rooms and the MRCLAM-6 hall; an outdoor map with landmarks tens of metres away needs
+    more (and then a larger max_position_sigma_m: a far landmark's depth is uncertain)."""
     max_residual_sigmas: float = 4.0
     """Largest bearing residual of a triangulation, in sigmas."""
     max_position_sigma_m: float = 0.3
@@ -113,7 +117,10 @@ class SlamConfig:
     from nearly one direction) can throw the estimate off for good: MRCLAM-6 robot 5 at
     cap 8 ended at 2.57 m ATE with it, 0.46 m with dogleg."""
     relinearize_threshold: float = 0.01
+    """iSAM2 relinearises a variable whose linear delta exceeds this (metres or radians,
+    per component); 0 = every variable at every relinearisation."""
     relinearize_skip: int = 1
+    """iSAM2 checks for relinearisation every this many updates."""
     relative_marginals: bool = True
     """Marginals of old poses are kept relative to the next pose (see graph.relative)
     rather than as linear factors in absolute coordinates."""
@@ -126,6 +133,8 @@ class SlamConfig:
     """A pose leaving the window stays in the graph as a keyframe when it lies this far
     from the robot's last keyframe (or turned keyframe_angle_rad from it)."""
     keyframe_angle_rad: float = math.radians(15.0)
+    """A pose leaving the window that turned this far from the robot's last keyframe
+    stays as a keyframe (see keyframe_distance_m)."""
     max_keyframes: int = 300
     """Keyframes kept per robot beyond the window (oldest marginalised first); 0 = none."""
     max_linked_keyframes: int = 24
@@ -149,7 +158,11 @@ class SlamConfig:
     shrug off four in a row, and replayed from frame 500 robot 3's map flipped by 171
     deg on them."""
     gate_min_age_frames: int = 100
+    """The innovation gate applies to landmarks at least this many frames old (a young
+    landmark's estimate may still be far off)."""
     gate_confirm_rad: float = math.radians(20.0)
+    """The innovation gate applies only in a frame where another observation lies within
+    this of its prediction (which confirms the odometry's pose)."""
     keyframe_for_candidate_rays: bool = False
     """A pose leaving the window stays as a keyframe while it holds the first ray of a
     candidate track, so that the candidate, once it triangulates, still has its widest
@@ -205,6 +218,8 @@ class SlamConfig:
     such frame makes iSAM2 re-eliminate them all and links one more pose into every
     removed landmark's dense marginal."""
     graph_frame_angle_rad: float = math.radians(45.0)
+    """With graph_frame_distance_m: a frame that turned this far from its robot's last
+    graph frame enters the graph."""
     graph_frame_max_gap: int = 8
     """Most frames of a robot between two of its graph frames (tracked ones in between)."""
     graph_frame_min_landmarks: int = 5
@@ -268,3 +283,38 @@ class SlamConfig:
             raise ValueError("need restore_after_frames >= 0 and restore_min_rays >= 1")
         if not (self.restore_prior_sigma_m > 0 and math.isfinite(self.restore_prior_sigma_m)):
             raise ValueError("restore_prior_sigma_m must be a positive finite number")
+        self._check_thresholds()
+
+    def _check_thresholds(self) -> None:
+        """Refuse thresholds that would silently switch a stage off or make no sense."""
+        positive = {
+            "min_parallax_rad": self.min_parallax_rad,
+            "max_residual_sigmas": self.max_residual_sigmas,
+            "max_position_sigma_m": self.max_position_sigma_m,
+            "keyframe_angle_rad": self.keyframe_angle_rad,
+            "gate_confirm_rad": self.gate_confirm_rad,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise ValueError(f"{name} must be > 0")
+        for name, optional in (
+            ("landmark_prior_sigma_m", self.landmark_prior_sigma_m),
+            ("max_innovation_rad", self.max_innovation_rad),
+        ):
+            if optional is not None and not (optional > 0 and math.isfinite(optional)):
+                raise ValueError(f"{name} must be a positive finite number or None")
+        if self.relinearize_threshold < 0 or self.relinearize_skip < 1:
+            raise ValueError("need relinearize_threshold >= 0 and relinearize_skip >= 1")
+        if self.keyframe_distance_m < 0 or self.gate_min_age_frames < 0:
+            raise ValueError("keyframe_distance_m and gate_min_age_frames must be >= 0")
+        sigmas = (
+            *self.odometry_sigma_floor,
+            *self.odometry_sigma_per_metre,
+            *self.odometry_sigma_per_sqrt_metre,
+            *self.odometry_sigma_per_sqrt_second,
+            *self.initial_pose_sigma,
+            self.odometry_sigma_per_radian,
+            self.odometry_sigma_per_sqrt_radian,
+        )
+        if not all(s >= 0 and math.isfinite(s) for s in sigmas):
+            raise ValueError("odometry and initial-pose sigmas must be finite and >= 0")

@@ -28,6 +28,7 @@ __all__ = [
     "dead_reckoning",
     "fit_landmarks",
     "interpolate",
+    "landmark_errors",
     "read_tum",
     "write_tum",
 ]
@@ -299,3 +300,25 @@ def dead_reckoning(frames: Sequence[FrameInput]) -> Trajectory:
     xy = np.vstack([origin, origin + np.cumsum(step, axis=0)])
     stamps = np.array([f.stamp for f in frames], dtype=np.float64)
     return Trajectory(stamps, xy, heading)
+
+
+# --------------------------------------------------------------------------- landmarks
+
+
+def landmark_errors(
+    estimated_xy: Mapping[str, ArrayLike], true_xy: Mapping[str, ArrayLike]
+) -> dict[str, float]:
+    """Distance (metres) of each estimated landmark from its true position, by label.
+
+    Unaligned: both in the map frame (judge a map's landmarks where it put them).
+    Labels without a true position are left out.
+
+    Args:
+        estimated_xy: label -> (2,) estimated position, metres.
+        true_xy: label -> (2,) true position, metres.
+    """
+    return {
+        label: float(np.hypot(*(np.asarray(xy, dtype=np.float64) - np.asarray(true_xy[label]))))
+        for label, xy in estimated_xy.items()
+        if label in true_xy
+    }

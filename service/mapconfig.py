@@ -98,6 +98,212 @@ class NoiseConfig(BaseModel):
         return value
 
 
+class TriangulationConfig(BaseModel):
+    """When an unmatched observation track (a candidate) becomes a landmark: enough rays,
+    enough parallax, a consistent and well-determined intersection within a depth range.
+    The defaults suit rooms and halls (landmarks within 15 m); an outdoor map whose
+    landmarks stand tens of metres away needs a larger max_depth_m and
+    max_position_sigma_m (see docs/configuration.md)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    min_rays: int = Field(
+        _DEFAULTS.min_rays,
+        ge=2,
+        le=10_000,
+        description="rays a candidate needs before it is triangulated, count",
+    )
+    max_rays: int = Field(
+        _DEFAULTS.max_rays,
+        ge=2,
+        le=10_000,
+        description="most rays a candidate keeps (oldest dropped first), count; with the "
+        "robot's step this bounds the baseline a far landmark is triangulated from",
+    )
+    min_parallax_rad: float = Field(
+        _DEFAULTS.min_parallax_rad,
+        gt=0,
+        lt=math.pi,
+        description="smallest spread of a candidate's ray directions that counts as "
+        "enough parallax, radians",
+    )
+    min_depth_m: float = Field(
+        _DEFAULTS.min_depth_m,
+        ge=0,
+        description="nearest a triangulated landmark may lie from each pose that saw it, metres",
+    )
+    max_depth_m: float = Field(
+        _DEFAULTS.max_depth_m,
+        gt=0,
+        description="farthest a triangulated landmark may lie from each pose that saw it, "
+        "metres; raise it for outdoor maps (landmarks tens of metres away)",
+    )
+    max_residual_sigmas: float = Field(
+        _DEFAULTS.max_residual_sigmas,
+        gt=0,
+        description="largest bearing residual of a triangulation, in bearing sigmas "
+        "(dimensionless)",
+    )
+    max_position_sigma_m: float = Field(
+        _DEFAULTS.max_position_sigma_m,
+        gt=0,
+        description="largest one-sigma position error (major axis) of a triangulated "
+        "landmark, metres; a far landmark's depth is uncertain, so outdoor maps need more",
+    )
+    candidate_ttl_frames: int = Field(
+        _DEFAULTS.candidate_ttl_frames,
+        ge=1,
+        description="a candidate not observed for this many frames (of any robot) expires, frames",
+    )
+    landmark_prior_sigma_m: float | None = Field(
+        _DEFAULTS.landmark_prior_sigma_m,
+        gt=0,
+        description="one-sigma of the weak prior on each new landmark at its triangulated "
+        "position, metres; null = none",
+    )
+    candidate_first_rays: int = Field(
+        _DEFAULTS.candidate_first_rays,
+        ge=0,
+        le=10_000,
+        description="the first rays of a candidate kept until it initialises (whatever "
+        "max_rays drops) and given bearing factors then: they tie a landmark first seen "
+        "near the initial pose to that pose's frame, count (below max_rays)",
+    )
+
+    @model_validator(mode="after")
+    def _ordered(self) -> TriangulationConfig:
+        if self.max_rays < self.min_rays:
+            raise ValueError("need min_rays <= max_rays")
+        if not self.candidate_first_rays < self.max_rays:
+            raise ValueError("need candidate_first_rays < max_rays")
+        if not self.min_depth_m < self.max_depth_m:
+            raise ValueError("need min_depth_m < max_depth_m")
+        return self
+
+
+class GatingConfig(BaseModel):
+    """The innovation gate: an observation of an established landmark far from its
+    predicted bearing, in a frame where another observation confirms the pose, gets no
+    factor (a wrong match or a reflection a robust loss cannot shrug off)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    max_innovation_rad: float | None = Field(
+        _DEFAULTS.max_innovation_rad,
+        gt=0,
+        le=math.pi,
+        description="largest difference between an observed and the predicted bearing, "
+        "radians; null = no gate",
+    )
+    gate_min_age_frames: int = Field(
+        _DEFAULTS.gate_min_age_frames,
+        ge=0,
+        description="the gate applies to landmarks at least this old, frames",
+    )
+    gate_confirm_rad: float = Field(
+        _DEFAULTS.gate_confirm_rad,
+        gt=0,
+        le=math.pi,
+        description="the gate applies only in a frame where another observation lies within "
+        "this of its prediction, radians",
+    )
+
+
+class KeyframeConfig(BaseModel):
+    """Which poses leaving the pose window stay in the graph as keyframes."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    keyframe_distance_m: float = Field(
+        _DEFAULTS.keyframe_distance_m,
+        ge=0,
+        description="a pose leaving the window stays as a keyframe when it lies this far "
+        "from its robot's last keyframe, metres",
+    )
+    keyframe_angle_rad: float = Field(
+        _DEFAULTS.keyframe_angle_rad,
+        gt=0,
+        description="a pose leaving the window that turned this far from its robot's last "
+        "keyframe stays as a keyframe, radians",
+    )
+    max_keyframes: int = Field(
+        _DEFAULTS.max_keyframes,
+        ge=0,
+        description="keyframes kept per robot beyond the window (oldest marginalised "
+        "first), count; 0 = none",
+    )
+    max_linked_keyframes: int = Field(
+        _DEFAULTS.max_linked_keyframes,
+        ge=1,
+        description="most keyframes in one marginal factor (older ones in it are "
+        "marginalised too, down to 3/4 of this), count",
+    )
+    keyframe_for_candidate_rays: bool = Field(
+        _DEFAULTS.keyframe_for_candidate_rays,
+        description="a pose leaving the window stays as a keyframe while it holds a "
+        "candidate's first ray (keeps the widest baseline for its triangulation)",
+    )
+
+
+class SolverConfig(BaseModel):
+    """iSAM2's relinearisation and how old poses' marginals are kept. (The iSAM2 step
+    itself is the map config's top-level `optimizer`.)"""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    relinearize_threshold: float = Field(
+        _DEFAULTS.relinearize_threshold,
+        ge=0,
+        description="iSAM2 relinearises a variable whose linear delta exceeds this, metres "
+        "or radians per component; 0 = every variable",
+    )
+    relinearize_skip: int = Field(
+        _DEFAULTS.relinearize_skip,
+        ge=1,
+        description="iSAM2 checks for relinearisation every this many updates, count",
+    )
+    relative_marginals: bool = Field(
+        _DEFAULTS.relative_marginals,
+        description="marginals of old poses are kept relative to the next pose rather "
+        "than as linear factors in absolute coordinates",
+    )
+    relative_landmark_marginals: bool = Field(
+        _DEFAULTS.relative_landmark_marginals,
+        description="a removed landmark's marginal is kept relative to its oldest pose too "
+        "rather than as a linear factor frozen where the landmark was removed",
+    )
+
+
+class ArchiveConfig(BaseModel):
+    """Removed landmarks are archived; seen again by label they come back under their own
+    id (graph.archive), unless removed so recently that they would churn."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    restore_archived: bool = Field(
+        _DEFAULTS.restore_archived,
+        description="an archived landmark seen again comes back under its own id at its "
+        "archived estimate (false: it is triangulated anew under a new id)",
+    )
+    restore_after_frames: int = Field(
+        _DEFAULTS.restore_after_frames,
+        ge=0,
+        description="a landmark removed fewer than this many frames ago comes back only "
+        "after restore_min_rays observations, frames",
+    )
+    restore_min_rays: int = Field(
+        _DEFAULTS.restore_min_rays,
+        ge=1,
+        description="observations a recently removed landmark needs to come back, count",
+    )
+    restore_prior_sigma_m: float = Field(
+        _DEFAULTS.restore_prior_sigma_m,
+        gt=0,
+        description="one-sigma of the weak prior a restored landmark gets at its archived "
+        "estimate (its information is in the marginal already), metres",
+    )
+
+
 MAX_CAMERA_PIXELS = 16 * 2**20
 """Largest image a camera may expect, pixels (the front end's decode limit)."""
 
@@ -210,7 +416,16 @@ def window_settings(given: Mapping[str, int | None]) -> dict[str, int | None]:
 
 
 class MapConfig(BaseModel):
-    """How a map estimates. Omitted fields take the service's defaults."""
+    """How a map estimates. Omitted fields take the service's defaults.
+
+    Every estimator parameter (graph.config.SlamConfig) has one place here, listed in
+    SLAM_FIELD_PATHS, under the same name: the landmark budget, windows, graph frames
+    and the iSAM2 step at the top level (where they have always been), the rest in
+    groups (noise, triangulation, gating, keyframes, solver, archive). One SlamConfig field has
+    none: allow_new_landmarks follows the map's `mode` (localisation freezes the map),
+    which a client sets beside the config. A stored config that lacks a group (every map
+    created before it existed) gets its defaults, which are the estimator's.
+    """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -257,6 +472,27 @@ class MapConfig(BaseModel):
         "means a default 2048x512 panorama",
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
+    triangulation: TriangulationConfig = Field(
+        default_factory=TriangulationConfig,
+        description="when an observation track becomes a landmark: rays, parallax, depth "
+        "range (metres), residual, position sigma (metres)",
+    )
+    gating: GatingConfig = Field(
+        default_factory=GatingConfig,
+        description="the innovation gate against wrong matches (radians, frames)",
+    )
+    keyframes: KeyframeConfig = Field(
+        default_factory=KeyframeConfig,
+        description="which poses leaving the window stay as keyframes (metres, radians)",
+    )
+    solver: SolverConfig = Field(
+        default_factory=SolverConfig,
+        description="iSAM2 relinearisation and how old poses' marginals are kept",
+    )
+    archive: ArchiveConfig = Field(
+        default_factory=ArchiveConfig,
+        description="when an archived (removed) landmark seen again comes back under its id",
+    )
     optimizer: Optimizer = Field(
         _DEFAULTS.optimizer,
         description="iSAM2 step: 'dogleg' (trust region: robust, but every update costs a "
@@ -376,39 +612,49 @@ class MapConfig(BaseModel):
         return self.model_copy(update={"landmark_cap": default_cap})
 
 
+_TOP_LEVEL_FIELDS = (
+    "landmark_cap",
+    "policy",
+    *WINDOW_FIELDS,
+    "optimizer",
+    "max_landmark_factors",
+    "removal_margin",
+    "drop_window_observations",
+    "graph_frame_distance_m",
+    "graph_frame_angle_rad",
+    "graph_frame_max_gap",
+    "graph_frame_min_landmarks",
+)
+_GROUPS: dict[str, type[BaseModel]] = {
+    "noise": NoiseConfig,
+    "triangulation": TriangulationConfig,
+    "gating": GatingConfig,
+    "archive": ArchiveConfig,
+    "keyframes": KeyframeConfig,
+    "solver": SolverConfig,
+}
+SLAM_FIELD_PATHS: dict[str, tuple[str, ...]] = {
+    **{name: (name,) for name in _TOP_LEVEL_FIELDS},
+    **{name: (group, name) for group, model in _GROUPS.items() for name in model.model_fields},
+}
+"""Where each estimator parameter sits in a map config: SlamConfig field -> path of
+keys (a REST body's `config.<path>`). Every SlamConfig field but allow_new_landmarks
+(the map's mode) has one; a test keeps it so."""
+
+
 def slam_config(config: dict[str, Any], mode: str) -> SlamConfig:
     """The estimator's parameters for a stored map config and mode.
 
     Raises ValueError when the estimator refuses the combination.
     """
     cfg = MapConfig.model_validate(config)
-    return SlamConfig(
-        landmark_cap=cfg.landmark_cap,
-        policy=cfg.policy,
-        pose_window=cfg.pose_window,
-        window_observations=cfg.window_observations,
-        uncapped_window_observations=cfg.uncapped_window_observations,
-        max_pose_window=cfg.max_pose_window,
-        bearing_sigma_rad=cfg.noise.bearing_sigma_rad,
-        huber_k=cfg.noise.huber_k,
-        bearing_loss=cfg.noise.bearing_loss,
-        odometry_sigma_floor=cfg.noise.odometry_sigma_floor,
-        odometry_sigma_per_metre=cfg.noise.odometry_sigma_per_metre,
-        odometry_sigma_per_radian=cfg.noise.odometry_sigma_per_radian,
-        odometry_sigma_per_sqrt_metre=cfg.noise.odometry_sigma_per_sqrt_metre,
-        odometry_sigma_per_sqrt_radian=cfg.noise.odometry_sigma_per_sqrt_radian,
-        odometry_sigma_per_sqrt_second=cfg.noise.odometry_sigma_per_sqrt_second,
-        initial_pose_sigma=cfg.noise.initial_pose_sigma,
-        optimizer=cfg.optimizer,
-        max_landmark_factors=cfg.max_landmark_factors,
-        removal_margin=cfg.removal_margin,
-        drop_window_observations=cfg.drop_window_observations,
-        graph_frame_distance_m=cfg.graph_frame_distance_m,
-        graph_frame_angle_rad=cfg.graph_frame_angle_rad,
-        graph_frame_max_gap=cfg.graph_frame_max_gap,
-        graph_frame_min_landmarks=cfg.graph_frame_min_landmarks,
-        allow_new_landmarks=mode == "mapping",
-    )
+    params: dict[str, Any] = {}
+    for name, path in SLAM_FIELD_PATHS.items():
+        value: Any = cfg
+        for key in path:
+            value = getattr(value, key)
+        params[name] = value
+    return SlamConfig(**params, allow_new_landmarks=mode == "mapping")
 
 
 def camera_model(config: dict[str, Any]) -> CameraModel | None:

@@ -21,6 +21,7 @@ import math
 import os
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,11 +31,15 @@ from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
 from service.evaluation import Trajectory, write_tum
 from service.frames_io import write_frames
 
+if TYPE_CHECKING:
+    from service.datasets.outdoor_sim import OutdoorWorld
+
 __all__ = [
     "IndoorWorld",
     "SimRun",
     "bearings_from_pose",
     "make_world",
+    "noisy_observations",
     "simulate",
     "write_run",
 ]
@@ -220,6 +225,25 @@ def bearings_from_pose(pose_xytheta: ArrayLike, points_xy: ArrayLike) -> FloatAr
     return wrap_angles(np.arctan2(p[:, 1] - y, p[:, 0] - x) - theta)
 
 
+def noisy_observations(
+    rel_xy: FloatArray,
+    theta: float,
+    labels: list[str],
+    bearing_sigma_rad: float,
+    rng: np.random.Generator,
+) -> tuple[BearingObservation, ...]:
+    """Observations of (K,) points at (K, 2) offsets `rel_xy` (metres, map axes) from a
+    robot heading `theta` (rad): bearing = truth + N(0, bearing_sigma_rad), wrapped;
+    ``sigma`` = bearing_sigma_rad (None if 0); the given labels."""
+    true = np.arctan2(rel_xy[:, 1], rel_xy[:, 0]) - theta
+    bearing = wrap_angles(true + rng.normal(0.0, bearing_sigma_rad, len(rel_xy)))
+    sigma = bearing_sigma_rad if bearing_sigma_rad > 0 else None
+    return tuple(
+        BearingObservation(bearing_rad=b, label=label, sigma_rad=sigma)
+        for b, label in zip(bearing.tolist(), labels, strict=True)
+    )
+
+
 @dataclass(frozen=True)
 class SimRun:
     """A simulated run: the frames a robot would send and what really happened.
@@ -229,14 +253,15 @@ class SimRun:
         ground_truth: the true pose at each frame's stamp.
         landmarks: (M, 2) true landmark positions, metres.
         landmark_ids: (M,) their ids (observation labels are ``str(id)``).
-        world: the world the run took place in.
+        world: the world the run took place in (this module's, or the outdoor one of
+            service.datasets.outdoor_sim).
     """
 
     frames: list[FrameInput]
     ground_truth: Trajectory
     landmarks: FloatArray
     landmark_ids: IntArray
-    world: IndoorWorld
+    world: IndoorWorld | OutdoorWorld
 
 
 def simulate(
@@ -282,7 +307,6 @@ def simulate(
     kx, ky, kt = odometry_noise
     size, margin = world.room_size_m, world.drive_margin_m
     per_room = [np.flatnonzero(world.landmark_rooms == r) for r in range(world.n_rooms)]
-    sigma = bearing_sigma_rad if bearing_sigma_rad > 0 else None
 
     def random_point(room: int) -> FloatArray:
         return world.room_origin(room) + margin + rng.random(2) * (size - 2.0 * margin)
@@ -299,11 +323,8 @@ def simulate(
         dist = np.hypot(rel[:, 0], rel[:, 1])
         near = np.flatnonzero(dist <= max_range_m)
         near = near[np.argsort(dist[near], kind="stable")][:max_observations]
-        true = np.arctan2(rel[near, 1], rel[near, 0]) - theta
-        bearing = wrap_angles(true + rng.normal(0.0, bearing_sigma_rad, len(near)))
-        return tuple(
-            BearingObservation(bearing_rad=b, label=labels[i], sigma_rad=sigma)
-            for b, i in zip(bearing.tolist(), idx[near].tolist(), strict=True)
+        return noisy_observations(
+            rel[near], theta, [labels[i] for i in idx[near].tolist()], bearing_sigma_rad, rng
         )
 
     pos = random_point(0)

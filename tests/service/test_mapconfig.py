@@ -1,19 +1,29 @@
-"""A map's config: the camera map's default bound on landmark factors per frame, the
-pose window's defaults."""
+"""A map's config: every estimator parameter reachable and validated, stored configs
+that still load, the camera map's default bound on landmark factors per frame, the pose
+window's defaults."""
 
 from __future__ import annotations
 
+import json
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any, cast, get_args
+
 import pytest
 from pydantic import ValidationError
+from pydantic.fields import FieldInfo
 
 from graph.config import SlamConfig
+from graph.policies import POLICY_NAMES
 from service.mapconfig import (
     CAMERA_GRAPH_FRAME_DISTANCE_M,
     CAMERA_LANDMARK_CAP,
     CAMERA_LANDMARK_FACTORS,
     CAMERA_NOISE_DEFAULTS,
+    SLAM_FIELD_PATHS,
     MapConfig,
     slam_config,
+    slam_config_dict,
 )
 
 
@@ -209,3 +219,195 @@ def test_a_new_map_gets_the_odometry_random_walks_and_a_stored_one_keeps_none() 
 def test_odometry_random_walks_are_validated(noise: dict[str, object]) -> None:
     with pytest.raises(ValidationError, match="odometry_sigma_per_sqrt"):
         MapConfig.model_validate({"noise": noise})
+
+
+# --------------------------------------------------------------------------- every parameter
+
+MODE_ONLY = {"allow_new_landmarks"}
+"""SlamConfig fields set by the map's mode, not its config."""
+
+LEGACY_STORED_CONFIG: dict[str, Any] = {
+    "landmark_cap": 50,
+    "policy": "coverage",
+    "pose_window": 100,
+    "window_observations": None,
+    "uncapped_window_observations": 900,
+    "max_pose_window": 600,
+    "camera": None,
+    "noise": {
+        "bearing_sigma_rad": 0.017453292519943295,
+        "huber_k": 1.345,
+        "bearing_loss": "huber",
+        "odometry_sigma_floor": [0.002, 0.002, 0.003490658503988659],
+        "odometry_sigma_per_metre": [0.03, 0.03, 0.017453292519943295],
+        "odometry_sigma_per_radian": 0.02,
+        "odometry_sigma_per_sqrt_second": [0.0, 0.0, 0.0],
+        "initial_pose_sigma": [0.01, 0.01, 0.008726646259971648],
+    },
+    "optimizer": "dogleg",
+    "max_landmark_factors": None,
+    "removal_margin": 0,
+    "drop_window_observations": False,
+    "graph_frame_distance_m": None,
+    "graph_frame_angle_rad": 0.7853981633974483,
+    "graph_frame_max_gap": 8,
+    "graph_frame_min_landmarks": 5,
+    "seed": 0,
+}
+"""A map's config as the service stored it before triangulation, gating, keyframes and
+solver were in it (a map created with `{}` under the default cap 50)."""
+
+
+def _leaf(path: tuple[str, ...]) -> FieldInfo:
+    model: Any = MapConfig
+    for key in path[:-1]:
+        model = model.model_fields[key].annotation
+    return cast(FieldInfo, model.model_fields[path[-1]])
+
+
+def _other_value(name: str) -> Any:
+    """A valid value of a SlamConfig field other than its default, as JSON."""
+    default = getattr(SlamConfig(), name)
+    annotation = _leaf(SLAM_FIELD_PATHS[name]).annotation
+    if name == "policy":
+        return next(p for p in POLICY_NAMES if p != default)
+    if isinstance(default, bool):
+        return not default
+    if default is None:
+        kind = next(a for a in get_args(annotation) if a is not type(None))
+        return 7 if kind is int else 0.7
+    if isinstance(default, int):
+        return default + 1
+    if isinstance(default, float):
+        return default * 1.5 if default else 0.5
+    if isinstance(default, tuple):
+        return [v * 1.5 + 0.001 for v in default]
+    if isinstance(default, str):
+        return next(a for a in get_args(annotation) if a != default)
+    raise AssertionError(f"no other value for {name}={default!r}")
+
+
+def _at(path: tuple[str, ...], value: Any) -> dict[str, Any]:
+    body: dict[str, Any] = {path[-1]: value}
+    for key in reversed(path[:-1]):
+        body = {key: body}
+    return body
+
+
+def non_default_config() -> tuple[dict[str, Any], dict[str, Any]]:
+    """A map config (REST body) giving every estimator parameter a value other than its
+    default, and those values by SlamConfig field name (as JSON)."""
+    values = {name: _other_value(name) for name in SLAM_FIELD_PATHS}
+    body: dict[str, Any] = {}
+    for name, value in values.items():
+        path = SLAM_FIELD_PATHS[name]
+        group = body
+        for key in path[:-1]:
+            group = group.setdefault(key, {})
+        group[path[-1]] = value
+    return body, values
+
+
+@pytest.mark.parametrize("name", [f.name for f in fields(SlamConfig)])
+def test_every_estimator_parameter_has_a_place_in_the_map_config(name: str) -> None:
+    """A SlamConfig field without a map-config route (or the mode) fails here."""
+    if name in MODE_ONLY:
+        assert name not in SLAM_FIELD_PATHS
+        assert slam_config({}, "mapping").allow_new_landmarks
+        assert not slam_config({}, "localisation").allow_new_landmarks
+        return
+    assert name in SLAM_FIELD_PATHS, f"SlamConfig.{name} cannot be set through a map config"
+    path = SLAM_FIELD_PATHS[name]
+    assert path[-1] == name
+    value = _other_value(name)
+    stored = MapConfig.model_validate(_at(path, value)).model_dump(mode="json")
+    got = getattr(slam_config(stored, "mapping"), name)
+    assert json.loads(json.dumps(got)) == value
+    assert got != getattr(SlamConfig(), name)
+    description = _leaf(path).description or ""
+    assert len(description) > 20, f"{name}: describe it (with its unit) for the OpenAPI schema"
+    if name.endswith("_m"):
+        assert "metres" in description, name
+    if name.endswith("_rad"):
+        assert "radians" in description, name
+
+
+def test_every_estimator_parameter_at_once_and_the_defaults_are_the_estimators() -> None:
+    body, values = non_default_config()
+    estimator = slam_config(MapConfig.model_validate(body).model_dump(mode="json"), "mapping")
+    assert json.loads(json.dumps(slam_config_dict(estimator))) == {
+        **values,
+        "allow_new_landmarks": True,
+    }
+    created = MapConfig.model_validate({"landmark_cap": 50}).for_new_map(50)
+    assert slam_config(created.model_dump(mode="json"), "mapping") == SlamConfig()
+
+
+def test_a_config_stored_before_the_groups_loads_with_the_estimators_defaults() -> None:
+    loaded = slam_config(LEGACY_STORED_CONFIG, "mapping")
+    # As it was built: no odometry random walks, a capped window that does not grow.
+    assert loaded == replace(
+        SlamConfig(),
+        window_observations=None,
+        odometry_sigma_per_sqrt_metre=(0.0, 0.0, 0.0),
+        odometry_sigma_per_sqrt_radian=0.0,
+    )
+    assert MapConfig.model_validate(LEGACY_STORED_CONFIG).triangulation.max_depth_m == 15.0
+    # A stored config dumped now holds every group, and reloads to the same estimator.
+    created = MapConfig.model_validate({"triangulation": {"max_depth_m": 100.0}}).for_new_map(50)
+    stored = json.loads(json.dumps(created.model_dump(mode="json")))
+    assert {"triangulation", "gating", "keyframes", "solver"} <= set(stored)
+    assert slam_config(stored, "mapping") == replace(SlamConfig(), max_depth_m=100.0)
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"triangulation": {"max_depth_m": -1}}, "max_depth_m"),
+        ({"triangulation": {"max_depth_m": "far"}}, "max_depth_m"),
+        ({"triangulation": {"min_rays": 1}}, "min_rays"),
+        ({"triangulation": {"min_parallax_rad": 0}}, "min_parallax_rad"),
+        ({"triangulation": {"max_position_sigma_m": 0}}, "max_position_sigma_m"),
+        ({"triangulation": {"landmark_prior_sigma_m": 0}}, "landmark_prior_sigma_m"),
+        ({"triangulation": {"min_depth_m": 20, "max_depth_m": 10}}, "max_depth_m"),
+        ({"triangulation": {"min_rays": 5, "max_rays": 4}}, "max_rays"),
+        ({"triangulation": {"depth": 1}}, "depth"),
+        ({"gating": {"max_innovation_rad": 4.0}}, "max_innovation_rad"),
+        ({"gating": {"gate_min_age_frames": -1}}, "gate_min_age_frames"),
+        ({"keyframes": {"max_keyframes": -1}}, "max_keyframes"),
+        ({"keyframes": {"keyframe_angle_rad": 0}}, "keyframe_angle_rad"),
+        ({"solver": {"relinearize_skip": 0}}, "relinearize_skip"),
+        ({"solver": {"relinearize_threshold": -0.1}}, "relinearize_threshold"),
+    ],
+)
+def test_bad_estimator_values_are_refused_naming_the_field(
+    body: dict[str, Any], field: str
+) -> None:
+    with pytest.raises(ValidationError, match=field):
+        MapConfig.model_validate(body)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"min_parallax_rad": 0.0}, "min_parallax_rad"),
+        ({"max_position_sigma_m": 0.0}, "max_position_sigma_m"),
+        ({"landmark_prior_sigma_m": 0.0}, "landmark_prior_sigma_m"),
+        ({"max_innovation_rad": -1.0}, "max_innovation_rad"),
+        ({"relinearize_skip": 0}, "relinearize_skip"),
+        ({"keyframe_distance_m": -1.0}, "keyframe_distance_m"),
+        ({"odometry_sigma_floor": (0.0, -1.0, 0.0)}, "sigmas"),
+        ({"min_depth_m": 2.0, "max_depth_m": 1.0}, "min_depth_m"),
+    ],
+)
+def test_the_estimator_refuses_what_the_map_config_refuses(
+    change: dict[str, Any], match: str
+) -> None:
+    with pytest.raises(ValueError, match=match):
+        replace(SlamConfig(), **change)
+
+
+def test_the_configuration_guide_lists_every_estimator_parameter() -> None:
+    guide = (Path(__file__).resolve().parents[2] / "docs" / "configuration.md").read_text()
+    missing = [".".join(p) for p in SLAM_FIELD_PATHS.values() if f"`{'.'.join(p)}`" not in guide]
+    assert not missing, f"docs/configuration.md lacks {missing}"
