@@ -15,19 +15,17 @@ what either bound costs. The ``_8`` methods tighten max_linked_keyframes to 8.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import os
-import platform
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
-import gtsam
 import numpy as np
 
+from bench.lifelong import machine_info
 from bench.mrclam_accuracy import CAP, _judge, map_landmarks
 from graph.config import SlamConfig
 from service.datasets.mrclam import (
@@ -132,14 +130,7 @@ def main() -> None:
             "jobs": args.jobs,
             "seconds": time.perf_counter() - t0,
         },
-        "machine": {
-            "cpus": os.cpu_count(),
-            "loadavg_at_end": os.getloadavg(),
-            "platform": platform.platform(),
-            "gtsam": getattr(gtsam, "__version__", "?"),
-            "numpy": np.__version__,
-            "date": dt.date.today().isoformat(),
-        },
+        "machine": {**machine_info(), "loadavg_at_end": os.getloadavg()},
     }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(doc, indent=1))
