@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from graph.config import SlamConfig
 from graph.factors import is_landmark_key, pose_key
 from graph.slam import BearingSlam
+from graph.snapshot import capture, restore
 from graph.sparsify import chow_liu_tree, kl_divergence, marginal_information, tree_factors
 from tests.graph._world import circle_frames
 from tests.graph.test_gauge import _rotation_cost
@@ -208,3 +209,14 @@ def test_a_sparsified_map_keeps_its_frame() -> None:
     cost, reference = _rotation_cost(sparse, angle), _rotation_cost(thinned, angle)
     assert cost == pytest.approx(reference, rel=0.5)
     assert cost > 4.0  # the initial-pose prior alone: (2 / 0.5)^2 / 2 = 8
+
+
+def test_a_sparsified_map_survives_a_snapshot() -> None:
+    """The trees' factors are the estimator's usual kinds (relative marginals, between
+    factors, linear containers): a snapshot restores the map with the same estimate."""
+    original = _bounded_run("chow_liu")
+    restored = restore(capture(original))
+    assert restored.graph.num_factors == original.graph.num_factors
+    np.testing.assert_allclose(
+        restored.trajectory("r1")["r1"], original.trajectory("r1")["r1"], atol=1e-2
+    )
