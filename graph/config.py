@@ -10,6 +10,8 @@ Optimizer = Literal["dogleg", "gauss_newton"]
 """The iSAM2 step (see SlamConfig.optimizer)."""
 BearingLoss = Literal["huber", "geman_mcclure"]
 """The robust loss of bearing factors (see SlamConfig.bearing_loss)."""
+MarginalSparsification = Literal["thin_keyframes", "chow_liu"]
+"""How marginal factors are kept sparse (see SlamConfig.marginal_sparsification)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,7 +143,13 @@ class SlamConfig:
     """At most this many keyframes in one marginal factor. Marginalising a landmark
     links every pose that saw it, and those links accumulate into one dense factor
     over all keyframes; beyond this bound the oldest keyframes in it are
-    marginalised too (down to 3/4 of it), so the dense part of the graph stays small."""
+    marginalised too (down to 3/4 of it), so the dense part of the graph stays small.
+    With marginal_sparsification "chow_liu" the factor is sparsified instead."""
+    marginal_sparsification: MarginalSparsification = "thin_keyframes"
+    """What a marginal factor linking more than max_linked_keyframes keyframes becomes:
+    "thin_keyframes" marginalises its oldest keyframes (map detail is lost);
+    "chow_liu" replaces it by its Chow-Liu tree (graph.sparsify), one binary factor per
+    tree edge, and keeps every keyframe (bounded by max_keyframes and their spacing)."""
     max_landmark_factors: int | None = None
     """Most bearing factors on live landmarks added per frame; None = one per observation.
     Beyond it, the observed landmarks whose last factor is oldest get one (ties spread
@@ -261,6 +269,8 @@ class SlamConfig:
             raise ValueError("max_keyframes must be >= 0")
         if self.max_linked_keyframes < 1:
             raise ValueError("max_linked_keyframes must be >= 1")
+        if self.marginal_sparsification not in ("thin_keyframes", "chow_liu"):
+            raise ValueError("marginal_sparsification must be 'thin_keyframes' or 'chow_liu'")
         if self.max_landmark_factors is not None and self.max_landmark_factors < 1:
             raise ValueError("max_landmark_factors must be >= 1 or None")
         if self.window_observations is not None and self.window_observations < 1:

@@ -33,7 +33,7 @@ in 747 Schur marginalisations; the leaf route's failures by variant).
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import gtsam
 import numpy as np
@@ -43,6 +43,7 @@ from graph.config import SlamConfig
 from graph.errors import EstimationError
 from graph.factors import is_landmark_key
 from graph.relative import choose_reference, relative_marginal
+from graph.sparsify import kl_divergence, tree_factors
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +98,11 @@ class IncrementalGraph:
         """Marginal covariances of poses asked for since the last update."""
         self.marginal_keys: list[tuple[int, ...]] = []
         """Keys of every marginal factor added since the caller last cleared this."""
+        self.sparsifications = 0
+        """Marginal factors replaced by their Chow-Liu tree (see `update`'s `sparsify`)."""
+        self.sparsification_kl: list[float] | None = None
+        """Set to a list, KL(exact || tree) in nats of every later sparsification is
+        appended to it (an evaluation's measure: one eigen-decomposition more each)."""
 
     # ------------------------------------------------------------------ queries
     def __contains__(self, key: int) -> bool:
@@ -220,6 +226,7 @@ class IncrementalGraph:
         marginalise: Sequence[int] = (),
         drop: Sequence[int] = (),
         then_marginalise: Sequence[int] = (),
+        sparsify: Callable[[Sequence[int]], bool] | None = None,
     ) -> None:
         """Add factors (and new variables' initial values) and marginalise keys, in one step.
 
@@ -229,7 +236,8 @@ class IncrementalGraph:
         marginals included), in the same iSAM2 update: the marginal is the one two
         updates would leave, but iSAM2 never holds the first marginals. Poses
         marginalised on their own get relative marginals, which a joint elimination with
-        a landmark would not (see _schur_complement)."""
+        a landmark would not (see _schur_complement). `sparsify`: a marginal factor over
+        keys for which it is true is replaced by its Chow-Liu tree (graph.sparsify)."""
         new = gtsam.NonlinearFactorGraph()
         added: list[gtsam.NonlinearFactor] = list(factors)
         taken: set[int] = set(drop)
@@ -242,7 +250,7 @@ class IncrementalGraph:
             into = [m for m in marginals if keys.intersection(m.keys())]
             marginals = [m for m in marginals if not keys.intersection(m.keys())]
             indices, more = self._schur_complement(
-                stage, exclude=taken, extra=into, summed=thinning
+                stage, exclude=taken, extra=into, summed=thinning, sparsify=sparsify
             )
             taken.update(indices)
             marginals.extend(more)
@@ -353,10 +361,12 @@ class IncrementalGraph:
         exclude: set[int] | None = None,
         extra: Sequence[gtsam.NonlinearFactor] = (),
         summed: bool = False,
+        sparsify: Callable[[Sequence[int]], bool] | None = None,
     ) -> tuple[list[int], list[gtsam.NonlinearFactor]]:
         """Factor indices touching `keys`, and the marginal factors that replace them
         (and the `extra` factors, not in the graph yet, that are taken in too).
-        `summed`: eliminate poses by Cholesky (see `_eliminate`)."""
+        `summed`: eliminate poses by Cholesky (see `_eliminate`); `sparsify`: see
+        `update`."""
         missing = [k for k in keys if k not in self._key_factors]
         if missing:
             raise KeyError(f"cannot marginalise {[gtsam.DefaultKeyFormatter(k) for k in missing]}")
@@ -382,13 +392,61 @@ class IncrementalGraph:
             factor = remaining.at(i)
             if factor is None or len(factor.keys()) == 0:
                 continue
-            relative = poses_only or self._config.relative_landmark_marginals
-            reference = choose_reference(list(factor.keys()), keys) if relative else None
-            if self._relative and reference is not None:
-                marginals.append(relative_marginal(factor, theta, reference))
+            if sparsify is not None and sparsify(list(factor.keys())):
+                marginals.extend(self._tree_of(factor, keys))
                 continue
-            point = gtsam.Values()
-            for key in factor.keys():
-                _copy_value(point, key, theta)
-            marginals.append(gtsam.LinearContainerFactor(factor, point))
+            relative = poses_only or self._config.relative_landmark_marginals
+            marginals.append(self._wrap(factor, keys, relative=relative))
         return indices, marginals
+
+    def _wrap(
+        self, factor: gtsam.GaussianFactor, marginalised: Sequence[int], *, relative: bool
+    ) -> gtsam.NonlinearFactor:
+        """A linear marginal at theta as a nonlinear factor: relative to one of its poses
+        (graph.relative) if `relative` and the map keeps relative marginals, else a
+        LinearContainerFactor."""
+        reference = choose_reference(list(factor.keys()), marginalised) if relative else None
+        if self._relative and reference is not None:
+            return relative_marginal(factor, self._theta, reference)
+        point = gtsam.Values()
+        for key in factor.keys():
+            _copy_value(point, key, self._theta)
+        return gtsam.LinearContainerFactor(factor, point)
+
+    def _tree_of(
+        self, factor: gtsam.GaussianFactor, marginalised: Sequence[int]
+    ) -> list[gtsam.NonlinearFactor]:
+        """The Chow-Liu tree of a linear marginal (graph.sparsify), one factor per edge
+        (and the root's marginal): those over poses only relative to one of their poses,
+        so that they are relinearised and keep their absolute part where they have one;
+        those with a landmark linear, as a landmark's marginal is."""
+        linear, tree = tree_factors(factor)
+        self.sparsifications += 1
+        if self.sparsification_kl is not None:
+            exact = np.asarray(factor.information(), dtype=np.float64)
+            self.sparsification_kl.append(kl_divergence(exact, tree.information[:-1, :-1]))
+        return [
+            self._wrap(f, marginalised, relative=not any(is_landmark_key(k) for k in f.keys()))
+            for f in linear
+        ]
+
+    def sparsify_marginals(
+        self, key_sets: Iterable[Sequence[int]], sparsify: Callable[[Sequence[int]], bool]
+    ) -> None:
+        """Replace every factor in the graph over one of `key_sets` for which `sparsify`
+        is true (a marginal whose keys became more keyframes) by its Chow-Liu tree, at
+        its linearisation at theta, in one update."""
+        drop: set[int] = set()
+        trees: list[gtsam.NonlinearFactor] = []
+        for keys in key_sets:
+            if not keys or not sparsify(keys):
+                continue
+            shared = set.intersection(*(self._key_factors.get(k, set()) for k in keys))
+            for index in sorted(shared - drop):
+                factor = self._factors[index]
+                if len(factor.keys()) != len(keys):
+                    continue
+                drop.add(index)
+                trees.extend(self._tree_of(factor.linearize(self._theta), keys))
+        if drop:
+            self.update(trees, drop=sorted(drop))

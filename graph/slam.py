@@ -961,6 +961,10 @@ class BearingSlam:
         if not linked or max(len(k) for k in linked) <= bound:
             return
         owner = self._keyframe_owners()
+        if self.config.marginal_sparsification == "chow_liu":
+            self._graph.sparsify_marginals(linked, self._too_dense(owner))
+            self._graph.marginal_keys = []
+            return
         drop: set[int] = set()
         for keys in linked:
             drop.update(self._excess_keyframes(keys, owner))
@@ -972,6 +976,13 @@ class BearingSlam:
         return {
             key: (robot, frame) for robot in self._robots.values() for key, frame in robot.keyframes
         }
+
+    def _too_dense(self, owner: dict[int, tuple[_Robot, int]]) -> Callable[[Sequence[int]], bool]:
+        """Whether a marginal factor over some keys links more than max_linked_keyframes
+        of the keyframes `owner` lists (it is then sparsified, see
+        SlamConfig.marginal_sparsification)."""
+        bound = self.config.max_linked_keyframes
+        return lambda keys: len(keys) > bound and sum(k in owner for k in keys) > bound
 
     def _excess_keyframes(
         self, keys: Iterable[int], owner: dict[int, tuple[_Robot, int]]
@@ -1002,6 +1013,9 @@ class BearingSlam:
         keyframes are still eliminated on their own, after `keys`, so that their
         marginal is relative as it was (IncrementalGraph.update's then_marginalise)."""
         owner = self._keyframe_owners() if owner is None else owner
+        if self.config.marginal_sparsification == "chow_liu":
+            self._graph.update(marginalise=keys, sparsify=self._too_dense(owner))
+            return
         marginalise = set(keys)
         drop = set(thin)
         for _ in range(4):  # each round takes in the factors of the keyframes it adds

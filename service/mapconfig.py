@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from graph.config import BearingLoss, Optimizer, SlamConfig
+from graph.config import BearingLoss, MarginalSparsification, Optimizer, SlamConfig
 from graph.policies import POLICY_NAMES
 
 if TYPE_CHECKING:
@@ -242,6 +242,12 @@ class KeyframeConfig(BaseModel):
         _DEFAULTS.keyframe_for_candidate_rays,
         description="a pose leaving the window stays as a keyframe while it holds a "
         "candidate's first ray (keeps the widest baseline for its triangulation)",
+    )
+    marginal_sparsification: MarginalSparsification = Field(
+        _DEFAULTS.marginal_sparsification,
+        description="how a marginal factor linking more than max_linked_keyframes "
+        "keyframes is kept sparse: 'thin_keyframes' marginalises its oldest keyframes, "
+        "'chow_liu' replaces it by its Chow-Liu tree (every keyframe kept)",
     )
 
 

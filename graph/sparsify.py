@@ -1,0 +1,275 @@
+"""Chow-Liu tree sparsification of a dense Gaussian marginal (sparse GLC).
+
+Marginalising a variable leaves one dense Gaussian over its Markov blanket (see
+graph.isam). `chow_liu_tree` replaces it by the tree-structured Gaussian closest to
+it in KL(exact || tree) (Chow & Liu 1968; as used for node removal by
+Carlevaris-Bianco, Kaess & Eustice, "Generic Node Removal for Factor-Graph SLAM",
+T-RO 2014): the maximum spanning tree of the pairwise mutual information between the
+blanket's variables, and per tree edge the conditional of the child given its
+parent, p(x) ~ p(x_root) prod p(x_child | x_parent). Each conditional is one binary
+linear factor; the root's marginal is one unary factor.
+
+Convention: a blanket is a list of variables with dimensions `dims` (3 for a Pose2,
+2 for a Point2) in the column order of the information matrix. A Gaussian is given
+by its *augmented* information ``[[H, g], [g^T, f]] = [A | b]^T [A | b]`` of the
+error ``|A x - b|^2`` (GTSAM's ``augmentedInformation``), shape (n + 1, n + 1).
+
+Rank deficiency. A marginal of bearing-only and relative measurements often has no
+covariance: it carries no absolute part (a rigid motion of the blanket is free, the
+gauge), and a landmark's rays constrain its viewpoints jointly, not pairwise (two rays
+always meet). GLC takes the target information's pseudo-inverse on its observable
+subspace. Here:
+
+* the tree's *factors* are exact limits for a vanishing prior: the pairwise and unary
+  marginals are generalised Schur complements ``H_aa - H_ab H_bb^+ H_ba`` of the
+  augmented information (the limit of the proper marginals as a prior eps*I on every
+  variable goes to 0). A direction the marginal does not observe (the gauge, a lone
+  ray) stays unobserved in every factor: a gauge-free marginal gives a gauge-free
+  tree, with no root factor, and nothing absolute is invented;
+* the tree's *structure* (which edges) needs mutual information, which needs a
+  covariance: it is computed with a pseudo-prior ``eps * mean(diag H)`` on every
+  variable added (`_PSEUDO_PRIOR`). The pseudo-prior only chooses edges; it is not in
+  any factor.
+
+When the marginal already is a tree (a chain of relative-pose constraints, say), the
+tree found is that tree and its joint equals the marginal exactly; otherwise the
+tree keeps each edge's pairwise marginal and loses the rest, which `kl_divergence`
+measures.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.factors import is_landmark_key
+
+FloatArray = NDArray[np.float64]
+
+_PSEUDO_PRIOR = 1e-6
+"""Pseudo-prior on every variable, relative to the mean diagonal of the information,
+under which mutual information is computed (tree structure only)."""
+_RANK_TOL = 1e-10
+"""Eigenvalues below this fraction of the largest count as zero (pseudo-inverses,
+square roots and observable subspaces)."""
+
+
+@dataclass(frozen=True)
+class TreeFactor:
+    """One factor of a Chow-Liu tree: ``|sum_i A_i x_{vars[i]} - b|^2``.
+
+    `vars`: (child, parent) blanket indices of an edge, or (root,) for the root's
+    marginal. `blocks`: the A_i, each (rows, dims[var]). Rows are the factor's rank (a
+    rank-0 factor is never returned)."""
+
+    vars: tuple[int, ...]
+    blocks: tuple[FloatArray, ...]
+    b: FloatArray
+
+
+@dataclass(frozen=True)
+class ChowLiuTree:
+    """A Chow-Liu tree approximation over a blanket of `len(dims)` variables.
+
+    `edges`: (child, parent) blanket indices, n - 1 of them; `root`: the root's index;
+    `factors`: the non-empty factors (a conditional per edge, the root's marginal);
+    `information`: (n + 1, n + 1) augmented information of the tree's joint;
+    `mutual_information`: (n, n) pairwise mutual information (nats) the tree was
+    chosen by."""
+
+    dims: tuple[int, ...]
+    root: int
+    edges: tuple[tuple[int, int], ...]
+    factors: tuple[TreeFactor, ...]
+    information: FloatArray
+    mutual_information: FloatArray
+
+
+def _offsets(dims: Sequence[int]) -> FloatArray:
+    return np.concatenate([[0], np.cumsum(dims)]).astype(int)
+
+
+def _columns(offsets: FloatArray, variables: Sequence[int]) -> list[int]:
+    return [c for v in variables for c in range(int(offsets[v]), int(offsets[v + 1]))]
+
+
+def _psd_pinv(m: FloatArray) -> FloatArray:
+    """Pseudo-inverse of a symmetric positive semi-definite matrix."""
+    if m.size == 0:
+        return m.copy()
+    w, v = np.linalg.eigh(0.5 * (m + m.T))
+    keep = w > _RANK_TOL * max(float(w[-1]), 1e-300)
+    return (v[:, keep] / w[keep]) @ v[:, keep].T
+
+
+def marginal_information(augmented: FloatArray, keep: Sequence[int]) -> FloatArray:
+    """Augmented information of the columns `keep` (plus the constant, last) with every
+    other column eliminated: the generalised Schur complement, exact also when the
+    eliminated block is singular (the limit of a vanishing prior on it)."""
+    n = augmented.shape[0] - 1
+    kept = [*keep, n]
+    gone = sorted(set(range(n)) - set(keep))
+    aa = augmented[np.ix_(kept, kept)]
+    if not gone:
+        return 0.5 * (aa + aa.T)
+    ab = augmented[np.ix_(kept, gone)]
+    out = aa - ab @ _psd_pinv(augmented[np.ix_(gone, gone)]) @ ab.T
+    return 0.5 * (out + out.T)
+
+
+def _square_root(augmented: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """[A | b] with [A | b]^T [A | b] = `augmented` (rows: its rank)."""
+    w, v = np.linalg.eigh(0.5 * (augmented + augmented.T))
+    keep = w > _RANK_TOL * max(float(w[-1]), 1e-300)
+    root = np.sqrt(w[keep])[:, None] * v[:, keep].T
+    return root[:, :-1], root[:, -1]
+
+
+def mutual_information(information: FloatArray, dims: Sequence[int]) -> FloatArray:
+    """(n, n) mutual information (nats) between every pair of the blanket's variables,
+    of the Gaussian with (non-augmented) `information` plus a pseudo-prior (see the
+    module docstring); the diagonal is 0."""
+    h = 0.5 * (information + information.T)
+    scale = float(np.mean(np.diag(h))) if h.size else 1.0
+    cov = np.linalg.inv(h + _PSEUDO_PRIOR * max(scale, 1e-12) * np.eye(h.shape[0]))
+    o = _offsets(dims)
+    n = len(dims)
+    logdet = [np.linalg.slogdet(cov[o[i] : o[i + 1], o[i] : o[i + 1]])[1] for i in range(n)]
+    out = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            cols = _columns(o, (i, j))
+            joint = np.linalg.slogdet(cov[np.ix_(cols, cols)])[1]
+            out[i, j] = out[j, i] = max(0.5 * (logdet[i] + logdet[j] - joint), 0.0)
+    return out
+
+
+def maximum_spanning_tree(weights: FloatArray, root: int = 0) -> list[tuple[int, int]]:
+    """(child, parent) edges of a maximum spanning tree of the complete graph with
+    symmetric `weights` (Prim's algorithm from `root`; ties go to the lower index)."""
+    n = weights.shape[0]
+    if n == 0:
+        return []
+    inside = np.zeros(n, dtype=bool)
+    inside[root] = True
+    best = weights[root].astype(np.float64).copy()
+    parent = np.full(n, root)
+    edges: list[tuple[int, int]] = []
+    for _ in range(n - 1):
+        candidates = np.where(inside, -np.inf, best)
+        child = int(np.argmax(candidates))
+        edges.append((child, int(parent[child])))
+        inside[child] = True
+        closer = ~inside & (weights[child] > best)
+        best[closer] = weights[child][closer]
+        parent[closer] = child
+    return edges
+
+
+def _factor(
+    augmented: FloatArray, variables: tuple[int, ...], dims: Sequence[int], scale: float
+) -> TreeFactor | None:
+    """The factor of a tree's augmented information block, or None if it carries no
+    information on its variables (rows of A below 1e-6 * `scale`, a square root of the
+    marginal's largest diagonal: what is left is a constant, e.g. a gauge-free root's)."""
+    a, b = _square_root(augmented)
+    informative = np.abs(a).max(axis=1, initial=0.0) > 1e-6 * scale
+    a, b = a[informative], b[informative]
+    if a.shape[0] == 0:
+        return None
+    o = np.concatenate([[0], np.cumsum([dims[v] for v in variables])]).astype(int)
+    blocks = tuple(a[:, o[i] : o[i + 1]] for i in range(len(variables)))
+    return TreeFactor(variables, blocks, b)
+
+
+def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) -> ChowLiuTree:
+    """The Chow-Liu tree of the Gaussian with `augmented` information ((n + 1, n + 1),
+    see the module docstring) over variables of `dims`, rooted at `root`.
+
+    Per edge (child c, parent p) the conditional's augmented information is the pair's
+    marginal less the parent's: ``M_{cp} - [0, 0; 0, M_p]``, positive semi-definite, and
+    the root's factor is its marginal ``M_root``; their sum is the tree's joint."""
+    dims = tuple(int(d) for d in dims)
+    o = _offsets(dims)
+    augmented = 0.5 * (augmented + augmented.T)
+    scale = math.sqrt(max(float(np.max(np.diag(augmented)[:-1], initial=0.0)), 1e-300))
+    mi = mutual_information(augmented[:-1, :-1], dims)
+    edges = maximum_spanning_tree(mi, root)
+    size = int(o[-1])
+    joint = np.zeros((size + 1, size + 1))
+
+    def add(variables: tuple[int, ...], block: FloatArray) -> None:
+        cols = [*_columns(o, variables), size]
+        joint[np.ix_(cols, cols)] += block
+
+    factors: list[TreeFactor] = []
+    unary: dict[int, FloatArray] = {}
+
+    def marginal_of(v: int) -> FloatArray:
+        if v not in unary:
+            unary[v] = marginal_information(augmented, _columns(o, (v,)))
+        return unary[v]
+
+    root_info = marginal_of(root)
+    add((root,), root_info)
+    factor = _factor(root_info, (root,), dims, scale)
+    if factor is not None:
+        factors.append(factor)
+    for child, parent in edges:
+        pair = marginal_information(augmented, _columns(o, (child, parent)))
+        conditional = pair.copy()
+        rows = [*range(dims[child], dims[child] + dims[parent]), dims[child] + dims[parent]]
+        conditional[np.ix_(rows, rows)] -= marginal_of(parent)
+        add((child, parent), conditional)
+        factor = _factor(conditional, (child, parent), dims, scale)
+        if factor is not None:
+            factors.append(factor)
+    return ChowLiuTree(dims, root, tuple(edges), tuple(factors), joint, mi)
+
+
+def kl_divergence(exact: FloatArray, approx: FloatArray) -> float:
+    """KL(exact || approx) in nats between two zero-mean Gaussians given by their
+    (non-augmented) information matrices, (n, n) each:
+    ``0.5 * (tr(L S) - r - log det(L S))`` with S the exact covariance and L the
+    approximation's information (equal means: a Chow-Liu tree keeps the mean).
+
+    Gauge-free or otherwise rank-deficient `exact`: on its observable subspace (the
+    span of its eigenvectors above _RANK_TOL of the largest; r its dimension), where S
+    exists. An approximation that invents information outside that subspace is not
+    penalised there; one that loses a direction of it has no finite divergence: inf."""
+    h = 0.5 * (exact + exact.T)
+    w, v = np.linalg.eigh(h)
+    keep = w > _RANK_TOL * max(float(w[-1]), 1e-300)
+    r = int(keep.sum())
+    if r == 0:
+        return 0.0
+    # Whitened by the exact information: the eigenvalues of S^1/2 L S^1/2.
+    whiten = v[:, keep] / np.sqrt(w[keep])
+    ratio = np.linalg.eigvalsh(whiten.T @ (0.5 * (approx + approx.T)) @ whiten)
+    if ratio[0] <= _RANK_TOL * max(float(ratio[-1]), 1.0):
+        return math.inf
+    return max(0.5 * float(np.sum(ratio - 1.0 - np.log(ratio))), 0.0)
+
+
+def tree_factors(factor: gtsam.GaussianFactor) -> tuple[list[gtsam.JacobianFactor], ChowLiuTree]:
+    """The Chow-Liu tree of a linear `factor` over Pose2 and Point2 keys, as one
+    ``JacobianFactor`` (unit noise) per non-empty tree factor, and the tree itself
+    (blanket indices follow ``factor.keys()``; rooted at the first key)."""
+    keys = list(factor.keys())
+    dims = [2 if is_landmark_key(k) else 3 for k in keys]
+    augmented = np.asarray(factor.augmentedInformation(), dtype=np.float64)
+    tree = chow_liu_tree(augmented, dims)
+    out: list[gtsam.JacobianFactor] = []
+    for f in tree.factors:
+        model = gtsam.noiseModel.Unit.Create(len(f.b))
+        if len(f.vars) == 1:
+            out.append(gtsam.JacobianFactor(keys[f.vars[0]], f.blocks[0], f.b, model))
+        else:
+            c, p = f.vars
+            out.append(gtsam.JacobianFactor(keys[c], f.blocks[0], keys[p], f.blocks[1], f.b, model))
+    return out, tree
