@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import logging
 import sys
@@ -146,6 +147,19 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--port", type=int, help="TCP port (default 8000, COVSLAM_PORT)")
     sv.add_argument("--data-dir", type=Path, help="store directory (default ./covslam-data)")
     sv.add_argument("--workers", type=int, help="worker processes (default: CPU count)")
+    sv.add_argument(
+        "--engine",
+        choices=("local", "ray"),
+        help="where maps run: local worker processes (default) or Ray actors (COVSLAM_ENGINE)",
+    )
+    sv.add_argument(
+        "--ray-address",
+        help="with --engine ray: 'auto', 'host:port' or 'local' (COVSLAM_RAY__ADDRESS)",
+    )
+    sv.add_argument(
+        "--store-url",
+        help="a directory (SQLite) or postgresql://... (COVSLAM_STORE__URL; default: --data-dir)",
+    )
 
     rn = sub.add_parser(
         "render",
@@ -335,12 +349,27 @@ def _serve(args: argparse.Namespace) -> int:
         overrides["port"] = args.port
     if args.data_dir is not None:
         overrides["data_dir"] = args.data_dir
+    if args.engine is not None:
+        overrides["engine"] = args.engine
     settings = Settings(**overrides)  # type: ignore[arg-type]
     if args.workers is not None:
         settings.workers.count = args.workers
+    if args.ray_address is not None:
+        settings.ray.address = args.ray_address
+    if args.store_url is not None:
+        settings.store = settings.store.model_copy(update={"url": args.store_url or None})
+    if settings.engine == "ray" and importlib.util.find_spec("ray") is None:
+        from service.ray_engine import RAY_MISSING
+
+        sys.stderr.write(f"covslam: {RAY_MISSING}\n")
+        return 2
     logging.getLogger().setLevel(settings.log_level.upper())
     log.info(
-        "serving on http://%s:%d, store in %s", settings.host, settings.port, settings.data_dir
+        "serving on http://%s:%d (engine %s), store: %s",
+        settings.host,
+        settings.port,
+        settings.engine,
+        settings.store_location,
     )
     uvicorn.run(
         create_app(settings),

@@ -1,8 +1,9 @@
 """The service as the API sees it: one method per use case, all routed to workers.
 
-`MapService` lives in the API process. It keeps the catalogue of maps (SQLite),
-the worker pool, and a notifier that wakes the event streams of a map when its
-worker reported something new. Everything heavy happens in the workers.
+`MapService` lives in the API process. It keeps the catalogue of maps (the store's),
+the engine that runs the maps (local worker processes, or Ray actors), and a notifier
+that wakes the event streams of a map when its worker reported something new.
+Everything heavy happens in the workers.
 """
 
 from __future__ import annotations
@@ -10,14 +11,17 @@ from __future__ import annotations
 import asyncio
 import secrets
 import time
-from pathlib import Path
 from typing import Any
 
 from service.errors import ServiceError, unknown_map
 from service.mapconfig import MapConfig, Mode, slam_config
-from service.pool import WorkerPool
+from service.pool import Engine, make_engine
 from service.settings import Settings
-from service.store import Catalog, MapRecord, map_db_path
+from service.store import MapRecord
+
+
+EventRows = list[tuple[int, str, str]]
+"""Stored events: (id, kind, data JSON), oldest first."""
 
 
 class Notifier:
@@ -41,10 +45,10 @@ class MapService:
 
     def __init__(self, settings: Settings, *, on_worker_restart: Any = None) -> None:
         self.settings = settings
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
-        self._catalog = Catalog(settings.data_dir, synchronous=settings.store.synchronous)
+        self.store = settings.open_store()
+        self._catalog = self.store.catalog()
         self._records: dict[str, MapRecord] = {r.id: r for r in self._catalog.all()}
-        self.pool = WorkerPool(settings, on_restart=on_worker_restart)
+        self.pool: Engine = make_engine(settings, on_restart=on_worker_restart)
         self.notifier = Notifier()
         self.started = False
 
@@ -55,6 +59,7 @@ class MapService:
     async def stop(self) -> None:
         await self.pool.stop()
         self._catalog.close()
+        self.store.close()
 
     @property
     def ready(self) -> bool:
@@ -63,11 +68,19 @@ class MapService:
     # ------------------------------------------------------------ maps
     def record(self, map_id: str) -> MapRecord:
         record = self._records.get(map_id)
+        if record is None and self.pool.shared:
+            # another API process of the same cluster may have created it
+            record = self._catalog.get(map_id)
+            if record is not None:
+                self._records[map_id] = record
+                self.pool.track(map_id)
         if record is None:
             raise unknown_map(map_id)
         return record
 
     def list(self) -> list[MapRecord]:
+        if self.pool.shared:
+            self._records = {r.id: r for r in self._catalog.all()}
         return list(self._records.values())
 
     def _new_id(self) -> str:
@@ -138,9 +151,14 @@ class MapService:
         self.record(map_id)
         return await self.pool.call(map_id, op, params)
 
-    def events_path(self, map_id: str) -> Path:
+    def read_events(self, map_id: str, after: int) -> EventRows:
+        """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""
+        return self.store.read_events(map_id, after)
+
+    def latest_event_id(self, map_id: str) -> int:
+        """The id of the map's newest stored event, 0 if none (blocking I/O)."""
         self.record(map_id)
-        return map_db_path(self.settings.data_dir, map_id)
+        return self.store.latest_event_id(map_id)
 
     # ------------------------------------------------------------ export / import
     async def export(self, map_id: str) -> bytes:

@@ -12,7 +12,6 @@ from fastapi.responses import StreamingResponse
 from api.deps import MapId, ServiceDep
 from api.models import Problem
 from service.maps import MapService
-from service.store import latest_event_id, read_events
 
 router = APIRouter(prefix="/v1/maps/{map_id}/events", tags=["events"])
 
@@ -22,11 +21,10 @@ KEEPALIVE_S = 15.0
 async def _stream(
     service: MapService, map_id: str, after: int, request: Request
 ) -> AsyncIterator[bytes]:
-    path = service.events_path(map_id)
     yield b": covslam events\n\n"
     while True:
         wake = service.notifier.handle(map_id)
-        rows = await asyncio.to_thread(read_events, path, after)
+        rows = await asyncio.to_thread(service.read_events, map_id, after)
         for event_id, kind, data in rows:
             after = event_id
             yield f"id: {event_id}\nevent: {kind}\ndata: {data}\n\n".encode()
@@ -69,13 +67,13 @@ async def stream_events(
     ] = None,
 ) -> StreamingResponse:
     """Live stream (SSE) of frame results and map changes."""
-    path = service.events_path(map_id)
+    service.record(map_id)
     if last_event_id is not None and last_event_id.strip().isdigit():
         after = int(last_event_id)
     elif since is not None:
         after = since
     else:
-        after = await asyncio.to_thread(latest_event_id, path)
+        after = await asyncio.to_thread(service.latest_event_id, map_id)
     return StreamingResponse(
         _stream(service, map_id, after, request),
         media_type="text/event-stream",
