@@ -10,6 +10,7 @@ Both raise `Unavailable` with the reason when they cannot start.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import shutil
@@ -140,7 +141,6 @@ class LocalRayCluster:
         ]  # fmt: skip
         if head:
             where = ["--head", "--port", str(self.port), "--include-dashboard", "false",
-                     "--ray-client-server-port", str(free_port()),
                      "--temp-dir", str(self.base / "tmp")]  # fmt: skip
         else:
             where = ["--address", self.address]
@@ -153,11 +153,17 @@ class LocalRayCluster:
         )  # fmt: skip
 
     def start(self, timeout_s: float = 120.0) -> LocalRayCluster:
-        self.procs.append(self._node(True, 0))
-        self._wait_nodes(1, timeout_s)
-        for i in range(1, self.nodes):
-            self.procs.append(self._node(False, i))
-        self._wait_nodes(self.nodes, timeout_s)
+        """Start the nodes (stopping what started if they do not come up)."""
+        try:
+            self.procs.append(self._node(True, 0))
+            time.sleep(3.0)
+            self._wait_nodes(1, timeout_s)
+            for i in range(1, self.nodes):
+                self.procs.append(self._node(False, i))
+            self._wait_nodes(self.nodes, timeout_s)
+        except BaseException:
+            self.stop(keep_logs=True)
+            raise
         return self
 
     def _wait_nodes(self, count: int, timeout_s: float) -> None:
@@ -173,19 +179,22 @@ class LocalRayCluster:
 
     def alive_nodes(self) -> int:
         """Nodes the head's GCS lists as alive (0 while it does not answer)."""
-        probe = subprocess.run(
-            [sys.executable, "-c",
-             "import ray, sys; ray.init(address=sys.argv[1], logging_level='ERROR');"
-             "print(sum(n['Alive'] for n in ray.nodes()))", self.address],
-            capture_output=True, text=True, timeout=60, check=False,
-        )  # fmt: skip
+        try:
+            probe = subprocess.run(
+                [sys.executable, "-c",
+                 "import ray, sys; ray.init(address=sys.argv[1], logging_level='ERROR');"
+                 "print(sum(n['Alive'] for n in ray.nodes()))", self.address],
+                capture_output=True, text=True, timeout=60, check=False,
+            )  # fmt: skip
+        except subprocess.TimeoutExpired:
+            return 0
         lines = probe.stdout.strip().splitlines()
         return int(lines[-1]) if probe.returncode == 0 and lines else 0
 
     def logs(self) -> str:
         return "".join(p.read_text(errors="replace") for p in sorted(self.base.glob("node*.log")))
 
-    def stop(self) -> None:
+    def stop(self, *, keep_logs: bool = False) -> None:
         """SIGTERM then SIGKILL each node's process group (ray start and what it spawned)."""
         for p in reversed(self.procs):
             try:
@@ -193,13 +202,50 @@ class LocalRayCluster:
             except ProcessLookupError:
                 continue
         for p in self.procs:
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                pass
-            try:
+            with contextlib.suppress(ProcessLookupError):
                 os.killpg(p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
         self.procs.clear()
-        shutil.rmtree(self.base, ignore_errors=True)
+        if not keep_logs:
+            shutil.rmtree(self.base, ignore_errors=True)
+
+
+class Service:
+    """One `covslam serve` process group on a free loopback port (stopped by its PID)."""
+
+    def __init__(self, log: Path, *args: str, env: dict[str, str] | None = None) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = log
+        full_env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning", **(env or {})}
+        with log.open("ab") as out:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), *args],
+                env=full_env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+
+    def wait_ready(self, timeout_s: float = 180.0) -> float:
+        """Seconds until /readyz answered 200."""
+        import httpx
+
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout_s:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"service exited: {self.log.read_text()[-2000:]}")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2.0).status_code == 200:
+                    return time.monotonic() - t0
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        raise TimeoutError(f"service not ready in {timeout_s} s: {self.log.read_text()[-2000:]}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(timeout=10)

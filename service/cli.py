@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import logging
 import sys
@@ -358,11 +357,12 @@ def _serve(args: argparse.Namespace) -> int:
         settings.ray.address = args.ray_address
     if args.store_url is not None:
         settings.store = settings.store.model_copy(update={"url": args.store_url or None})
-    if settings.engine == "ray" and importlib.util.find_spec("ray") is None:
-        from service.ray_engine import RAY_MISSING
+    if settings.engine == "ray":
+        from service.ray_engine import RAY_MISSING, ray
 
-        sys.stderr.write(f"covslam: {RAY_MISSING}\n")
-        return 2
+        if ray is None:
+            sys.stderr.write(f"covslam: {RAY_MISSING}\n")
+            return 2
     logging.getLogger().setLevel(settings.log_level.upper())
     log.info(
         "serving on http://%s:%d (engine %s), store: %s",

@@ -19,7 +19,6 @@ from service.pool import Engine, make_engine
 from service.settings import Settings
 from service.store import MapRecord
 
-
 EventRows = list[tuple[int, str, str]]
 """Stored events: (id, kind, data JSON), oldest first."""
 

@@ -35,7 +35,7 @@ from service.settings import Settings
 try:
     import ray
 except ImportError:
-    ray = None
+    ray = None  # type: ignore[assignment]
 
 log = logging.getLogger(__name__)
 

@@ -34,8 +34,16 @@ def free_port() -> int:
 class Server:
     """One `covslam serve` process group (uvicorn + its workers)."""
 
-    def __init__(self, data_dir: Path, *, workers: int = 2, env: dict[str, str] | None = None):
+    def __init__(
+        self,
+        data_dir: Path,
+        *,
+        workers: int = 2,
+        env: dict[str, str] | None = None,
+        args: list[str] | None = None,
+    ):
         self.data_dir = data_dir
+        self.args = args or []
         self.workers = workers
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -59,6 +67,7 @@ class Server:
                     str(self.data_dir),
                     "--workers",
                     str(self.workers),
+                    *self.args,
                 ],
                 cwd=REPO,
                 env=self.env,

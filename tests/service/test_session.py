@@ -14,8 +14,8 @@ from service.frames_io import frame_to_dict
 from service.session import MapSession, canonical_frame
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord
-from tests.service.conftest import PlaceFactory
 from tests.graph._world import circle_frames
+from tests.service.conftest import PlaceFactory
 
 FRAMES = [frame_to_dict(f) for f in circle_frames(90, seed=2)[0]]
 # A short window and a small cap: keyframes leave the graph within 120 frames.
