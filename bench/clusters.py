@@ -56,7 +56,12 @@ class PrivatePostgres:
 
     def _run(self, *args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [*self._prefix, *args], capture_output=True, text=True, timeout=120, check=False
+            [*self._prefix, *args],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+            cwd=self.base,
         )
 
     def start(self) -> PrivatePostgres:

@@ -26,11 +26,13 @@ import asyncio
 import logging
 import os
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
 from service.settings import Settings
+from service.store import is_postgres_url
 
 try:
     import ray
@@ -85,7 +87,12 @@ class RayEngine:
         if ray is None:
             raise RuntimeError(RAY_MISSING)
         self._settings = settings
+        # actors run in Ray's working directory: a relative store path would move
         self._settings_doc = settings.model_dump(mode="json")
+        self._settings_doc["data_dir"] = str(settings.data_dir.resolve())
+        url = settings.store.url
+        if url is not None and not is_postgres_url(url):
+            self._settings_doc["store"]["url"] = str(Path(url).resolve())
         self._cls = ray.remote(MapActor)
         self._actors: dict[str, Any] = {}
         self._where: dict[str, dict[str, Any]] = {}
