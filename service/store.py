@@ -20,6 +20,7 @@ directory for SQLite.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -80,6 +81,23 @@ class FrameFigures:
     """the estimator's time for the frame (timing_ms.total), milliseconds"""
     covariance_json: str | None
     """the 3x3 pose covariance as JSON text, or None"""
+
+    @classmethod
+    def from_row(cls, row: tuple[Any, ...]) -> FrameFigures:
+        """From (id, robot, seq, live, added JSON, marginalised JSON, total ms, covariance
+        JSON) as a store's query picked them out of a result; JSON null counts as absent."""
+        i, robot, seq, *values = row
+        live, added, marg, total, cov = (None if v == "null" else v for v in values)
+        return cls(
+            int(i),
+            str(robot),
+            int(seq),
+            int(live or 0),
+            tuple(json.loads(added or "[]")),
+            tuple(json.loads(marg or "[]")),
+            None if total is None else float(total),
+            cov,
+        )
 
 
 @dataclass(frozen=True, slots=True)

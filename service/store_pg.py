@@ -388,23 +388,7 @@ class PgMapStore:
             "WHERE map_id = %s AND result IS NOT NULL) f ORDER BY id",
             (self.map_id,),
         ).fetchall()
-
-        def text(value: str | None) -> str | None:
-            return None if value is None or value == "null" else value
-
-        return [
-            FrameFigures(
-                int(i),
-                str(r),
-                int(q),
-                int(live or 0),
-                tuple(json.loads(text(added) or "[]")),
-                tuple(json.loads(text(marg) or "[]")),
-                t,
-                text(c),
-            )
-            for i, r, q, live, added, marg, t, c in rows
-        ]
+        return [FrameFigures.from_row(tuple(r)) for r in rows]
 
     # final trajectory rows
     def _put_poses(self, cur: psycopg.Cursor[Any], rows: list[PoseRow]) -> None:

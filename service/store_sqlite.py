@@ -333,19 +333,7 @@ class SqliteMapStore:
             "json_extract(result, '$.timing_ms.total'), json_extract(result, '$.covariance') "
             "FROM frames WHERE result IS NOT NULL ORDER BY id"
         ).fetchall()
-        return [
-            FrameFigures(
-                int(i),
-                str(r),
-                int(q),
-                int(live or 0),
-                tuple(json.loads(added or "[]")),
-                tuple(json.loads(marg or "[]")),
-                t,
-                c,
-            )
-            for i, r, q, live, added, marg, t, c in rows
-        ]
+        return [FrameFigures.from_row(tuple(r)) for r in rows]
 
     # final trajectory rows
     def _put_poses(self, rows: list[PoseRow]) -> None:
