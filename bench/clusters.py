@@ -97,6 +97,16 @@ class PrivatePostgres:
         self.started = True
         return self
 
+    def restart(self) -> None:
+        """Restart the server (``pg_ctl restart -m fast``): every connection is cut."""
+        pg_ctl = _pg_bin("pg_ctl")
+        assert pg_ctl is not None and self.started
+        done = self._run(
+            pg_ctl, "-D", str(self.data), "-l", str(self.log), "-m", "fast", "-w", "restart"
+        )
+        if done.returncode != 0:
+            raise RuntimeError(f"pg_ctl restart failed: {done.stderr.strip()}")
+
     def url(self, database: str = "postgres") -> str:
         return f"postgresql://covslam@127.0.0.1:{self.port}/{database}"
 

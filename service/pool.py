@@ -84,6 +84,16 @@ def make_engine(settings: Settings, *, on_restart: Callable[[int], None] | None 
     return WorkerPool(settings, on_restart=on_restart)
 
 
+def reply_value(reply: dict[str, Any], *, retry_after_s: int) -> Any:
+    """A worker's answer (service.worker.call): its value, or its error raised;
+    `WorkerUnavailable` when the map's store could not be reached (retry later)."""
+    if reply["ok"]:
+        return reply["value"]
+    if reply.get("unavailable"):
+        raise WorkerUnavailable(reply["unavailable"], retry_after_s=retry_after_s)
+    raise ServiceError.from_dict(reply["error"])
+
+
 class _WorkerDied(Exception):
     pass
 
@@ -334,6 +344,4 @@ class WorkerPool:
                 f"the worker owning map {map_id!r} did not answer within {timeout:g} s",
                 retry_after_s=retry_after,
             ) from exc
-        if not reply["ok"]:
-            raise ServiceError.from_dict(reply["error"])
-        return reply["value"]
+        return reply_value(reply, retry_after_s=retry_after)

@@ -30,7 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from service import worker
-from service.errors import ServiceError, WorkerUnavailable
+from service.errors import WorkerUnavailable
+from service.pool import reply_value
 from service.settings import Settings
 from service.store import is_postgres_url
 
@@ -55,10 +56,13 @@ class MapActor:
         worker.init_worker(settings, 0, own_signals=False)
         self.map_id = map_id
         self.opened: dict[str, Any] | None = None
-        if worker.has_map(map_id):  # a restart: reload from the store now
-            self.opened = worker.call("open", map_id, {})
-            if not self.opened["ok"]:
-                log.error("map %s did not open: %s", map_id, self.opened)
+        try:
+            if worker.has_map(map_id):  # a restart: reload from the store now
+                self.opened = worker.call("open", map_id, {})
+        except Exception:  # e.g. the store is unreachable: the first call opens the map
+            log.exception("map %s: not reloaded at the actor's start", map_id)
+        if self.opened is not None and not self.opened["ok"]:
+            log.error("map %s did not open: %s", map_id, self.opened)
 
     def call(self, op: str, payload: dict[str, Any]) -> dict[str, Any]:
         """`op` on this actor's map, as a local worker answers it."""
@@ -212,6 +216,7 @@ class RayEngine:
         except _actor_errors() as exc:
             self.restarts += 1
             self._where.pop(map_id, None)
+            self._actors.pop(map_id, None)  # the next call finds (or makes) it by name
             if self._on_restart is not None:
                 self._on_restart(-1)
             raise WorkerUnavailable(
@@ -230,6 +235,4 @@ class RayEngine:
             task = asyncio.get_running_loop().create_task(self._locate(map_id))
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
-        if not reply["ok"]:
-            raise ServiceError.from_dict(reply["error"])
-        return reply["value"]
+        return reply_value(reply, retry_after_s=retry_after)

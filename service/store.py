@@ -308,3 +308,13 @@ def as_place(where: Path | MapPlace, *, synchronous: str) -> MapPlace:
 
         return SqliteMap(where, synchronous=synchronous)
     return where
+
+
+def connection_lost(exc: BaseException) -> bool:
+    """The exception says the store's server went away (a PostgreSQL restart, the
+    network): what was open on it must be reopened."""
+    if type(exc).__module__.split(".")[0] != "psycopg":
+        return False
+    from service.store_pg import CONNECTION_ERRORS
+
+    return isinstance(exc, CONNECTION_ERRORS)

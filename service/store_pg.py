@@ -18,8 +18,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
@@ -33,6 +32,11 @@ try:
     import psycopg
 except ImportError:  # pragma: no cover - exercised only without the extra
     psycopg = None  # type: ignore[assignment]
+
+CONNECTION_ERRORS: tuple[type[Exception], ...] = (
+    () if psycopg is None else (psycopg.OperationalError, psycopg.InterfaceError)
+)
+"""What psycopg raises when the server went away (the connection must be reopened)."""
 
 _SCHEMA_LOCK = 0x636F76736C616D  # pg_advisory_xact_lock key while creating the schema
 _MAP_TABLES = (
@@ -159,20 +163,30 @@ def connect(url: str) -> psycopg.Connection[Any]:
 
 
 class _Shared:
-    """One connection used by several threads, one statement group at a time."""
+    """One connection shared by the threads of a process (catalogue, event reads),
+    re-opened when the server went away (a statement that met a cut connection is
+    sent once more on the new one)."""
 
     def __init__(self, url: str) -> None:
+        self._url = url
         self.conn = connect(url)
         self._lock = threading.Lock()
 
-    @contextmanager
-    def use(self, *, transaction: bool = False) -> Iterator[psycopg.Connection[Any]]:
+    def execute(self, sql: str, args: Any = (), *, fetch: str = "none") -> Any:
+        """Run one statement; `fetch` "all" (rows), "one" (a row or None) or "none"."""
         with self._lock:
-            if transaction:
-                with self.conn.transaction():
-                    yield self.conn
-            else:
-                yield self.conn
+            for attempt in (0, 1):
+                try:
+                    if self.conn.closed or self.conn.broken:
+                        self.conn = connect(self._url)
+                    cur = self.conn.execute(sql, args)
+                    if fetch == "all":
+                        return cur.fetchall()
+                    return cur.fetchone() if fetch == "one" else None
+                except CONNECTION_ERRORS:
+                    if attempt:
+                        raise
+            return None  # not reached
 
     def close(self) -> None:
         with self._lock:
@@ -192,32 +206,27 @@ class PgCatalog:
         """The connection belongs to the store."""
 
     def add(self, record: MapRecord) -> None:
-        with self._db.use() as c:
-            c.execute(
-                "INSERT INTO maps (id, name, mode, config, created) VALUES (%s, %s, %s, %s, %s)",
-                (record.id, record.name, record.mode, json.dumps(record.config), record.created),
-            )
+        self._db.execute(
+            "INSERT INTO maps (id, name, mode, config, created) VALUES (%s, %s, %s, %s, %s)",
+            (record.id, record.name, record.mode, json.dumps(record.config), record.created),
+        )
 
     def remove(self, map_id: str) -> None:
-        with self._db.use() as c:
-            c.execute("DELETE FROM maps WHERE id = %s", (map_id,))
+        self._db.execute("DELETE FROM maps WHERE id = %s", (map_id,))
 
     def set_mode(self, map_id: str, mode: str) -> None:
-        with self._db.use() as c:
-            c.execute("UPDATE maps SET mode = %s WHERE id = %s", (mode, map_id))
+        self._db.execute("UPDATE maps SET mode = %s WHERE id = %s", (mode, map_id))
 
     def all(self) -> list[MapRecord]:
-        with self._db.use() as c:
-            rows = c.execute(
-                "SELECT id, name, mode, config, created FROM maps ORDER BY created, id"
-            ).fetchall()
+        rows = self._db.execute(
+            "SELECT id, name, mode, config, created FROM maps ORDER BY created, id", fetch="all"
+        )
         return [MapRecord(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
 
     def get(self, map_id: str) -> MapRecord | None:
-        with self._db.use() as c:
-            r = c.execute(
-                "SELECT id, name, mode, config, created FROM maps WHERE id = %s", (map_id,)
-            ).fetchone()
+        r = self._db.execute(
+            "SELECT id, name, mode, config, created FROM maps WHERE id = %s", (map_id,), fetch="one"
+        )
         return None if r is None else MapRecord(r[0], r[1], r[2], json.loads(r[3]), r[4])
 
 
@@ -523,17 +532,23 @@ class PgMap:
         return f"{self.map_id} in {self._store.description}"
 
     def exists(self) -> bool:
-        with self._store.shared.use() as c:
-            row = c.execute("SELECT 1 FROM map_meta WHERE map_id = %s", (self.map_id,)).fetchone()
+        row = self._store.shared.execute(
+            "SELECT 1 FROM map_meta WHERE map_id = %s", (self.map_id,), fetch="one"
+        )
         return row is not None
 
     def open(self) -> PgMapStore:
         return PgMapStore(self._store.url, self.map_id)
 
     def remove(self) -> None:
-        with self._store.shared.use(transaction=True) as c:
-            for table in _MAP_TABLES:
-                c.execute(f"DELETE FROM {table} WHERE map_id = %s", (self.map_id,))
+        # one statement, so all or nothing
+        *first, last = _MAP_TABLES
+        ctes = ", ".join(
+            f"d{i} AS (DELETE FROM {t} WHERE map_id = %(m)s)" for i, t in enumerate(first)
+        )
+        self._store.shared.execute(
+            f"WITH {ctes} DELETE FROM {last} WHERE map_id = %(m)s", {"m": self.map_id}
+        )
 
 
 class PgStore:
@@ -551,17 +566,17 @@ class PgStore:
         return PgMap(self, map_id)
 
     def read_events(self, map_id: str, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
-        with self.shared.use() as c:
-            rows = c.execute(
-                "SELECT id, kind, data FROM events WHERE map_id = %s AND id > %s "
-                "ORDER BY id LIMIT %s",
-                (map_id, after, limit),
-            ).fetchall()
+        rows = self.shared.execute(
+            "SELECT id, kind, data FROM events WHERE map_id = %s AND id > %s ORDER BY id LIMIT %s",
+            (map_id, after, limit),
+            fetch="all",
+        )
         return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
 
     def latest_event_id(self, map_id: str) -> int:
-        with self.shared.use() as c:
-            row = c.execute("SELECT max(id) FROM events WHERE map_id = %s", (map_id,)).fetchone()
+        row = self.shared.execute(
+            "SELECT max(id) FROM events WHERE map_id = %s", (map_id,), fetch="one"
+        )
         return int(row[0] or 0) if row is not None else 0
 
     def close(self) -> None:

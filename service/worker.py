@@ -26,7 +26,7 @@ from service.exchange import parse_export
 from service.mapconfig import slam_config
 from service.session import MapSession
 from service.settings import Settings
-from service.store import MapPlace, MapRecord, Store
+from service.store import MapPlace, MapRecord, Store, connection_lost
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ def init_worker(settings: dict[str, Any], index: int, *, own_signals: bool = Tru
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _settings = Settings.model_validate(settings)
-    _store = _settings.open_store()
+    _store = None
     if _settings.workers.nice:
         os.nice(_settings.workers.nice)
     logging.basicConfig(
@@ -61,8 +61,9 @@ def _cfg() -> Settings:
 
 
 def _place(map_id: str) -> MapPlace:
-    if _store is None:
-        raise RuntimeError("worker not initialised")
+    global _store
+    if _store is None:  # first use, or the store's server went away
+        _store = _cfg().open_store()
     return _store.place(map_id)
 
 
@@ -244,6 +245,24 @@ def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     except ServiceError as exc:
         return {"ok": False, "error": exc.as_dict()}
     except Exception as exc:
+        if connection_lost(exc):
+            return _store_lost(map_id, exc)
         log.exception("op %s on map %s failed", op, map_id)
         error = ServiceError(500, "internal", "Internal error", f"{type(exc).__name__}: {exc}")
         return {"ok": False, "error": error.as_dict()}
+
+
+def _store_lost(map_id: str, exc: Exception) -> dict[str, Any]:
+    """The store's server went away: forget the map (the next call reloads it from the
+    store, as after a crash) and the store's connection; the caller may retry (503)."""
+    global _store
+    log.warning("map %s: store connection lost (%s); the map reloads on its next call", map_id, exc)
+    session = _sessions.pop(map_id, None)
+    for closing in (session, _store):
+        try:
+            if closing is not None:
+                closing.close()
+        except Exception:
+            log.debug("closing after a lost connection failed", exc_info=True)
+    _store = None
+    return {"ok": False, "unavailable": f"the store of map {map_id!r} is unreachable: {exc}"}

@@ -67,6 +67,26 @@ def test_a_postgres_store_serves_the_map_a_sqlite_store_serves(
         pg.stop()
 
 
+def test_a_postgres_restart_costs_clients_a_retry_and_nothing_else(
+    tmp_path: Path, postgres: PrivatePostgres
+) -> None:
+    server = Server(tmp_path / "data", args=["--store-url", postgres.new_database()])
+    server.start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            map_id = create_map(c, config={"landmark_cap": 8})
+            acked = post_all(c, map_id, FRAMES[:30])
+            postgres.restart()  # the worker's and the API's connections are cut
+            assert [m["id"] for m in c.get("/v1/maps").json()] == [map_id]
+        _post_retrying(server.url, map_id, FRAMES[30:], acked)
+        figures = check_log(server.url, map_id, FRAMES, acked)
+        assert figures["lost"] == figures["duplicated"] == 0, figures
+        assert figures["answer_changed_on_retry"] == 0, figures
+        assert "store connection lost" in server.log.read_text()  # the worker reconnected
+    finally:
+        server.stop()
+
+
 def test_engine_ray_without_ray_fails_with_one_line(tmp_path: Path) -> None:
     code = (
         "import sys; sys.modules['ray'] = None; from service.cli import main; "
