@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 
 from bench.clusters import LocalRayCluster, PrivatePostgres, Service
 from graph.types import FrameInput
@@ -100,6 +101,70 @@ def _until_answers(url: str, map_id: str, since: float) -> float:
             except httpx.TransportError:
                 pass
             time.sleep(0.02)
+
+
+def post_until_answered(client: httpx.Client, map_id: str, frame: dict[str, Any]) -> dict:
+    """Post a frame, retrying on 503 (after Retry-After) and transport errors, until the
+    service answers; its result (any other status raises)."""
+    while True:
+        try:
+            r = client.post(f"/v1/maps/{map_id}/frames", json=frame)
+        except httpx.TransportError:
+            time.sleep(0.2)
+            continue
+        if r.status_code == 503:
+            time.sleep(float(r.headers.get("retry-after", "1")))
+            continue
+        if r.status_code != 200:
+            raise RuntimeError(f"map {map_id} seq {frame['seq']}: {r.status_code} {r.text}")
+        result: dict[str, Any] = r.json()
+        return result
+
+
+def scale(url: str, data: Path, *, maps: int, clients: int, frames: int) -> dict[str, Any]:
+    """`maps` maps (MRCLAM robots 1-5 in turn, the first `frames` frames each), `clients`
+    threads each posting to its share of the maps, frame by frame in turn; throughput and
+    per-frame round trips."""
+    runs = []
+    for i in range(maps):
+        mine, _ = mrclam_frames(load_mrclam(data, i % 5 + 1))
+        runs.append([frame_to_dict(f) for f in mine[:frames]])
+    with httpx.Client(base_url=url, timeout=120) as c:
+        ids = []
+        for i in range(maps):
+            r = c.post("/v1/maps", json={"name": f"scale{i}", "config": MAP_CONFIG})
+            r.raise_for_status()
+            ids.append(r.json()["id"])
+    latency: list[float] = []
+
+    def client(k: int) -> None:
+        mine = list(range(k, maps, clients))
+        with httpx.Client(base_url=url, timeout=300) as c:
+            for j in range(frames):
+                for m in mine:
+                    t0 = time.perf_counter()
+                    post_until_answered(c, ids[m], runs[m][j])
+                    latency.append(1e3 * (time.perf_counter() - t0))
+
+    threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
+    t0 = time.monotonic()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.monotonic() - t0
+    ms = np.asarray(latency)
+    nodes = {w.get("node") for w in _status(url) if w.get("map") in ids}
+    return {
+        "maps": maps,
+        "clients": clients,
+        "frames": int(ms.size),
+        "wall_s": round(wall, 1),
+        "frames_per_s": round(ms.size / wall, 1),
+        "latency_ms_p50": round(float(np.percentile(ms, 50)), 1),
+        "latency_ms_p99": round(float(np.percentile(ms, 99)), 1),
+        "nodes_used": len(nodes - {None}),
+    }
 
 
 def check_log(url: str, map_id: str, frames: list[dict[str, Any]], acked: list[dict]) -> dict:
@@ -179,6 +244,37 @@ def failover(url: str, data: Path, *, maps: int, frames: int, kill_after: int) -
     }
 
 
+def _scale_runs(
+    args: argparse.Namespace, data: Path, work: Path, pg: PrivatePostgres, two: LocalRayCluster
+) -> list[dict[str, Any]]:
+    """The scale run on the two-node cluster, on a one-node cluster (started for it), and
+    with the local engine (two worker processes), each on a fresh database."""
+    out: list[dict[str, Any]] = []
+    one = LocalRayCluster(nodes=1, cpus=1).start()
+    try:
+        deployments = [
+            ("ray/postgresql, 2 nodes", ["--engine", "ray", "--ray-address", two.address]),
+            ("ray/postgresql, 1 node", ["--engine", "ray", "--ray-address", one.address]),
+            ("local/postgresql, 2 workers", ["--workers", "2"]),
+        ]
+        for name, serve_args in deployments:
+            full = [*serve_args, "--store-url", pg.new_database()]
+            service = Service(work / f"scale{len(out)}.log", *full)
+            try:
+                service.wait_ready()
+                run = scale(
+                    service.url, data, maps=args.scale_maps, clients=args.scale_clients,
+                    frames=args.scale_frames,
+                )  # fmt: skip
+            finally:
+                service.stop()
+            out.append({"deployment": name, **run})
+            print(json.dumps(out[-1]), flush=True)
+    finally:
+        one.stop()
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=None, help="MRCLAM-6 folder")
@@ -187,6 +283,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=300, help="frames per map in the failover run")
     ap.add_argument("--kill-after", type=int, default=100, help="map 0's frames before the kill")
     ap.add_argument("--skip-identity", action="store_true")
+    ap.add_argument("--skip-failover", action="store_true")
+    ap.add_argument(
+        "--scale-frames", type=int, default=0, help="frames per map of the scale run (0: none)"
+    )
+    ap.add_argument("--scale-maps", type=int, default=8)
+    ap.add_argument("--scale-clients", type=int, default=4)
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     data = args.data or default_mrclam_dir()
@@ -210,21 +312,27 @@ def main(argv: list[str] | None = None) -> int:
                 digests = {r["trajectory_sha256"] for r in report["identity"]}
                 report["identical_trajectories"] = len(digests) == 1
                 print(json.dumps(report["identity"], indent=1), flush=True)
-            service = Service(work / "failover.log", *ray_args, "--store-url", pg.new_database())
-            try:
-                service.wait_ready()
-                report["failover"] = failover(
-                    service.url, data, maps=args.maps, frames=args.frames,
-                    kill_after=args.kill_after,
-                )  # fmt: skip
-            finally:
-                service.stop()
+            if not args.skip_failover:
+                service = Service(
+                    work / "failover.log", *ray_args, "--store-url", pg.new_database()
+                )
+                try:
+                    service.wait_ready()
+                    report["failover"] = failover(
+                        service.url, data, maps=args.maps, frames=args.frames,
+                        kill_after=args.kill_after,
+                    )  # fmt: skip
+                finally:
+                    service.stop()
+            if args.scale_frames:
+                report["scale"] = _scale_runs(args, data, work, pg, ray_cluster)
     finally:
         if ray_cluster is not None:
             ray_cluster.stop()
         pg.stop()
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "scale_out.json").write_text(json.dumps(report, indent=1) + "\n")
+    name = "scale_out.json" if not args.skip_failover else "scale_out_throughput.json"
+    (args.out / name).write_text(json.dumps(report, indent=1) + "\n")
     print(json.dumps(report.get("failover"), indent=1))
     return 0
 

@@ -17,7 +17,7 @@ import httpx
 import pytest
 
 from bench.clusters import LocalRayCluster, PrivatePostgres, Unavailable
-from bench.scale_out import check_log
+from bench.scale_out import check_log, post_until_answered
 from tests.e2e.conftest import REPO, Server, create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(60, seed=3))
@@ -119,21 +119,10 @@ def ray_cluster() -> Iterator[LocalRayCluster]:
 
 
 def _post_retrying(url: str, map_id: str, frames: list[dict], acked: list[dict]) -> None:
-    """A client that retries a frame on 503 and transport errors until it is answered."""
+    """A client that retries each frame on 503 and transport errors until it is answered."""
     with httpx.Client(base_url=url, timeout=120) as c:
         for f in frames:
-            while True:
-                try:
-                    r = c.post(f"/v1/maps/{map_id}/frames", json=f)
-                except httpx.TransportError:
-                    time.sleep(0.2)
-                    continue
-                if r.status_code == 503:
-                    time.sleep(float(r.headers.get("retry-after", "1")))
-                    continue
-                assert r.status_code == 200, r.text
-                acked.append(r.json())
-                break
+            acked.append(post_until_answered(c, map_id, f))
 
 
 def test_ray_actors_fail_over_without_losing_or_duplicating_a_frame(
