@@ -248,7 +248,8 @@ def _scale_runs(
     args: argparse.Namespace, data: Path, work: Path, pg: PrivatePostgres, two: LocalRayCluster
 ) -> list[dict[str, Any]]:
     """The scale run on the two-node cluster, on a one-node cluster (started for it), and
-    with the local engine (two worker processes), each on a fresh database."""
+    with the local engine (two worker processes, and one per map), each on a fresh
+    database."""
     out: list[dict[str, Any]] = []
     one = LocalRayCluster(nodes=1, cpus=1).start()
     try:
@@ -256,6 +257,7 @@ def _scale_runs(
             ("ray/postgresql, 2 nodes", ["--engine", "ray", "--ray-address", two.address]),
             ("ray/postgresql, 1 node", ["--engine", "ray", "--ray-address", one.address]),
             ("local/postgresql, 2 workers", ["--workers", "2"]),
+            (f"local/postgresql, {args.scale_maps} workers", ["--workers", str(args.scale_maps)]),
         ]
         for name, serve_args in deployments:
             full = [*serve_args, "--store-url", pg.new_database()]
