@@ -102,7 +102,7 @@ def test_engine_ray_without_ray_fails_with_one_line(tmp_path: Path) -> None:
     )
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
-        "covslam: --engine ray needs Ray, which is not installed: pip install 'covslam[ray]'"
+        "covslam serve: --engine ray needs Ray, which is not installed: pip install 'covslam[ray]'"
     ]
 
 
