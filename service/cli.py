@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sv = sub.add_parser(
         "serve",
-        help="run the HTTP service (REST API v1) with its embedded SQLite store",
+        help="run the HTTP service (REST API v1) with its store (SQLite or PostgreSQL)",
         description="Settings come from COVSLAM_* environment variables (nested with __); "
         "options given here override them.",
     )
@@ -147,6 +147,19 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--port", type=int, help="TCP port (default 8000, COVSLAM_PORT)")
     sv.add_argument("--data-dir", type=Path, help="store directory (default ./covslam-data)")
     sv.add_argument("--workers", type=int, help="worker processes (default: CPU count)")
+    sv.add_argument(
+        "--engine",
+        choices=("local", "ray"),
+        help="where maps run: local worker processes (default) or Ray actors (COVSLAM_ENGINE)",
+    )
+    sv.add_argument(
+        "--ray-address",
+        help="with --engine ray: 'auto', 'host:port' or 'local' (COVSLAM_RAY__ADDRESS)",
+    )
+    sv.add_argument(
+        "--store-url",
+        help="a directory (SQLite) or postgresql://... (COVSLAM_STORE__URL; default: --data-dir)",
+    )
 
     rn = sub.add_parser(
         "render",
@@ -344,8 +357,15 @@ def _serve(args: argparse.Namespace) -> int:
         overrides["port"] = args.port
     if args.data_dir is not None:
         overrides["data_dir"] = args.data_dir
-    if args.workers is not None:  # validated like COVSLAM_WORKERS__COUNT (merged with it)
+    if args.engine is not None:
+        overrides["engine"] = args.engine
+    # nested options are validated like their COVSLAM_* variables (and merged with them)
+    if args.workers is not None:
         overrides["workers"] = {"count": args.workers}
+    if args.ray_address is not None:
+        overrides["ray"] = {"address": args.ray_address}
+    if args.store_url is not None:  # "" = SQLite in the data directory
+        overrides["store"] = {"url": args.store_url}
     try:
         settings = Settings(**overrides)  # type: ignore[arg-type]
         settings.check_bind()
@@ -355,9 +375,19 @@ def _serve(args: argparse.Namespace) -> int:
     except OpenBindError as exc:
         sys.stderr.write(f"covslam serve: {exc}\n")
         return 2
+    if settings.engine == "ray":
+        from service.ray_engine import RAY_MISSING, ray
+
+        if ray is None:
+            sys.stderr.write(f"covslam serve: {RAY_MISSING}\n")
+            return 2
     logging.getLogger().setLevel(settings.log_level.upper())
     log.info(
-        "serving on http://%s:%d, store in %s", settings.host, settings.port, settings.data_dir
+        "serving on http://%s:%d (engine %s), store: %s",
+        settings.host,
+        settings.port,
+        settings.engine,
+        settings.store_location,
     )
     uvicorn.run(
         create_app(settings),

@@ -55,9 +55,15 @@ def out_of_order(field: str, detail: str) -> ServiceError:
     )
 
 
+PG_DISK_FULL = "53100"
+"""PostgreSQL's SQLSTATE disk_full (psycopg errors carry it as `sqlstate`)."""
+
+
 def _disk_full(exc: BaseException) -> bool:
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return True
+    if type(exc).__module__.split(".")[0] == "psycopg":
+        return getattr(exc, "sqlstate", None) == PG_DISK_FULL
     return isinstance(exc, sqlite3.Error) and getattr(exc, "sqlite_errorcode", None) == getattr(
         sqlite3, "SQLITE_FULL", 13
     )

@@ -1,8 +1,9 @@
 """The service as the API sees it: one method per use case, all routed to workers.
 
-`MapService` lives in the API process. It keeps the catalogue of maps (SQLite),
-the worker pool, and a notifier that wakes the event streams of a map when its
-worker reported something new. Everything heavy happens in the workers.
+`MapService` lives in the API process. It keeps the catalogue of maps (the store's),
+the engine that runs the maps (local worker processes, or Ray actors), and a notifier
+that wakes the event streams of a map when its worker reported something new.
+Everything heavy happens in the workers.
 """
 
 from __future__ import annotations
@@ -13,17 +14,19 @@ import logging
 import secrets
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 from service.errors import ServiceError, unknown_map
 from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.mapconfig import MapConfig, Mode, slam_config
-from service.pool import WorkerPool
+from service.pool import Engine, make_engine
 from service.settings import Settings
-from service.store import Catalog, KeyRecord, MapRecord, map_db_path
+from service.store import KeyRecord, MapRecord
 
 log = logging.getLogger(__name__)
+
+EventRows = list[tuple[int, str, str]]
+"""Stored events: (id, kind, data JSON), oldest first."""
 
 
 class Notifier:
@@ -51,12 +54,12 @@ class MapService:
 
     def __init__(self, settings: Settings, *, on_worker_restart: Any = None) -> None:
         self.settings = settings
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
-        self._catalog = Catalog(settings.data_dir, synchronous=settings.store.synchronous)
+        self.store = settings.open_store()
+        self._catalog = self.store.catalog()
         self._records: dict[str, MapRecord] = {r.id: r for r in self._catalog.all()}
         self._keys: dict[str, KeyRecord] = {k.hash: k for k in self._catalog.keys()}
         self._creating = 0
-        self.pool = WorkerPool(settings, on_restart=on_worker_restart)
+        self.pool: Engine = make_engine(settings, on_restart=on_worker_restart)
         self.notifier = Notifier()
         self.started = False
 
@@ -67,6 +70,7 @@ class MapService:
     async def stop(self) -> None:
         await self.pool.stop()
         self._catalog.close()
+        self.store.close()
 
     @property
     def ready(self) -> bool:
@@ -75,11 +79,19 @@ class MapService:
     # ------------------------------------------------------------ maps
     def record(self, map_id: str) -> MapRecord:
         record = self._records.get(map_id)
+        if record is None and self.pool.shared:
+            # another API process of the same cluster may have created it
+            record = self._catalog.get(map_id)
+            if record is not None:
+                self._records[map_id] = record
+                self.pool.track(map_id)
         if record is None:
             raise unknown_map(map_id)
         return record
 
     def list(self) -> list[MapRecord]:
+        if self.pool.shared:
+            self._records = {r.id: r for r in self._catalog.all()}
         return list(self._records.values())
 
     def _new_id(self) -> str:
@@ -101,7 +113,7 @@ class MapService:
 
     def _check_room(self) -> None:
         limit = self.settings.max_maps
-        if len(self._records) + self._creating >= limit:
+        if len(self.list()) + self._creating >= limit:
             raise ServiceError(
                 507,
                 "too-many-maps",
@@ -188,9 +200,14 @@ class MapService:
         self.record(map_id)
         return await self.pool.call(map_id, op, params)
 
-    def events_path(self, map_id: str) -> Path:
+    def read_events(self, map_id: str, after: int) -> EventRows:
+        """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""
+        return self.store.read_events(map_id, after)
+
+    def latest_event_id(self, map_id: str) -> int:
+        """The id of the map's newest stored event, 0 if none (blocking I/O)."""
         self.record(map_id)
-        return map_db_path(self.settings.data_dir, map_id)
+        return self.store.latest_event_id(map_id)
 
     # ------------------------------------------------------------ export / import
     async def export(self, map_id: str) -> bytes:
@@ -223,17 +240,25 @@ class MapService:
         self._keys[key.hash] = key
         return key, secret
 
+    def _current_keys(self) -> dict[str, KeyRecord]:
+        """The keys by hash. With a shared engine they are read from the catalogue again:
+        another API process may have created or revoked one."""
+        if self.pool.shared:
+            self._keys = {k.hash: k for k in self._catalog.keys()}
+        return self._keys
+
     def keys(self, map_id: str) -> builtins.list[KeyRecord]:
         self.record(map_id)
         return sorted(
-            (k for k in self._keys.values() if k.map_id == map_id), key=lambda k: k.created
+            (k for k in self._current_keys().values() if k.map_id == map_id),
+            key=lambda k: k.created,
         )
 
     def delete_key(self, map_id: str, key_id: str) -> None:
         for key in self.keys(map_id):
             if key.id == key_id:
                 self._catalog.remove_key(key_id)
-                del self._keys[key.hash]
+                self._keys.pop(key.hash, None)
                 self.notifier.notify(map_id)  # its open event streams end now
                 return
         raise ServiceError(
@@ -242,10 +267,10 @@ class MapService:
 
     def key_alive(self, key: KeyRecord) -> bool:
         """Whether `key` is still valid (not revoked, its map not deleted)."""
-        return self._keys.get(key.hash) == key
+        return self._current_keys().get(key.hash) == key
 
     def find_key(self, secret: str) -> KeyRecord | None:
         """The stored key whose hash is the secret's, or None."""
         digest = key_hash(secret)
-        key = self._keys.get(digest)
+        key = self._current_keys().get(digest)
         return key if key is not None and same_hash(key.hash, digest) else None

@@ -35,7 +35,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import Any
+from typing import Any, Protocol
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
@@ -44,6 +44,54 @@ from service.settings import Settings
 log = logging.getLogger(__name__)
 
 _HEADER = struct.Struct("!i")  # multiprocessing.Connection's framing (messages < 2 GiB)
+
+
+class Engine(Protocol):
+    """Runs the maps and answers calls on them: local worker processes (`WorkerPool`)
+    or Ray actors (service.ray_engine.RayEngine)."""
+
+    restarts: int
+    """Workers (or actors) seen to stop and come back."""
+    shared: bool
+    """Other API processes may run maps of the same store (look maps up in the catalogue)."""
+
+    async def start(self, maps: Iterable[str]) -> None: ...
+    async def stop(self) -> None: ...
+    @property
+    def ready(self) -> bool: ...
+    def status(self) -> list[dict[str, Any]]: ...
+    def worker_of(self, map_id: str) -> int | None: ...
+    def track(self, map_id: str) -> None: ...
+    def untrack(self, map_id: str) -> None: ...
+    async def call(
+        self,
+        map_id: str,
+        op: str,
+        payload: dict[str, Any] | None = None,
+        *,
+        timeout_s: float | None = None,
+    ) -> Any:
+        """Run `op` on the map; its value, or raise ServiceError / WorkerUnavailable."""
+        ...
+
+
+def make_engine(settings: Settings, *, on_restart: Callable[[int], None] | None = None) -> Engine:
+    """The engine `settings.engine` names."""
+    if settings.engine == "ray":
+        from service.ray_engine import RayEngine
+
+        return RayEngine(settings, on_restart=on_restart)
+    return WorkerPool(settings, on_restart=on_restart)
+
+
+def reply_value(reply: dict[str, Any], *, retry_after_s: int) -> Any:
+    """A worker's answer (service.worker.call): its value, or its error raised;
+    `WorkerUnavailable` when the map's store could not be reached (retry later)."""
+    if reply["ok"]:
+        return reply["value"]
+    if reply.get("unavailable"):
+        raise WorkerUnavailable(reply["unavailable"], retry_after_s=retry_after_s)
+    raise ServiceError.from_dict(reply["error"])
 
 
 class _WorkerDied(Exception):
@@ -69,7 +117,10 @@ class _Slot:
 
 
 class WorkerPool:
-    """Routes calls to the worker owning a map; restarts crashed workers."""
+    """Routes calls to the worker owning a map; restarts crashed workers (the `local`
+    engine)."""
+
+    shared = False
 
     def __init__(
         self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
@@ -293,6 +344,4 @@ class WorkerPool:
                 f"the worker owning map {map_id!r} did not answer within {timeout:g} s",
                 retry_after_s=retry_after,
             ) from exc
-        if not reply["ok"]:
-            raise ServiceError.from_dict(reply["error"])
-        return reply["value"]
+        return reply_value(reply, retry_after_s=retry_after)

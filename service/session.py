@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import logging
 import pickle
-import shutil
 import time
 from collections import deque
 from pathlib import Path
@@ -35,7 +34,7 @@ from service.image_frames import MapVision, Pending, image_digest, image_refused
 from service.localisation import Localised, MapLocalisation
 from service.mapconfig import MapConfig, slam_config, slam_config_dict
 from service.settings import StoreSettings
-from service.store import MapRecord, MapStore, StoredFrame
+from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place
 from service.views import (
     attach_frame_stats,
     coverage_doc,
@@ -124,28 +123,19 @@ class _Buffer(Generic[T]):
         return items
 
 
-def remove_map_files(path: Path) -> None:
-    """Delete a map's database and its WAL/SHM companions."""
-    for suffix in ("", "-wal", "-shm"):
-        p = Path(str(path) + suffix)
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
-
-
 class MapSession:
     """One map: estimator + store. Not thread-safe; one worker process calls it."""
 
-    def __init__(self, path: Path, settings: StoreSettings) -> None:
-        self.path = path
+    def __init__(self, where: Path | MapPlace, settings: StoreSettings) -> None:
+        """The map stored at `where`: a SQLite file, or a place in any store."""
+        self.place = as_place(where, synchronous=settings.synchronous)
         self._settings = settings
-        self.store = MapStore(path, synchronous=settings.synchronous)
+        self.store: MapStore = self.place.open()
         meta = self.store.get_meta("record")
         if meta is None:
             self.store.close()
             raise ServiceError(
-                500, "corrupt-map", "Map store incomplete", f"{path.name} has no map record"
+                500, "corrupt-map", "Map store incomplete", f"{self.place} has no map record"
             )
         self.record = MapRecord.from_dict(meta)
         self._removals: _Buffer[RemovalRecord] = _Buffer()
@@ -160,14 +150,17 @@ class MapSession:
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
-    def create(cls, path: Path, record: MapRecord, settings: StoreSettings) -> MapSession:
-        """A new, empty map (an orphaned file of the same id is replaced)."""
+    def create(
+        cls, where: Path | MapPlace, record: MapRecord, settings: StoreSettings
+    ) -> MapSession:
+        """A new, empty map (an orphaned store of the same place is replaced)."""
         slam_config(record.config, record.mode)  # refuse a bad config before writing anything
-        remove_map_files(path)
-        store = MapStore(path, synchronous=settings.synchronous)
+        place = as_place(where, synchronous=settings.synchronous)
+        place.remove()
+        store = place.open()
         store.set_meta("record", record.as_dict())
         store.close()
-        return cls(path, settings)
+        return cls(place, settings)
 
     def close(self) -> None:
         if self.vision is not None:
@@ -193,7 +186,7 @@ class MapSession:
         frontend = None if self.vision is None else self.store.latest_frontend_state()
         if snap is not None and self.vision is not None and frontend is None:
             log.warning(
-                "map %s: snapshot without front-end state, replaying the whole log", self.path
+                "map %s: snapshot without front-end state, replaying the whole log", self.place
             )
             snap = None
         if snap is not None:
@@ -208,7 +201,7 @@ class MapSession:
                 if self.vision is not None:
                     self.vision.attach(slam, frontend)
             except (SnapshotError, ValueError, pickle.UnpicklingError):
-                log.exception("map %s: unreadable snapshot, replaying the whole log", self.path)
+                log.exception("map %s: unreadable snapshot, replaying the whole log", self.place)
                 slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
         if self.vision is not None and upto == 0:
             self.vision.attach(slam)
@@ -278,11 +271,11 @@ class MapSession:
             # The final rows collected so far stay for the load's flush: the estimator
             # goes on without them, whatever this frame did before it failed.
             if stored.result is None:  # never acknowledged: drop it
-                log.warning("map %s: dropping unprocessable log frame %d", self.path, stored.id)
+                log.warning("map %s: dropping unprocessable log frame %d", self.place, stored.id)
                 self.store.delete_frame(stored.id)
             else:
                 log.exception(
-                    "map %s: acknowledged frame %d failed on replay", self.path, stored.id
+                    "map %s: acknowledged frame %d failed on replay", self.place, stored.id
                 )
             return
         removals = self._removals.take()

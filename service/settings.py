@@ -2,7 +2,9 @@
 
 Examples: ``COVSLAM_PORT=9000``, ``COVSLAM_DATA_DIR=/var/lib/covslam``,
 ``COVSLAM_STORE__SYNCHRONOUS=FULL``, ``COVSLAM_WORKERS__COUNT=4``,
-``COVSLAM_FRAMES__MAX_LABEL_CHARS=128``.
+``COVSLAM_FRAMES__MAX_LABEL_CHARS=128``,
+``COVSLAM_STORE__URL=postgresql://covslam@db/covslam``, ``COVSLAM_ENGINE=ray``,
+``COVSLAM_RAY__ADDRESS=auto``.
 Nothing is read at import time: call `get_settings()` (cached; tests clear it).
 """
 
@@ -19,10 +21,25 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.frame_model import FrameLimits
 from service.mapconfig import CAMERA_LANDMARK_CAP, DEFAULT_LANDMARK_CAP
+from service.store import Store, is_postgres_url, open_store
 
 
 class StoreSettings(BaseModel):
-    """The embedded SQLite store."""
+    """The store: embedded SQLite (default) or PostgreSQL."""
+
+    url: str | None = Field(
+        None,
+        description="where the maps are stored: a directory (SQLite) or a "
+        "postgresql://user:password@host:port/database URL (psycopg 3), which takes "
+        "precedence over data_dir; default: SQLite in data_dir",
+    )
+
+    @field_validator("url")
+    @classmethod
+    def _directory_or_postgres(cls, value: str | None) -> str | None:
+        if value is not None and "://" in value and not is_postgres_url(value):
+            raise ValueError("store.url must be a directory or a postgresql:// URL")
+        return value or None
 
     synchronous: Literal["NORMAL", "FULL"] = Field(
         "NORMAL",
@@ -71,6 +88,26 @@ class WorkerSettings(BaseModel):
         le=19,
         description="niceness added to worker processes, so the API process (probes, "
         "routing) wins the CPU when workers compute",
+    )
+
+
+class RaySettings(BaseModel):
+    """The Ray cluster the `ray` engine joins."""
+
+    address: str = Field(
+        "auto",
+        description="ray.init address: 'auto' (the cluster `ray start` runs on this "
+        "machine), 'host:port' of the head's GCS, or 'local' (a private cluster)",
+    )
+    namespace: str = Field(
+        "covslam", description="Ray namespace of the map actors (one per deployment)"
+    )
+    actor_cpus: float = Field(
+        0.0,
+        ge=0,
+        le=64,
+        description="CPUs a map actor reserves in Ray's scheduler (0: actors are placed "
+        "by spreading over the nodes, not by reserved CPUs)",
     )
 
 
@@ -158,6 +195,12 @@ class Settings(BaseSettings):
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         "info", description="log level of the service and uvicorn"
     )
+    engine: Literal["local", "ray"] = Field(
+        "local",
+        description="where maps run: 'local' worker processes of this API process, or "
+        "'ray': each map a named, detached Ray actor (pip install 'covslam[ray]')",
+    )
+    ray: RaySettings = Field(default_factory=RaySettings)
     store: StoreSettings = Field(default_factory=StoreSettings)
     workers: WorkerSettings = Field(default_factory=WorkerSettings)
     api: ApiSettings = Field(default_factory=ApiSettings)
@@ -183,6 +226,21 @@ class Settings(BaseSettings):
                 f"refusing to serve on {self.host} without authentication: set "
                 "COVSLAM_AUTH__ADMIN_KEY, or bind a loopback address (127.0.0.1)"
             )
+
+    def open_store(self) -> Store:
+        """The store `store.url` names (else SQLite in `data_dir`)."""
+        return open_store(
+            self.store.url, data_dir=self.data_dir, synchronous=self.store.synchronous
+        )
+
+    @property
+    def store_location(self) -> str:
+        """Where the maps are stored, for logs (no password)."""
+        if is_postgres_url(self.store.url):
+            from service.store_pg import redact
+
+            return redact(self.store.url or "")
+        return str(self.store.url or self.data_dir)
 
     @field_validator("default_landmark_cap", "default_camera_landmark_cap")
     @classmethod

@@ -19,31 +19,34 @@ import signal
 import threading
 from collections.abc import Callable
 from multiprocessing.connection import Connection
-from pathlib import Path
 from typing import Any
 
 from frontend.pipeline import FrontEnd
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import parse_export
 from service.mapconfig import camera_model, slam_config
-from service.session import MapSession, remove_map_files
+from service.session import MapSession
 from service.settings import Settings
-from service.store import MapRecord, map_db_path
+from service.store import MapPlace, MapRecord, Store, connection_lost
 
 log = logging.getLogger(__name__)
 
 _settings: Settings | None = None
+_store: Store | None = None
 _sessions: dict[str, MapSession] = {}
 
 
-def init_worker(settings: dict[str, Any], index: int) -> None:
-    """Process initialiser: settings from the parent, logging."""
-    global _settings
-    # Ctrl+C or a SIGTERM to the whole process group stops the API process, whose
-    # shutdown closes our connection: we end on that end-of-file, after the current call.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+def init_worker(settings: dict[str, Any], index: int, *, own_signals: bool = True) -> None:
+    """Process initialiser: settings from the parent, logging. `own_signals`: ignore
+    SIGINT and SIGTERM (a pool worker ends when the API process closes its pipe)."""
+    global _settings, _store
+    if own_signals:
+        # Ctrl+C or a SIGTERM to the whole process group stops the API process, whose
+        # shutdown closes our connection: we end on that end-of-file, after the call.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _settings = Settings.model_validate(settings)
+    _store = None
     if _settings.workers.nice:
         os.nice(_settings.workers.nice)
     logging.basicConfig(
@@ -58,16 +61,25 @@ def _cfg() -> Settings:
     return _settings
 
 
-def _path(map_id: str) -> Path:
-    return map_db_path(_cfg().data_dir, map_id)
+def _place(map_id: str) -> MapPlace:
+    global _store
+    if _store is None:  # first use, or the store's server went away
+        _store = _cfg().open_store()
+    return _store.place(map_id)
+
+
+def has_map(map_id: str) -> bool:
+    """The map has a store (it was created and not deleted)."""
+    return map_id in _sessions or _place(map_id).exists()
 
 
 def _session(map_id: str) -> MapSession:
     session = _sessions.get(map_id)
     if session is None:
-        if not _path(map_id).exists():
+        place = _place(map_id)
+        if not place.exists():
             raise unknown_map(map_id)
-        session = MapSession(_path(map_id), _cfg().store)
+        session = MapSession(place, _cfg().store)
         _sessions[map_id] = session
     return session
 
@@ -88,7 +100,7 @@ def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     old = _sessions.pop(map_id, None)
     if old is not None:
         old.close()
-    _sessions[map_id] = MapSession.create(_path(map_id), record, _cfg().store)
+    _sessions[map_id] = MapSession.create(_place(map_id), record, _cfg().store)
     return _sessions[map_id].summary()
 
 
@@ -100,7 +112,7 @@ def _delete(map_id: str, payload: dict[str, Any]) -> None:
     session = _sessions.pop(map_id, None)
     if session is not None:
         session.close()
-    remove_map_files(_path(map_id))
+    _place(map_id).remove()
 
 
 def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
@@ -218,14 +230,20 @@ def _prefetch(request: Request) -> None:
 
 def _idle_work(inbox: queue.Queue[Request | None]) -> None:
     """Snapshots that are due, one map at a time, while no request is waiting."""
-    for session in list(_sessions.values()):
+    for map_id in list(_sessions):
         if not inbox.empty():
             return
-        if session.snapshot_due:
-            try:
-                session.snapshot()
-            except Exception:
-                log.exception("snapshot of map %s failed", session.record.id)
+        snapshot_if_due(map_id)
+
+
+def snapshot_if_due(map_id: str) -> None:
+    """Snapshot an open map if its snapshot is due (a failure is logged, not raised)."""
+    session = _sessions.get(map_id)
+    if session is not None and session.snapshot_due:
+        try:
+            session.snapshot()
+        except Exception:
+            log.exception("snapshot of map %s failed", map_id)
 
 
 def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
@@ -235,5 +253,23 @@ def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     except ServiceError as exc:
         return {"ok": False, "error": exc.as_dict()}
     except Exception as exc:
+        if connection_lost(exc):
+            return _store_lost(map_id, exc)
         log.exception("op %s on map %s failed", op, map_id)
         return {"ok": False, "error": internal_error(exc).as_dict()}
+
+
+def _store_lost(map_id: str, exc: Exception) -> dict[str, Any]:
+    """The store's server went away: forget the map (the next call reloads it from the
+    store, as after a crash) and the store's connection; the caller may retry (503)."""
+    global _store
+    log.warning("map %s: store connection lost (%s); the map reloads on its next call", map_id, exc)
+    session = _sessions.pop(map_id, None)
+    for closing in (session, _store):
+        try:
+            if closing is not None:
+                closing.close()
+        except Exception:
+            log.debug("closing after a lost connection failed", exc_info=True)
+    _store = None
+    return {"ok": False, "unavailable": f"the store of map {map_id!r} is unreachable: {exc}"}

@@ -13,7 +13,6 @@ from api.auth import AUTH_ERRORS, Principal, StreamRead
 from api.deps import MapId, ServiceDep
 from api.models import Problem
 from service.maps import MapService
-from service.store import latest_event_id, read_events
 
 router = APIRouter(prefix="/v1/maps/{map_id}/events", tags=["events"])
 
@@ -25,13 +24,12 @@ async def _stream(
 ) -> AsyncIterator[bytes]:
     """The map's events after `after`; ends when the client goes, the map is deleted, or
     the key the stream was opened with is revoked."""
-    path = service.events_path(map_id)
     yield b": covslam events\n\n"
     while True:
         if who.key is not None and not service.key_alive(who.key):
             return
         wake = service.notifier.handle(map_id)
-        rows = await asyncio.to_thread(read_events, path, after)
+        rows = await asyncio.to_thread(service.read_events, map_id, after)
         for event_id, kind, data in rows:
             after = event_id
             yield f"id: {event_id}\nevent: {kind}\ndata: {data}\n\n".encode()
@@ -78,13 +76,13 @@ async def stream_events(
     ] = None,
 ) -> StreamingResponse:
     """Live stream (SSE) of frame results and map changes."""
-    path = service.events_path(map_id)
+    service.record(map_id)
     if last_event_id is not None and last_event_id.strip().isdigit():
         after = int(last_event_id)
     elif since is not None:
         after = since
     else:
-        after = await asyncio.to_thread(latest_event_id, path)
+        after = await asyncio.to_thread(service.latest_event_id, map_id)
     return StreamingResponse(
         _stream(service, map_id, after, request, who),
         media_type="text/event-stream",

@@ -34,11 +34,19 @@ def free_port() -> int:
 class Server:
     """One `covslam serve` process group (uvicorn + its workers)."""
 
-    def __init__(self, data_dir: Path, *, workers: int = 2, env: dict[str, str] | None = None):
+    def __init__(
+        self,
+        data_dir: Path,
+        *,
+        workers: int = 2,
+        env: dict[str, str] | None = None,
+        args: list[str] | None = None,
+    ):
         self.data_dir = data_dir
         admin_key = (env or {}).get("COVSLAM_AUTH__ADMIN_KEY")
         self.auth = {"Authorization": f"Bearer {admin_key}"} if admin_key else {}
         """Headers that carry the admin key, if the server has one."""
+        self.args = args or []
         self.workers = workers
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -62,6 +70,7 @@ class Server:
                     str(self.data_dir),
                     "--workers",
                     str(self.workers),
+                    *self.args,
                 ],
                 cwd=REPO,
                 env=self.env,

@@ -15,7 +15,8 @@ import pytest
 
 from service.session import MapSession
 from service.settings import StoreSettings
-from service.store import Catalog, MapRecord, map_db_path
+from service.store import MapRecord
+from service.store_sqlite import SqliteCatalog, map_db_path
 from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(260, seed=7))
@@ -179,7 +180,7 @@ def test_readyz_is_503_until_the_maps_are_loaded(tmp_path: Path) -> None:
     for f in FRAMES[:150]:
         session.submit(f)
     session.close()
-    Catalog(data, synchronous="NORMAL").add(record)
+    SqliteCatalog(data, synchronous="NORMAL").add(record)
 
     server = Server(data, env={"COVSLAM_STORE__SNAPSHOT_EVERY": "100000"})
     server.start(wait_ready=False)

@@ -35,6 +35,14 @@ def test_disk_full_is_507(tmp_path: Path) -> None:
         assert "disk" in error.detail and str(exc) not in error.detail
 
 
+def test_postgresql_disk_full_is_507() -> None:
+    errors = pytest.importorskip("psycopg.errors")
+    error = internal_error(errors.DiskFull("could not extend file: No space left on device"))
+    assert error.status == 507 and error.slug == "insufficient-storage"
+    other = internal_error(errors.UndefinedTable('relation "frames" does not exist'))
+    assert other.status == 500 and "frames" not in other.detail
+
+
 def test_other_errors_are_a_bare_500() -> None:
     for exc in (
         RuntimeError("Indeterminant linear system detected while working near variable x3"),

@@ -13,22 +13,23 @@ from service.errors import ServiceError
 from service.frames_io import frame_to_dict
 from service.session import MapSession, canonical_frame
 from service.settings import StoreSettings
-from service.store import MapRecord
+from service.store import MapPlace, MapRecord
 from tests.graph._world import circle_frames
+from tests.service.conftest import PlaceFactory
 
 FRAMES = [frame_to_dict(f) for f in circle_frames(90, seed=2)[0]]
 # A short window and a small cap: keyframes leave the graph within 120 frames.
 RETIRING = {"landmark_cap": 6, "pose_window": 10}
 
 
-def _new(path: Path, every: int = 25, config: dict | None = None) -> MapSession:
+def _new(path: Path | MapPlace, every: int = 25, config: dict | None = None) -> MapSession:
     config = {"landmark_cap": 10, "pose_window": 30} if config is None else config
     record = MapRecord("m1", "test", "mapping", config, time.time())
     return MapSession.create(path, record, StoreSettings(snapshot_every=every))
 
 
-def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None:
-    path = tmp_path / "m1.sqlite"
+def test_reopen_from_snapshot_and_tail_answers_as_before(place: PlaceFactory) -> None:
+    path = place("m1")
     session = _new(path)
     results = []
     for f in FRAMES[:70]:
@@ -53,8 +54,8 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(tmp_path: Path) -> None
     assert not reopened.submit(FRAMES[70])["replayed"]
 
 
-def test_frame_logged_before_a_crash_is_processed_on_reload(tmp_path: Path) -> None:
-    path = tmp_path / "m1.sqlite"
+def test_frame_logged_before_a_crash_is_processed_on_reload(place: PlaceFactory) -> None:
+    path = place("m1")
     session = _new(path)
     for f in FRAMES[:10]:
         session.submit(f)
@@ -70,8 +71,8 @@ def test_frame_logged_before_a_crash_is_processed_on_reload(tmp_path: Path) -> N
     assert json.loads(stored.result)["seq"] == FRAMES[10]["seq"]
 
 
-def test_duplicates_and_order(tmp_path: Path) -> None:
-    session = _new(tmp_path / "m1.sqlite")
+def test_duplicates_and_order(place: PlaceFactory) -> None:
+    session = _new(place("m1"))
     for f in FRAMES[:5]:
         session.submit(f)
     with pytest.raises(ServiceError) as dup:
@@ -86,8 +87,8 @@ def test_duplicates_and_order(tmp_path: Path) -> None:
     assert session.slam.frame_count == 5 and session.store.frame_count() == 5
 
 
-def test_a_frame_that_keeps_killing_the_worker_is_dropped(tmp_path: Path) -> None:
-    path = tmp_path / "m1.sqlite"
+def test_a_frame_that_keeps_killing_the_worker_is_dropped(place: PlaceFactory) -> None:
+    path = place("m1")
     session = _new(path)
     for f in FRAMES[:5]:
         session.submit(f)
@@ -104,8 +105,8 @@ def test_a_frame_that_keeps_killing_the_worker_is_dropped(tmp_path: Path) -> Non
     assert not reopened.submit(FRAMES[5])["replayed"]  # the robot can send it again
 
 
-def test_a_never_idle_map_is_snapshotted_when_overdue(tmp_path: Path) -> None:
-    path = tmp_path / "m1.sqlite"
+def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> None:
+    path = place("m1")
     session = _new(path, every=10)
     for f in FRAMES[:55]:  # no idle time between requests: no idle snapshot
         session.submit(f)
@@ -115,8 +116,8 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(tmp_path: Path) -> None:
     assert reopened.slam.frame_count == 55
 
 
-def test_trajectory_stats_agree_with_the_frame_results(tmp_path: Path) -> None:
-    session = _new(tmp_path / "m1.sqlite")
+def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> None:
+    session = _new(place("m1"))
     results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:60]]
     plain = session.trajectory()["r1"]
     rows = session.trajectory(stats_every=7)["r1"]
@@ -157,7 +158,7 @@ def test_trajectory_stats_agree_with_the_frame_results(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("failure", ["estimation", "bug"])
 def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: str
+    place: PlaceFactory, monkeypatch: pytest.MonkeyPatch, failure: str
 ) -> None:
     """The estimator raising half way through a frame (EstimationError: a 422; any
     other exception, a bug of ours: re-raised for a 500) leaves no trace: the frame is
@@ -166,10 +167,10 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
     from graph.errors import EstimationError
     from graph.slam import BearingSlam
 
-    clean = _new(tmp_path / "clean.sqlite")
+    clean = _new(place("clean"))
     expected = [json.loads(clean.submit(f)["result_json"]) for f in FRAMES[:14]]
 
-    session = _new(tmp_path / "m1.sqlite")
+    session = _new(place("m1"))
     for f in FRAMES[:12]:
         session.submit(f)
     before = session.trajectory()["r1"]
@@ -205,14 +206,14 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
         assert abs(a["pose"]["x"] - b["pose"]["x"]) + abs(a["pose"]["y"] - b["pose"]["y"]) < 5e-3
 
 
-def test_final_trajectory_rows_are_stored_and_leave_the_estimator(tmp_path: Path) -> None:
+def test_final_trajectory_rows_are_stored_and_leave_the_estimator(place: PlaceFactory) -> None:
     """A pose that left the graph will not move again: its row goes to the store with
     the frame that finalised it, and neither the estimator nor its snapshots hold it."""
     from graph.slam import BearingSlam
     from graph.snapshot import restore
     from service.mapconfig import slam_config
 
-    path = tmp_path / "m1.sqlite"
+    path = place("m1")
     session = _new(path, config=RETIRING)
     frames = circle_frames(120, seed=2)[0]
     for f in frames:
@@ -250,14 +251,14 @@ def test_final_trajectory_rows_are_stored_and_leave_the_estimator(tmp_path: Path
 
 
 def test_a_failed_frame_stores_no_final_rows(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    place: PlaceFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The estimator failing half way through a frame that finalised rows: the rows
     are not stored, and the reloaded map holds them again (nothing is lost)."""
     from graph.errors import EstimationError
     from graph.slam import BearingSlam
 
-    session = _new(tmp_path / "m1.sqlite", config=RETIRING)
+    session = _new(place("m1"), config=RETIRING)
     frames = [frame_to_dict(f) for f in circle_frames(130, seed=2)[0]]
     for f in frames[:100]:
         session.submit(f)

@@ -12,26 +12,32 @@ from graph.snapshot import capture
 from service.frames_io import frame_to_dict
 from service.session import MapSession
 from service.settings import StoreSettings
-from service.store import MapRecord, MapStore
+from service.store import MapPlace, MapRecord
+from service.store_sqlite import SqliteMapStore
 from tests.graph._world import circle_frames
+from tests.service.conftest import PlaceFactory
 
 FRAMES = [frame_to_dict(f) for f in circle_frames(140, seed=3, n_landmarks=30)[0]]
 CONFIG = {"landmark_cap": 6, "pose_window": 20}
 
 
-def _new(path: Path, every: int = 50) -> MapSession:
+def _new(path: Path | MapPlace, every: int = 50) -> MapSession:
     record = MapRecord("m1", "test", "mapping", CONFIG, time.time())
     return MapSession.create(path, record, StoreSettings(snapshot_every=every))
 
 
 def _events(session: MapSession, kind: str) -> list[dict]:
-    rows = session.store._conn.execute(
-        "SELECT data FROM events WHERE kind = ? ORDER BY id", (kind,)
-    ).fetchall()
+    store = session.store
+    if isinstance(store, SqliteMapStore):
+        query, args = "SELECT data FROM events WHERE kind = ? ORDER BY id", (kind,)
+    else:  # PostgreSQL: the map's rows
+        query = "SELECT data FROM events WHERE map_id = %s AND kind = %s ORDER BY id"
+        args = (session.record.id, kind)
+    rows = store._conn.execute(query, args).fetchall()  # type: ignore[attr-defined]
     return [json.loads(r[0]) for r in rows]
 
 
-def _run(path: Path, frames: list[dict]) -> MapSession:
+def _run(path: Path | MapPlace, frames: list[dict]) -> MapSession:
     session = _new(path)
     for f in frames:
         session.submit(f)
@@ -40,8 +46,10 @@ def _run(path: Path, frames: list[dict]) -> MapSession:
     return session
 
 
-def test_the_store_holds_the_archive_the_removal_log_and_restore_events(tmp_path: Path) -> None:
-    session = _run(tmp_path / "m1.sqlite", FRAMES)
+def test_the_store_holds_the_archive_the_removal_log_and_restore_events(
+    place: PlaceFactory,
+) -> None:
+    session = _run(place("m1"), FRAMES)
     slam = session.slam
     assert slam.restoration_count > 0
     archived = session.landmarks("archived")
@@ -69,8 +77,10 @@ def test_the_store_holds_the_archive_the_removal_log_and_restore_events(tmp_path
     session.close()
 
 
-def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(tmp_path: Path) -> None:
-    path = tmp_path / "m1.sqlite"
+def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(
+    place: PlaceFactory,
+) -> None:
+    path = place("m1")
     session = _run(path, FRAMES)
     archive, store_rows = session.slam.archive, session.landmarks("archived")
     restorations = session.slam.restoration_count
@@ -96,7 +106,7 @@ def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(tmp_path: 
 
 def test_an_older_map_file_has_its_removals_moved_into_the_removal_log(tmp_path: Path) -> None:
     path = tmp_path / "old.sqlite"
-    MapStore(path, synchronous="NORMAL").close()
+    SqliteMapStore(path, synchronous="NORMAL").close()
     conn = sqlite3.connect(path)
     conn.execute(
         "INSERT INTO removals (landmark_id, frame, record) VALUES (?, ?, ?)",
@@ -104,7 +114,7 @@ def test_an_older_map_file_has_its_removals_moved_into_the_removal_log(tmp_path:
     )
     conn.commit()
     conn.close()
-    store = MapStore(path, synchronous="NORMAL")
+    store = SqliteMapStore(path, synchronous="NORMAL")
     assert store.removal_count() == 1 and store.removed_labels() == {4: "x"}
     assert store._conn.execute("SELECT count(*) FROM removals").fetchone()[0] == 0
     store.close()

@@ -121,3 +121,35 @@ def test_serve_refuses_an_open_bind_without_admin_key(
     monkeypatch.delenv("COVSLAM_AUTH__ADMIN_KEY", raising=False)
     err = _serve_refusal(["--host", "0.0.0.0", "--data-dir", str(tmp_path)], capsys)
     assert "0.0.0.0" in err and "COVSLAM_AUTH__ADMIN_KEY" in err
+
+
+def test_engine_ray_address_and_store_url_from_the_environment(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("COVSLAM_ENGINE", "ray")
+    monkeypatch.setenv("COVSLAM_RAY__ADDRESS", "10.0.0.5:6379")
+    monkeypatch.setenv("COVSLAM_STORE__URL", "postgresql://covslam:s3cret@db:5432/maps")
+    s = Settings()
+    assert s.engine == "ray" and s.ray.address == "10.0.0.5:6379"
+    assert s.store.url == "postgresql://covslam:s3cret@db:5432/maps"
+    assert s.store_location == "postgresql://covslam:***@db:5432/maps"
+
+
+def test_a_store_url_is_a_directory_or_postgresql(tmp_path: Path) -> None:
+    s = Settings(data_dir=tmp_path / "ignored", store={"url": str(tmp_path / "maps")})
+    store = s.open_store()
+    store.catalog().close()
+    assert (tmp_path / "maps" / "catalog.sqlite").exists()
+    assert not (tmp_path / "ignored").exists()
+    for bad in ("mysql://db/maps", "sqlite:///tmp/x"):
+        with pytest.raises(ValidationError, match="directory or a postgresql"):
+            Settings(store={"url": bad})
+    with pytest.raises(ValidationError):
+        Settings(engine="threads")
+
+
+def test_serve_refuses_a_store_url_like_the_variable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    err = _serve_refusal(["--store-url", "mysql://db/maps", "--data-dir", str(tmp_path)], capsys)
+    assert "store.url" in err and "mysql://db/maps" in err

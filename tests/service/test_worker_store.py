@@ -1,0 +1,82 @@
+"""A worker's create, delete and failed import leave each store (SQLite, PostgreSQL)
+clean: what the API's failed-create cleanup relies on."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from bench.clusters import PrivatePostgres
+from service import worker
+from service.frames_io import frame_to_dict
+from service.session import MapSession
+from service.settings import Settings
+from service.store import MapRecord, Store
+from tests.graph._world import circle_frames
+
+FRAMES = [frame_to_dict(f) for f in circle_frames(5, seed=2)[0]]
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    if request.param == "sqlite":
+        return str(tmp_path / "store")
+    server: PrivatePostgres = request.getfixturevalue("postgres")
+    return server.new_database()
+
+
+@pytest.fixture
+def in_process_worker(store_url: str, tmp_path: Path) -> Iterator[Store]:
+    """This process as a worker of the store; the store as the API process sees it."""
+    settings = Settings(
+        data_dir=tmp_path / "unused",
+        store={"url": store_url},
+        workers={"nice": 0},
+    )
+    worker.init_worker(settings.model_dump(mode="json"), 0, own_signals=False)
+    store = settings.open_store()
+    yield store
+    for map_id in list(worker._sessions):
+        worker.call("delete", map_id, {})
+    if worker._store is not None:
+        worker._store.close()
+    worker._store = worker._settings = None
+    store.close()
+
+
+def _record(map_id: str) -> MapRecord:
+    return MapRecord(map_id, "m", "mapping", {"landmark_cap": 8}, time.time())
+
+
+def test_delete_removes_a_created_map_from_the_store(in_process_worker: Store) -> None:
+    created = worker.call("create", "m1", {"record": _record("m1").as_dict()})
+    assert created["ok"], created
+    for frame in FRAMES:
+        assert worker.call("frame", "m1", {"frame": frame})["ok"]
+    assert in_process_worker.place("m1").exists()
+    assert worker.call("delete", "m1", {})["ok"]
+    assert not in_process_worker.place("m1").exists()
+    assert in_process_worker.read_events("m1", 0) == []
+
+
+def test_a_failed_import_leaves_nothing_behind(
+    in_process_worker: Store, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert worker.call("create", "src", {"record": _record("src").as_dict()})["ok"]
+    for frame in FRAMES:
+        assert worker.call("frame", "src", {"frame": frame})["ok"]
+    exported = worker.call("export", "src", {})
+    assert exported["ok"], exported
+
+    def fail(self: MapSession, frames: object, frontend: object) -> None:
+        raise RuntimeError("replay failed")
+
+    monkeypatch.setattr(MapSession, "import_frames", fail)
+    payload = {"id": "dst", "created": time.time(), "body": exported["value"], "default_cap": 8}
+    reply = worker.call("import", "dst", payload)
+    assert reply["ok"] is False and reply["error"]["status"] == 500
+    assert not in_process_worker.place("dst").exists()
+    assert in_process_worker.place("src").exists()
