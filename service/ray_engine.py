@@ -38,7 +38,7 @@ from service.store import is_postgres_url
 try:
     import ray
 except ImportError:
-    ray = None  # type: ignore[assignment]
+    ray = None  # type: ignore[assignment,unused-ignore]  # Ray installed or not
 
 log = logging.getLogger(__name__)
 
