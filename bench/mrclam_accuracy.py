@@ -242,6 +242,13 @@ def main() -> None:
     parser.add_argument("--name", default="mrclam_accuracy", help="file name of the results")
     parser.add_argument("--jobs", type=int, default=2, help="replays run in parallel")
     parser.add_argument("--frames", type=int, default=None, help="first N frames only (smoke)")
+    parser.add_argument(
+        "--uncapped-from",
+        type=Path,
+        default=None,
+        help="take the uncapped methods' rows from an earlier run's .rows.json (when only "
+        "the capped maps' code changed) instead of running them",
+    )
     args = parser.parse_args()
     if not args.data.is_dir():
         raise SystemExit(f"MRCLAM data not found at {args.data} (set COVSLAM_DATA)")
@@ -253,11 +260,16 @@ def main() -> None:
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures: dict[Any, tuple[str, str | None]] = {}
-        for r in robots:
-            futures[pool.submit(run_uncapped, r, args.noise, args.data, args.frames)] = (
-                f"r{r}",
-                None,
-            )
+        if args.uncapped_from is not None:
+            earlier = json.loads(args.uncapped_from.read_text())
+            for r in robots:
+                rows[f"r{r}"].update(
+                    {k: v for k, v in earlier[f"r{r}"].items() if not k.startswith("cap")}
+                )
+        else:
+            for r in robots:
+                job = pool.submit(run_uncapped, r, args.noise, args.data, args.frames)
+                futures[job] = (f"r{r}", None)
         for r in robots:
             for p in policies:
                 for seed in range(args.seeds if p in STOCHASTIC else 1):
@@ -290,6 +302,7 @@ def main() -> None:
             "cap": CAP,
             "jobs": args.jobs,
             "seconds": seconds,
+            "uncapped_from": None if args.uncapped_from is None else str(args.uncapped_from),
         },
         "machine": {
             "cpus": os.cpu_count(),
