@@ -85,11 +85,13 @@ def _judge(
 
 
 def map_landmarks(res: ReplayResult) -> dict[str, Any]:
-    """Every landmark the map has met, by label: live ones at their estimate, removed ones
-    at the last estimate they had (the newest removal of the label)."""
+    """Every landmark the map has met, by label: live ones at their estimate, archived
+    ones where the archive keeps them (what `GET /landmarks?state=archived` shows)."""
     out: dict[str, Any] = {}
-    for record in res.removal_log.read():
+    for record in res.removal_log.read():  # labels the archive no longer holds, if any
         out[record["label"]] = (record["x"], record["y"])
+    for entry in res.slam.archive:
+        out[entry.label] = entry.position
     for lid, rec in res.slam.landmarks.items():
         out[rec.label] = res.slam.landmark_position(lid)
     return out
