@@ -88,9 +88,7 @@ def map_landmarks(res: ReplayResult) -> dict[str, Any]:
     """Every landmark the map has met, by label: live ones at their estimate, archived
     ones where the archive keeps them (what `GET /landmarks?state=archived` shows)."""
     out: dict[str, Any] = {}
-    for record in res.removal_log.read():  # labels the archive no longer holds, if any
-        out[record["label"]] = (record["x"], record["y"])
-    for entry in res.slam.archive:
+    for entry in res.slam.archive:  # every removed landmark that is not live again
         out[entry.label] = entry.position
     for lid, rec in res.slam.landmarks.items():
         out[rec.label] = res.slam.landmark_position(lid)

@@ -6,7 +6,7 @@ is marginalised (its information stays in the graph, as a marginal on the poses 
 saw it) and its last state is archived here: label, last estimate and (2, 2)
 marginal covariance, E(X) and count, when and why it left. Seen again (by label), it
 comes back under its own id, initialised from the archive at once (see
-BearingSlam._restore_factors for what goes into the graph and why). The archive
+BearingSlam._restore for what goes into the graph and why). The archive
 holds one entry per distinct landmark that is not live (and keeps the entries of
 those live again, for their next removal): it grows with distinct landmarks, never
 with time.

@@ -395,16 +395,19 @@ class IncrementalGraph:
             if sparsify is not None and sparsify(list(factor.keys())):
                 marginals.extend(self._tree_of(factor, keys))
                 continue
-            relative = poses_only or self._config.relative_landmark_marginals
-            marginals.append(self._wrap(factor, keys, relative=relative))
+            marginals.append(self._wrap(factor, keys))
         return indices, marginals
 
     def _wrap(
-        self, factor: gtsam.GaussianFactor, marginalised: Sequence[int], *, relative: bool
+        self, factor: gtsam.GaussianFactor, marginalised: Sequence[int]
     ) -> gtsam.NonlinearFactor:
-        """A linear marginal at theta as a nonlinear factor: relative to one of its poses
-        (graph.relative) if `relative` and the map keeps relative marginals, else a
-        LinearContainerFactor."""
+        """A linear marginal at theta (what eliminating `marginalised` left) as a nonlinear
+        factor: relative to one of its poses (graph.relative) where the map keeps such
+        marginals (relative_marginals; a landmark's too with relative_landmark_marginals),
+        else a LinearContainerFactor."""
+        relative = self._config.relative_landmark_marginals or not any(
+            is_landmark_key(k) for k in marginalised
+        )
         reference = choose_reference(list(factor.keys()), marginalised) if relative else None
         if self._relative and reference is not None:
             return relative_marginal(factor, self._theta, reference)
@@ -417,18 +420,14 @@ class IncrementalGraph:
         self, factor: gtsam.GaussianFactor, marginalised: Sequence[int]
     ) -> list[gtsam.NonlinearFactor]:
         """The Chow-Liu tree of a linear marginal (graph.sparsify), one factor per edge
-        (and the root's marginal): those over poses only relative to one of their poses,
-        so that they are relinearised and keep their absolute part where they have one;
-        those with a landmark linear, as a landmark's marginal is."""
+        (and the root's marginal), each kept as the marginal itself would be (`_wrap`), so
+        that they are relinearised and keep their absolute part where they have one."""
         linear, tree = tree_factors(factor)
         self.sparsifications += 1
         if self.sparsification_kl is not None:
             exact = np.asarray(factor.information(), dtype=np.float64)
             self.sparsification_kl.append(kl_divergence(exact, tree.information[:-1, :-1]))
-        return [
-            self._wrap(f, marginalised, relative=not any(is_landmark_key(k) for k in f.keys()))
-            for f in linear
-        ]
+        return [self._wrap(f, marginalised) for f in linear]
 
     def sparsify_marginals(
         self, key_sets: Iterable[Sequence[int]], sparsify: Callable[[Sequence[int]], bool]

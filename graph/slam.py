@@ -558,8 +558,8 @@ class BearingSlam:
                     min_rays=cfg.restore_min_rays,
                 ):
                     tri = self._triangulate(rays, key, predicted)
-                    factors.extend(self._restore_factors(archived, rays, values, tri))
-                    restored.append((archived.id, rays))
+                    used = self._restore(archived, rays, values, factors, tri)
+                    restored.append((archived.id, used))
                 continue
             first = tuple(r for r in track.rays[: cfg.candidate_first_rays] if r in rays)
             tri = self._triangulate(rays, key, predicted)
@@ -572,18 +572,10 @@ class BearingSlam:
             triangulation, used = tri
             used = (*(r for r in first if r not in used), *used)
             lid = self._next_landmark_id + len(new_landmarks)
-            lkey = landmark_key(lid)
-            values.insert(lkey, triangulation.point)
-            for r in used:
-                factors.append(
-                    bearing_factor(
-                        r.pose_key, lkey, r.bearing_rad, r.sigma_rad, cfg.huber_k, cfg.bearing_loss
-                    )
-                )
-            if cfg.landmark_prior_sigma_m is not None:
-                factors.append(
-                    landmark_prior_factor(lkey, triangulation.point, cfg.landmark_prior_sigma_m)
-                )
+            values.insert(landmark_key(lid), triangulation.point)
+            factors.extend(
+                self._landmark_factors(lid, triangulation.point, used, cfg.landmark_prior_sigma_m)
+            )
             new_landmarks.append((label, triangulation, used))
         return _Plan(
             key,
@@ -600,13 +592,14 @@ class BearingSlam:
             restored=tuple(restored),
         )
 
-    def _restore_factors(
+    def _restore(
         self,
         entry: ArchivedLandmark,
         rays: tuple[Ray, ...],
         values: gtsam.Values,
+        factors: list[gtsam.NonlinearFactor],
         triangulated: tuple[Triangulation, tuple[Ray, ...]] | None = None,
-    ) -> list[gtsam.NonlinearFactor]:
+    ) -> tuple[Ray, ...]:
         """An archived landmark back in the graph (its initial value goes into `values`):
         a new variable under its own key (the old one was marginalised), initialised at
         the archived estimate, with a bearing factor per ray and a weak prior there. When
@@ -619,27 +612,42 @@ class BearingSlam:
         No double counting: what the landmark's earlier observations said is already in
         the graph, in the marginal its removal left on the poses that saw it. A prior
         with the archived covariance would count that information a second time, so
-        the archive gives the initial value only (no re-triangulation: restored at its
-        first observation, unless the hysteresis holds it back). The prior
+        the archive gives at most the initial value (restored at its first observation,
+        unless the hysteresis holds it back). The prior
         (restore_prior_sigma_m, 5 m: information 0.04 per m^2, against ~100 of a
         landmark located to 0.1 m) is what keeps a landmark seen by a single bearing
         well-posed (unobservable along the ray otherwise, which iSAM2 refuses as an
         indeterminant system); the double counting it adds is that small, the same weak
         prior a new landmark gets (landmark_prior_sigma_m)."""
-        cfg = self.config
-        lkey = landmark_key(entry.id)
         point = np.array(entry.position, dtype=np.float64)
         if triangulated is not None:
             point, rays = np.asarray(triangulated[0].point, dtype=np.float64), triangulated[1]
-        values.insert(lkey, point)
-        factors: list[gtsam.NonlinearFactor] = [
+        values.insert(landmark_key(entry.id), point)
+        factors.extend(
+            self._landmark_factors(entry.id, point, rays, self.config.restore_prior_sigma_m)
+        )
+        return rays
+
+    def _landmark_factors(
+        self,
+        lid: int,
+        point: NDArray[np.float64],
+        rays: Iterable[Ray],
+        prior_sigma_m: float | None,
+    ) -> list[gtsam.NonlinearFactor]:
+        """A bearing factor per ray on landmark `lid`, and a weak prior at `point` (none
+        when `prior_sigma_m` is None): what a landmark entering the graph gets."""
+        cfg = self.config
+        lkey = landmark_key(lid)
+        out: list[gtsam.NonlinearFactor] = [
             bearing_factor(
                 r.pose_key, lkey, r.bearing_rad, r.sigma_rad, cfg.huber_k, cfg.bearing_loss
             )
             for r in rays
         ]
-        factors.append(landmark_prior_factor(lkey, point, cfg.restore_prior_sigma_m))
-        return factors
+        if prior_sigma_m is not None:
+            out.append(landmark_prior_factor(lkey, point, prior_sigma_m))
+        return out
 
     def _sigma(self, obs: BearingObservation) -> float:
         return obs.sigma_rad if obs.sigma_rad is not None else self.config.bearing_sigma_rad
