@@ -266,7 +266,9 @@ class SolverConfig(BaseModel):
     relinearize_skip: int = Field(
         _DEFAULTS.relinearize_skip,
         ge=1,
-        description="iSAM2 checks for relinearisation every this many updates, count",
+        le=2**31 - 1,
+        description="iSAM2 checks for relinearisation every this many updates (GTSAM holds "
+        "it in a 32-bit int), count",
     )
     relative_marginals: bool = Field(
         _DEFAULTS.relative_marginals,

@@ -115,6 +115,7 @@ def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
     cfg = SlamConfig(
         landmark_cap=None,
         pose_window=10,
+        window_observations=None,
         uncapped_window_observations=None,
         max_keyframes=12,
         keyframe_distance_m=0.4,

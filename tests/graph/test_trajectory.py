@@ -15,7 +15,7 @@ from graph.types import FrameInput
 from tests.graph._world import circle_frames
 
 # Window exits, keyframes, keyframe thinning and landmark removals, all within 400 frames.
-BOUNDED = SlamConfig(landmark_cap=8, pose_window=15, max_keyframes=6)
+BOUNDED = SlamConfig(landmark_cap=8, pose_window=15, window_observations=None, max_keyframes=6)
 
 
 def _two_robots(n: int, seed: int) -> list[FrameInput]:
@@ -51,7 +51,13 @@ def _merged(slam: BearingSlam, sink: _Sink, robot: str) -> np.ndarray:
     "config",
     [
         BOUNDED,
-        SlamConfig(landmark_cap=8, pose_window=15, max_keyframes=6, graph_frame_distance_m=0.3),
+        SlamConfig(
+            landmark_cap=8,
+            pose_window=15,
+            window_observations=None,
+            max_keyframes=6,
+            graph_frame_distance_m=0.3,
+        ),
     ],
     ids=["every-frame", "tracked-frames"],
 )
