@@ -127,12 +127,22 @@ class PrivatePostgres:
         shutil.rmtree(self.base, ignore_errors=True)
 
 
-class LocalRayCluster:
-    """A Ray head plus `nodes - 1` more nodes on this machine, `cpus` CPUs each."""
+def _stat_fields(pid: str) -> list[str] | None:
+    """/proc/<pid>/stat after the command name (state, ppid, ...; start time at [19])."""
+    try:
+        return (Path("/proc") / pid / "stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
 
-    def __init__(self, *, nodes: int = 2, cpus: int = 1) -> None:
+
+class LocalRayCluster:
+    """A Ray head plus `nodes - 1` more nodes on this machine, `cpus` CPUs each; `env`
+    adds to the nodes' environment (e.g. Ray's ``RAY_health_check_*`` settings)."""
+
+    def __init__(self, *, nodes: int = 2, cpus: int = 1, env: dict[str, str] | None = None) -> None:
         self.nodes = nodes
         self.cpus = cpus
+        self.env = env or {}
         self.base = Path(tempfile.mkdtemp(prefix="covslam-ray-"))
         self.port = free_port()
         self.address = f"127.0.0.1:{self.port}"
@@ -160,7 +170,7 @@ class LocalRayCluster:
         else:
             where = ["--address", self.address]
         log = (self.base / f"node{index}.log").open("ab")
-        env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+        env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", **self.env}
         return subprocess.Popen(
             [self._ray(), "start", "--block", "--node-ip-address", "127.0.0.1",
              "--num-cpus", str(self.cpus), "--disable-usage-stats", *where, *ports],
@@ -205,6 +215,57 @@ class LocalRayCluster:
             return 0
         lines = probe.stdout.strip().splitlines()
         return int(lines[-1]) if probe.returncode == 0 and lines else 0
+
+    def node_pids(self, index: int) -> dict[int, str]:
+        """Every process of node `index`: its ``ray start``, what that started, and the
+        workers its raylet started (each of those in a session of its own); process id
+        -> its start time (which tells a reused process id apart)."""
+        children: dict[int, list[int]] = {}
+        started: dict[int, str] = {}
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            fields = _stat_fields(stat.parent.name)
+            if fields is None:
+                continue  # the process ended meanwhile
+            pid = int(stat.parent.name)
+            children.setdefault(int(fields[1]), []).append(pid)
+            started[pid] = fields[19]
+        found: dict[int, str] = {}
+        todo = [self.procs[index].pid]
+        while todo:
+            pid = todo.pop()
+            found[pid] = started.get(pid, "")
+            todo.extend(children.get(pid, []))
+        return found
+
+    def stop_node(self, index: int, *, hard: bool) -> list[int]:
+        """Stop node `index` (not the head) while the others go on; the process ids it had.
+
+        ``hard``: SIGKILL to every process of the node at once, as when its machine fails
+        (the head learns of it from its health checks). Otherwise SIGTERM to each, as
+        ``ray stop`` sends on that machine (the raylet leaves the cluster in order), and
+        SIGKILL to what is left of them after 30 s."""
+        assert index > 0, "the head stays"
+        pids = self.node_pids(index)
+
+        def signal_all(sig: int) -> None:
+            for pid, start in pids.items():
+                fields = _stat_fields(str(pid))
+                if fields is not None and fields[19] == start:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, sig)
+
+        signal_all(signal.SIGKILL if hard else signal.SIGTERM)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.procs[index].wait(timeout=30)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(
+            (f := _stat_fields(str(pid))) is not None and f[19] == start and f[0] != "Z"
+            for pid, start in pids.items()
+        ):
+            time.sleep(0.2)
+        signal_all(signal.SIGKILL)
+        self.procs[index].wait(timeout=30)
+        return sorted(pids)
 
     def logs(self) -> str:
         return "".join(p.read_text(errors="replace") for p in sorted(self.base.glob("node*.log")))

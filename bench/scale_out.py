@@ -91,15 +91,25 @@ def _wait_acked(url: str, map_id: str, count: int, timeout_s: float = 600.0) -> 
     raise TimeoutError(f"map {map_id}: {count} frames not reached")
 
 
-def _until_answers(url: str, map_id: str, since: float) -> float:
-    """Seconds from `since` until GET /pose of the map answers 200."""
+def _until_answers(url: str, map_id: str, since: float, gone: set[int]) -> float:
+    """Seconds from `since` until the map answers GET /pose (polled every 20 ms) from a
+    process other than those in `gone` (a dying one may still answer for a moment)."""
+    first_new: float | None = None
     with httpx.Client(base_url=url, timeout=120) as c:
         while True:
             try:
-                if c.get(f"/v1/maps/{map_id}/pose").status_code == 200:
-                    return time.monotonic() - since
+                ok = c.get(f"/v1/maps/{map_id}/pose").status_code == 200
             except httpx.TransportError:
-                pass
+                ok = False
+            if ok:
+                t = time.monotonic()
+                pid = {w["map"]: w["pid"] for w in _status(url)}.get(map_id)
+                if pid in gone:
+                    first_new = None
+                else:
+                    first_new = first_new or t
+                    if pid is not None:
+                        return first_new - since
             time.sleep(0.02)
 
 
@@ -189,7 +199,33 @@ def check_log(url: str, map_id: str, frames: list[dict[str, Any]], acked: list[d
     }
 
 
-def failover(url: str, data: Path, *, maps: int, frames: int, kill_after: int) -> dict[str, Any]:
+FAULTS = ("worker", "node-stop", "node-loss")
+"""What fails over: the process hosting map 0's actor (SIGKILL); the second node
+stopped as ``ray stop`` does (SIGTERM to each of its processes); the second node lost
+(SIGKILL to each of its processes at once, as when its machine fails)."""
+
+
+def _inject(fault: str, cluster: LocalRayCluster, victim: dict[str, Any]) -> None:
+    """Make `fault` happen (returns once its processes ended)."""
+    if fault == "worker":
+        os.kill(int(victim["pid"]), signal.SIGKILL)
+    else:
+        cluster.stop_node(1, hard=fault == "node-loss")
+
+
+def failover(
+    url: str,
+    data: Path,
+    cluster: LocalRayCluster,
+    *,
+    fault: str,
+    maps: int,
+    frames: int,
+    kill_after: int,
+) -> dict[str, Any]:
+    """`maps` maps (MRCLAM robots 1.., the first `frames` frames each), one client each;
+    `fault` once map 0 has `kill_after` frames. Per map: lost, duplicated, retries, and
+    for each map the fault hit, the seconds until it answered again."""
     runs: list[list[FrameInput]] = []
     for robot in range(1, maps + 1):
         mine, _ = mrclam_frames(load_mrclam(data, robot))
@@ -210,11 +246,20 @@ def failover(url: str, data: Path, *, maps: int, frames: int, kill_after: int) -
         t.start()
     _wait_acked(url, ids[0], kill_after)
     before = {w["map"]: w for w in _status(url)}
-    victim = before[ids[0]]
+    second = set(cluster.node_pids(1))
+    gone = {int(before[ids[0]]["pid"])} if fault == "worker" else second
+    hit = [m for m in ids if before[m]["pid"] in gone]
+    answers: dict[str, float] = {}
     t_kill = time.monotonic()
-    os.kill(int(victim["pid"]), signal.SIGKILL)
-    answers_s = _until_answers(url, ids[0], t_kill)
-    for t in threads:
+
+    def watch(map_id: str) -> None:
+        answers[map_id] = _until_answers(url, map_id, t_kill, gone)
+
+    watchers = [threading.Thread(target=watch, args=(m,)) for m in hit]
+    for t in watchers:
+        t.start()
+    _inject(fault, cluster, before[ids[0]])
+    for t in [*watchers, *threads]:
         t.join()
     after = {w["map"]: w for w in _status(url)}
     checks = []
@@ -223,24 +268,30 @@ def failover(url: str, data: Path, *, maps: int, frames: int, kill_after: int) -
         checks.append(
             {
                 "map": ids[i],
-                "killed": i == 0,
+                "hit": ids[i] in hit,
+                "node_before": "second" if before[ids[i]]["pid"] in second else "head",
+                "seconds_until_answers_again": round(answers[ids[i]], 2)
+                if ids[i] in answers
+                else None,
                 "retries": replay.retries,
                 "max_latency_ms": round(max(replay.latency_ms), 1),
                 **check_log(url, ids[i], [frame_to_dict(f) for f in runs[i]], replay.results),
             }
         )
     return {
+        "fault": fault,
         "maps": maps,
+        "clients": maps,
         "frames_per_map": frames,
-        "killed_after_frames": kill_after,
-        "nodes_before": {m: w["node"] for m, w in before.items()},
-        "nodes_after": {m: w["node"] for m, w in after.items()},
-        "killed_pid": victim["pid"],
-        "restarted_pid": after[ids[0]]["pid"],
-        "seconds_until_map_answers_again": round(answers_s, 2),
+        "fault_after_frames_of_map_0": kill_after,
+        "maps_hit": len(hit),
+        "ended_pids": sorted(gone),
+        "moved_to_new_process": sum(after[m]["pid"] not in gone for m in hit),
+        "seconds_until_map_answers_again": {m: round(s, 2) for m, s in answers.items()},
         "per_map": checks,
         "lost_total": sum(c["lost"] for c in checks),
         "duplicated_total": sum(c["duplicated"] for c in checks),
+        "answer_changed_total": sum(c["answer_changed_on_retry"] for c in checks),
     }
 
 
@@ -277,15 +328,136 @@ def _scale_runs(
     return out
 
 
+def _percentiles(ms: list[float]) -> dict[str, float]:
+    return {
+        "p50": round(float(np.percentile(ms, 50)), 2),
+        "p99": round(float(np.percentile(ms, 99)), 2),
+    }
+
+
+def added_latency(urls: dict[str, str], data: Path, *, frames: int, warmup: int = 10) -> dict:
+    """One client, one map per deployment with the same config, the same frames (the
+    first `frames` of MRCLAM robot 1: a few bearings each, a small graph) posted to both
+    in turn (which goes first alternates), each followed by GET /pose (no estimator
+    work): the round trips per deployment and the paired difference of each to the
+    first deployment's, after `warmup` frames."""
+    mine, _ = mrclam_frames(load_mrclam(data, 1))
+    posts = [frame_to_dict(f) for f in mine[:frames]]
+    names = list(urls)
+    clients = {k: httpx.Client(base_url=u, timeout=120) for k, u in urls.items()}
+    post_ms: dict[str, list[float]] = {k: [] for k in names}
+    pose_ms: dict[str, list[float]] = {k: [] for k in names}
+    same = True
+    try:
+        ids = {}
+        for k, c in clients.items():
+            r = c.post("/v1/maps", json={"name": "latency", "config": MAP_CONFIG})
+            r.raise_for_status()
+            ids[k] = r.json()["id"]
+        for j, frame in enumerate(posts):
+            order = names if j % 2 == 0 else names[::-1]
+            answers = {}
+            for k in order:
+                t0 = time.perf_counter()
+                r = clients[k].post(f"/v1/maps/{ids[k]}/frames", json=frame)
+                post_ms[k].append(1e3 * (time.perf_counter() - t0))
+                r.raise_for_status()
+                answers[k] = r.json()
+            same = same and all(a == answers[names[0]] for a in answers.values())
+            for k in order:
+                t0 = time.perf_counter()
+                r = clients[k].get(f"/v1/maps/{ids[k]}/pose")
+                pose_ms[k].append(1e3 * (time.perf_counter() - t0))
+                r.raise_for_status()
+    finally:
+        for c in clients.values():
+            c.close()
+    out: dict[str, Any] = {"frames": frames, "warmup_frames_left_out": warmup}
+    out["identical_answers"] = same
+    for what, table in (("post_frame_ms", post_ms), ("get_pose_ms", pose_ms)):
+        kept = {k: v[warmup:] for k, v in table.items()}
+        out[what] = {k: _percentiles(v) for k, v in kept.items()}
+        for k in names[1:]:
+            diff = [a - b for a, b in zip(kept[k], kept[names[0]], strict=True)]
+            out[what][f"{k} - {names[0]}, paired"] = _percentiles(diff)
+    return out
+
+
+def _latency_run(
+    work: Path, data: Path, pg: PrivatePostgres, ray_args: list[str], *, frames: int
+) -> dict[str, Any]:
+    """`added_latency` of local/PostgreSQL (one worker) against ray/PostgreSQL, both
+    serving at once on one PostgreSQL server (a database each)."""
+    local = Service(work / "latency-local.log", "--workers", "1", "--store-url",
+                    pg.new_database())  # fmt: skip
+    ray_service = Service(work / "latency-ray.log", *ray_args, "--store-url", pg.new_database())
+    try:
+        local.wait_ready()
+        ray_service.wait_ready()
+        urls = {"local": local.url, "ray": ray_service.url}
+        return added_latency(urls, data, frames=frames)
+    finally:
+        ray_service.stop()
+        local.stop()
+
+
+def _with_service(work: Path, name: str, serve_args: list[str], run: Any) -> Any:
+    """`run(url)` against a fresh `covslam serve` with `serve_args`, stopped afterwards."""
+    service = Service(work / f"{name}.log", *serve_args)
+    try:
+        service.wait_ready()
+        return run(service.url)
+    finally:
+        service.stop()
+
+
+def _failovers(
+    args: argparse.Namespace, data: Path, work: Path, pg: PrivatePostgres, two: LocalRayCluster
+) -> list[dict[str, Any]]:
+    """One failover run per fault, each on a fresh database; a node fault on a two-node
+    cluster of its own (it ends the second node)."""
+    out = []
+    for fault in args.faults:
+        cluster = two if fault == "worker" else LocalRayCluster(nodes=2, cpus=1).start()
+        try:
+            serve = ["--engine", "ray", "--ray-address", cluster.address]
+            serve += ["--store-url", pg.new_database()]
+
+            def run(url: str, c: LocalRayCluster = cluster, f: str = fault) -> dict[str, Any]:
+                return failover(url, data, c, fault=f, maps=args.maps, frames=args.frames,
+                                kill_after=args.kill_after)  # fmt: skip
+
+            out.append(_with_service(work, f"failover-{fault}", serve, run))
+        finally:
+            if cluster is not two:
+                cluster.stop()
+        print(json.dumps({k: v for k, v in out[-1].items() if k != "per_map"}), flush=True)
+    return out
+
+
+def _merge(path: Path, report: dict[str, Any]) -> None:
+    """Write `report` into the JSON file at `path`, keeping the sections not run now."""
+    old = json.loads(path.read_text()) if path.exists() else {}
+    path.write_text(json.dumps({**old, **report}, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=None, help="MRCLAM-6 folder")
     ap.add_argument("--robot", type=int, default=1, help="robot replayed for the identity check")
-    ap.add_argument("--maps", type=int, default=3, help="maps in the failover run")
+    ap.add_argument("--maps", type=int, default=4, help="maps (and clients) in a failover run")
     ap.add_argument("--frames", type=int, default=300, help="frames per map in the failover run")
-    ap.add_argument("--kill-after", type=int, default=100, help="map 0's frames before the kill")
+    ap.add_argument("--kill-after", type=int, default=100, help="map 0's frames before the fault")
+    ap.add_argument(
+        "--faults", type=lambda v: v.split(","), default=list(FAULTS),
+        help=f"comma-separated, of {', '.join(FAULTS)}",
+    )  # fmt: skip
     ap.add_argument("--skip-identity", action="store_true")
     ap.add_argument("--skip-failover", action="store_true")
+    ap.add_argument(
+        "--latency-frames", type=int, default=0,
+        help="frames of the added-latency run, ray against local (0: none)",
+    )  # fmt: skip
     ap.add_argument(
         "--scale-frames", type=int, default=0, help="frames per map of the scale run (0: none)"
     )
@@ -293,8 +465,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scale-clients", type=int, default=4)
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
+    if unknown := set(args.faults) - set(FAULTS):
+        ap.error(f"unknown faults {sorted(unknown)}")
     data = args.data or default_mrclam_dir()
     report: dict[str, Any] = {"host_cpus": os.cpu_count(), "map_config": MAP_CONFIG}
+    throughput: dict[str, Any] = {}
     pg = PrivatePostgres(fsync=True).start()
     ray_cluster: LocalRayCluster | None = None
     try:
@@ -314,28 +489,24 @@ def main(argv: list[str] | None = None) -> int:
                 digests = {r["trajectory_sha256"] for r in report["identity"]}
                 report["identical_trajectories"] = len(digests) == 1
                 print(json.dumps(report["identity"], indent=1), flush=True)
-            if not args.skip_failover:
-                service = Service(
-                    work / "failover.log", *ray_args, "--store-url", pg.new_database()
+            if args.latency_frames:
+                report["added_latency"] = _latency_run(
+                    work, data, pg, ray_args, frames=args.latency_frames
                 )
-                try:
-                    service.wait_ready()
-                    report["failover"] = failover(
-                        service.url, data, maps=args.maps, frames=args.frames,
-                        kill_after=args.kill_after,
-                    )  # fmt: skip
-                finally:
-                    service.stop()
+                print(json.dumps(report["added_latency"], indent=1), flush=True)
+            if not args.skip_failover:
+                report["failover"] = _failovers(args, data, work, pg, ray_cluster)
             if args.scale_frames:
-                report["scale"] = _scale_runs(args, data, work, pg, ray_cluster)
+                throughput["scale"] = _scale_runs(args, data, work, pg, ray_cluster)
     finally:
         if ray_cluster is not None:
             ray_cluster.stop()
         pg.stop()
     args.out.mkdir(parents=True, exist_ok=True)
-    name = "scale_out.json" if not args.skip_failover else "scale_out_throughput.json"
-    (args.out / name).write_text(json.dumps(report, indent=1) + "\n")
-    print(json.dumps(report.get("failover"), indent=1))
+    _merge(args.out / "scale_out.json", report)
+    if throughput:
+        base = {k: report[k] for k in ("host_cpus", "map_config")}
+        _merge(args.out / "scale_out_throughput.json", {**base, **throughput})
     return 0
 
 
