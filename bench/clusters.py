@@ -34,6 +34,15 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def free_ports(count: int) -> list[int]:
+    """`count` distinct free ports (held open together while they are picked)."""
+    with contextlib.ExitStack() as stack:
+        socks = [stack.enter_context(socket.socket()) for _ in range(count)]
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+
+
 def _pg_bin(name: str) -> str | None:
     found = shutil.which(name)
     if found:
@@ -155,15 +164,12 @@ class LocalRayCluster:
         return str(exe)
 
     def _node(self, head: bool, index: int) -> subprocess.Popen[bytes]:
-        ports = [
-            "--node-manager-port", str(free_port()),
-            "--object-manager-port", str(free_port()),
-            "--dashboard-agent-listen-port", str(free_port()),
-            "--dashboard-agent-grpc-port", str(free_port()),
-            "--metrics-export-port", str(free_port()),
-            "--runtime-env-agent-port", str(free_port()),
-            "--min-worker-port", "0", "--max-worker-port", "0",
-        ]  # fmt: skip
+        names = ["--node-manager-port", "--object-manager-port", "--dashboard-agent-listen-port",
+                 "--dashboard-agent-grpc-port", "--metrics-export-port",
+                 "--runtime-env-agent-port"]  # fmt: skip
+        picked = [p for p in free_ports(len(names) + 1) if p != self.port][: len(names)]
+        ports = [a for name, port in zip(names, picked, strict=True) for a in (name, str(port))]
+        ports += ["--min-worker-port", "0", "--max-worker-port", "0"]
         if head:
             where = ["--head", "--port", str(self.port), "--include-dashboard", "false",
                      "--temp-dir", str(self.base / "tmp")]  # fmt: skip

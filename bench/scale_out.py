@@ -335,18 +335,27 @@ def _percentiles(ms: list[float]) -> dict[str, float]:
     }
 
 
+def _worker_ms(result: dict[str, Any]) -> float:
+    """The worker's own time for a frame: its stages (total) and the durable log append."""
+    timing = result["timing_ms"]
+    return float(timing.get("total", 0.0)) + float(timing.get("log", 0.0))
+
+
 def added_latency(urls: dict[str, str], data: Path, *, frames: int, warmup: int = 10) -> dict:
     """One client, one map per deployment with the same config, the same frames (the
     first `frames` of MRCLAM robot 1: a few bearings each, a small graph) posted to both
     in turn (which goes first alternates), each followed by GET /pose (no estimator
-    work): the round trips per deployment and the paired difference of each to the
-    first deployment's, after `warmup` frames."""
+    work): per deployment the round trips, the worker's own time per frame and the
+    round trip less that; the paired difference of each to the first deployment's; all
+    after `warmup` frames. The answers must be the same but for their timings."""
     mine, _ = mrclam_frames(load_mrclam(data, 1))
     posts = [frame_to_dict(f) for f in mine[:frames]]
     names = list(urls)
     clients = {k: httpx.Client(base_url=u, timeout=120) for k, u in urls.items()}
-    post_ms: dict[str, list[float]] = {k: [] for k in names}
-    pose_ms: dict[str, list[float]] = {k: [] for k in names}
+    table: dict[str, dict[str, list[float]]] = {
+        what: {k: [] for k in names}
+        for what in ("post_frame_ms", "worker_ms", "post_frame_less_worker_ms", "get_pose_ms")
+    }
     same = True
     try:
         ids = {}
@@ -360,22 +369,26 @@ def added_latency(urls: dict[str, str], data: Path, *, frames: int, warmup: int 
             for k in order:
                 t0 = time.perf_counter()
                 r = clients[k].post(f"/v1/maps/{ids[k]}/frames", json=frame)
-                post_ms[k].append(1e3 * (time.perf_counter() - t0))
+                rt = 1e3 * (time.perf_counter() - t0)
                 r.raise_for_status()
                 answers[k] = r.json()
+                table["post_frame_ms"][k].append(rt)
+                table["worker_ms"][k].append(_worker_ms(answers[k]))
+                table["post_frame_less_worker_ms"][k].append(rt - _worker_ms(answers[k]))
+                del answers[k]["timing_ms"]
             same = same and all(a == answers[names[0]] for a in answers.values())
             for k in order:
                 t0 = time.perf_counter()
                 r = clients[k].get(f"/v1/maps/{ids[k]}/pose")
-                pose_ms[k].append(1e3 * (time.perf_counter() - t0))
+                table["get_pose_ms"][k].append(1e3 * (time.perf_counter() - t0))
                 r.raise_for_status()
     finally:
         for c in clients.values():
             c.close()
     out: dict[str, Any] = {"frames": frames, "warmup_frames_left_out": warmup}
-    out["identical_answers"] = same
-    for what, table in (("post_frame_ms", post_ms), ("get_pose_ms", pose_ms)):
-        kept = {k: v[warmup:] for k, v in table.items()}
+    out["identical_answers_but_timings"] = same
+    for what, series in table.items():
+        kept = {k: v[warmup:] for k, v in series.items()}
         out[what] = {k: _percentiles(v) for k, v in kept.items()}
         for k in names[1:]:
             diff = [a - b for a, b in zip(kept[k], kept[names[0]], strict=True)]
@@ -401,9 +414,11 @@ def _latency_run(
         local.stop()
 
 
-def _with_service(work: Path, name: str, serve_args: list[str], run: Any) -> Any:
+def _with_service(
+    work: Path, name: str, serve_args: list[str], run: Any, env: dict[str, str] | None = None
+) -> Any:
     """`run(url)` against a fresh `covslam serve` with `serve_args`, stopped afterwards."""
-    service = Service(work / f"{name}.log", *serve_args)
+    service = Service(work / f"{name}.log", *serve_args, env=env)
     try:
         service.wait_ready()
         return run(service.url)
@@ -427,7 +442,9 @@ def _failovers(
                 return failover(url, data, c, fault=f, maps=args.maps, frames=args.frames,
                                 kill_after=args.kill_after)  # fmt: skip
 
-            out.append(_with_service(work, f"failover-{fault}", serve, run))
+            env = {"COVSLAM_RAY__ACTOR_CPUS": str(args.actor_cpus)}
+            out.append({"actor_cpus": args.actor_cpus,
+                        **_with_service(work, f"failover-{fault}", serve, run, env)})  # fmt: skip
         finally:
             if cluster is not two:
                 cluster.stop()
@@ -451,6 +468,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--faults", type=lambda v: v.split(","), default=list(FAULTS),
         help=f"comma-separated, of {', '.join(FAULTS)}",
+    )  # fmt: skip
+    ap.add_argument(
+        "--actor-cpus", type=float, default=0.25,
+        help="COVSLAM_RAY__ACTOR_CPUS of the failover runs (Ray spreads actors that "
+        "reserve CPUs round-robin over the nodes, actors of 0 CPUs at random)",
     )  # fmt: skip
     ap.add_argument("--skip-identity", action="store_true")
     ap.add_argument("--skip-failover", action="store_true")

@@ -4,6 +4,7 @@ two-node Ray cluster: same answers as SQLite, failover that loses and duplicates
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -87,6 +88,32 @@ def test_a_postgres_restart_costs_clients_a_retry_and_nothing_else(
         server.stop()
 
 
+def _compose() -> list[str]:
+    """The compose command there is (v2 plugin or v1), or skip."""
+    plugin = subprocess.run(["docker", "compose", "version"], capture_output=True, check=False)
+    if shutil.which("docker") and plugin.returncode == 0:
+        return ["docker", "compose"]
+    if shutil.which("docker-compose"):
+        return ["docker-compose"]
+    pytest.skip("no docker compose (apt-get install docker-compose)")
+
+
+def test_the_scale_compose_file_runs_ray_and_postgres() -> None:
+    compose = [*_compose(), "-f", str(REPO / "docker/compose.scale.yaml")]
+    env = {**os.environ, "COVSLAM_AUTH__ADMIN_KEY": "k" * 20, "POSTGRES_PASSWORD": "pw"}
+    services = subprocess.run([*compose, "config", "--services"], env=env, capture_output=True,
+                              text=True, timeout=60, check=True)  # fmt: skip
+    assert sorted(services.stdout.split()) == ["covslam", "postgres", "ray-head", "ray-worker"]
+    config = subprocess.run([*compose, "config"], env=env, capture_output=True, text=True,
+                            timeout=60, check=True).stdout  # fmt: skip
+    assert "covslam serve --engine ray --ray-address auto" in config
+    assert "postgresql://covslam:pw@postgres:5432/covslam" in config
+    del env["POSTGRES_PASSWORD"]  # refused without a database password
+    refused = subprocess.run([*compose, "config"], env=env, capture_output=True, text=True,
+                             timeout=60, check=False)  # fmt: skip
+    assert refused.returncode != 0 and "set a database password" in refused.stderr
+
+
 def test_engine_ray_without_ray_fails_with_one_line(tmp_path: Path) -> None:
     code = (
         "import sys; sys.modules['ray'] = None; from service.cli import main; "
@@ -167,9 +194,12 @@ def test_ray_actors_fail_over_without_losing_or_duplicating_a_frame(
     the second node lost (every process of it SIGKILLed): nothing lost or duplicated."""
     args = ["--engine", "ray", "--ray-address", ray_cluster.address]
     args += ["--store-url", postgres.new_database()]
-    api = Server(tmp_path / "a", env=SNAPSHOTS, args=args)
+    # an actor reserving CPU is spread round-robin (one of 0 CPUs goes to a random node);
+    # the head (1 CPU) has room for all five maps once the second node is gone
+    env = {**SNAPSHOTS, "COVSLAM_RAY__ACTOR_CPUS": "0.2"}
+    api = Server(tmp_path / "a", env=env, args=args)
     api.start(timeout_s=180)
-    second = Server(tmp_path / "b", env=SNAPSHOTS, args=args)
+    second = Server(tmp_path / "b", env=env, args=args)
     try:
         with httpx.Client(base_url=api.url, timeout=120) as c:
             ids = [create_map(c, f"m{i}", config={"landmark_cap": 8}) for i in range(4)]
