@@ -21,6 +21,7 @@ import sys
 import tempfile
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -293,6 +294,26 @@ class LocalRayCluster:
             shutil.rmtree(self.base, ignore_errors=True)
 
 
+def until_ready(
+    url: str, timeout_s: float, check: Callable[[], None] | None = None, every_s: float = 0.1
+) -> float | None:
+    """Seconds until GET `url`/readyz answered 200, None if not within `timeout_s`;
+    `check` runs before each try (it raises to give up)."""
+    import httpx
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if check is not None:
+            check()
+        try:
+            if httpx.get(url + "/readyz", timeout=5.0).status_code == 200:
+                return time.monotonic() - t0
+        except httpx.TransportError:
+            pass
+        time.sleep(every_s)
+    return None
+
+
 class Service:
     """One `covslam serve` process group on a free loopback port (stopped by its PID)."""
 
@@ -309,19 +330,17 @@ class Service:
 
     def wait_ready(self, timeout_s: float = 180.0) -> float:
         """Seconds until /readyz answered 200."""
-        import httpx
 
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < timeout_s:
+        def alive() -> None:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"service exited: {self.log.read_text()[-2000:]}")
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2.0).status_code == 200:
-                    return time.monotonic() - t0
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        raise TimeoutError(f"service not ready in {timeout_s} s: {self.log.read_text()[-2000:]}")
+
+        ready = until_ready(self.url, timeout_s, alive)
+        if ready is None:
+            raise TimeoutError(
+                f"service not ready in {timeout_s} s: {self.log.read_text()[-2000:]}"
+            )
+        return ready
 
     def stop(self) -> None:
         if self.proc.poll() is None:

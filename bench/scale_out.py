@@ -177,11 +177,17 @@ def scale(url: str, data: Path, *, maps: int, clients: int, frames: int) -> dict
     }
 
 
-def check_log(url: str, map_id: str, frames: list[dict[str, Any]], acked: list[dict]) -> dict:
+def check_log(
+    url: str,
+    map_id: str,
+    frames: list[dict[str, Any]],
+    acked: list[dict],
+    headers: dict[str, str] | None = None,
+) -> dict:
     """Lost and duplicated frames of a map: re-post every frame (each must be answered
     from the log with its acknowledged result) and count the log's frames."""
     lost = changed = 0
-    with httpx.Client(base_url=url, timeout=120) as c:
+    with httpx.Client(base_url=url, timeout=120, headers=headers) as c:
         for frame, result in zip(frames, acked, strict=True):
             r = c.post(f"/v1/maps/{map_id}/frames", json=frame)
             if r.headers.get("idempotent-replayed") != "true":
