@@ -54,7 +54,7 @@ def _compose_command() -> list[str]:
 class Stack:
     """One compose project of docker/compose.scale.yaml."""
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, overrides: list[Path] | None = None) -> None:
         self.project = f"covslam-bench-{secrets.token_hex(4)}"
         self.port = free_port()
         self.key = secrets.token_urlsafe(24)
@@ -65,8 +65,9 @@ class Stack:
             "POSTGRES_PASSWORD": secrets.token_urlsafe(16),
             "COVSLAM_PUBLISH": f"127.0.0.1:{self.port}",
         }
-        self.cmd = [*_compose_command(), "-p", self.project, "-f",
-                    str(REPO / "docker/compose.scale.yaml")]  # fmt: skip
+        files = [REPO / "docker/compose.scale.yaml", *(overrides or [])]
+        self.cmd = [*_compose_command(), "-p", self.project]
+        self.cmd += [a for f in files for a in ("-f", str(f))]
         self.url = f"http://127.0.0.1:{self.port}"
         self.headers = {"Authorization": f"Bearer {self.key}"}
 
@@ -104,9 +105,13 @@ def _nodes(c: httpx.Client) -> dict[str, str | None]:
     return {w["map"]: w["node"] for w in c.get("/v1/workers").json()["workers"]}
 
 
-def run(data: Path, *, frames: int, kill_after: int) -> dict[str, Any]:
-    stack = Stack(workers=1)
+def run(
+    data: Path, *, frames: int, kill_after: int, overrides: list[Path] | None = None
+) -> dict[str, Any]:
+    stack = Stack(workers=1, overrides=overrides)
     report: dict[str, Any] = {"compose": "docker/compose.scale.yaml", "ray_workers": 1}
+    if overrides:
+        report["overrides"] = {str(f): f.read_text() for f in overrides}
     try:
         report["seconds_until_ready"] = round(stack.up(), 1)
         nodes = {s: stack.node_of(s) for s in ("ray-head", "ray-worker", "covslam")}
@@ -175,12 +180,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=None, help="MRCLAM-6 folder")
     ap.add_argument("--frames", type=int, default=150, help="frames per map")
     ap.add_argument("--kill-after", type=int, default=50, help="map 0's frames before the kill")
+    ap.add_argument(
+        "--override", type=Path, action="append", default=[],
+        help="a further compose file laid over it (e.g. the head's RAY_health_check_*)",
+    )  # fmt: skip
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     report = run(args.data or default_mrclam_dir(), frames=args.frames,
-                 kill_after=args.kill_after)  # fmt: skip
+                 kill_after=args.kill_after, overrides=args.override)  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "compose_scale.json").write_text(json.dumps(report, indent=1) + "\n")
+    name = "compose_scale.json" if not args.override else "compose_scale_override.json"
+    (args.out / name).write_text(json.dumps(report, indent=1) + "\n")
     print(json.dumps({k: v for k, v in report.items() if k != "per_map"}, indent=1))
     return 0
 
