@@ -145,6 +145,27 @@ def _stat_fields(pid: str) -> list[str] | None:
         return None
 
 
+def _signal_live(pids: dict[int, str], sig: int) -> None:
+    """`sig` to each process of `pids` (process id -> start time) that is still that one."""
+    for pid, start in pids.items():
+        fields = _stat_fields(str(pid))
+        if fields is not None and fields[19] == start:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+
+
+def _end(pids: dict[int, str], sig: int, grace_s: float) -> None:
+    """`sig` to each process of `pids`; SIGKILL to those still running after `grace_s`."""
+    _signal_live(pids, sig)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and any(
+        (f := _stat_fields(str(pid))) is not None and f[19] == start and f[0] != "Z"
+        for pid, start in pids.items()
+    ):
+        time.sleep(0.2)
+    _signal_live(pids, signal.SIGKILL)
+
+
 class LocalRayCluster:
     """A Ray head plus `nodes - 1` more nodes on this machine, `cpus` CPUs each; `env`
     adds to the nodes' environment (e.g. Ray's ``RAY_health_check_*`` settings)."""
@@ -253,42 +274,25 @@ class LocalRayCluster:
         SIGKILL to what is left of them after 30 s."""
         assert index > 0, "the head stays"
         pids = self.node_pids(index)
-
-        def signal_all(sig: int) -> None:
-            for pid, start in pids.items():
-                fields = _stat_fields(str(pid))
-                if fields is not None and fields[19] == start:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.kill(pid, sig)
-
-        signal_all(signal.SIGKILL if hard else signal.SIGTERM)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            self.procs[index].wait(timeout=30)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and any(
-            (f := _stat_fields(str(pid))) is not None and f[19] == start and f[0] != "Z"
-            for pid, start in pids.items()
-        ):
-            time.sleep(0.2)
-        signal_all(signal.SIGKILL)
+        _end(pids, signal.SIGKILL if hard else signal.SIGTERM, grace_s=30)
         self.procs[index].wait(timeout=30)
         return sorted(pids)
 
     def logs(self) -> str:
         return "".join(p.read_text(errors="replace") for p in sorted(self.base.glob("node*.log")))
 
-    def stop(self, *, keep_logs: bool = False) -> None:
-        """SIGTERM then SIGKILL each node's process group (ray start and what it spawned)."""
-        for p in reversed(self.procs):
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                continue
+    def stop(self, *, keep_logs: bool = False, grace_s: float = 5.0) -> None:
+        """SIGTERM to every process of every node (``ray start``, what it started, the
+        workers of its raylet), SIGKILL to what still runs after `grace_s` (Ray's own
+        orderly shutdown of a node takes some 20 s)."""
+        pids: dict[int, str] = {}
+        for index, p in enumerate(self.procs):
+            if p.poll() is None:
+                pids.update(self.node_pids(index))
+        _end(pids, signal.SIGTERM, grace_s)
         for p in self.procs:
             with contextlib.suppress(subprocess.TimeoutExpired):
-                p.wait(timeout=20)
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=10)
         self.procs.clear()
         if not keep_logs:
             shutil.rmtree(self.base, ignore_errors=True)
