@@ -89,6 +89,14 @@ class WorkerSettings(BaseModel):
         description="niceness added to worker processes, so the API process (probes, "
         "routing) wins the CPU when workers compute",
     )
+    blas_threads: int = Field(
+        1,
+        ge=0,
+        le=256,
+        description="threads of the BLAS library (numpy's dense algebra) in each worker "
+        "process; 0 = the library's default (every core). Workers already run one per "
+        "core: more threads each only contend",
+    )
 
 
 class RaySettings(BaseModel):

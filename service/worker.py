@@ -21,6 +21,8 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
+from threadpoolctl import threadpool_limits
+
 from frontend.pipeline import FrontEnd
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import parse_export
@@ -49,6 +51,8 @@ def init_worker(settings: dict[str, Any], index: int, *, own_signals: bool = Tru
     _store = None
     if _settings.workers.nice:
         os.nice(_settings.workers.nice)
+    if _settings.workers.blas_threads:
+        threadpool_limits(limits=_settings.workers.blas_threads, user_api="blas")
     logging.basicConfig(
         level=_settings.log_level.upper(),
         format=f"%(asctime)s %(levelname)s worker{index} %(name)s: %(message)s",
