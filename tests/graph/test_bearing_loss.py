@@ -19,6 +19,7 @@ from tests.graph._world import circle_frames
 CFG = SlamConfig(
     landmark_cap=None,
     pose_window=40,
+    window_observations=None,
     uncapped_window_observations=None,
     # The circle world's odometry is ~10x better than a wheeled robot's: say so (the
     # random walks of the default model would let Geman-McClure's non-convex loss wander).

@@ -188,6 +188,7 @@ def test_marginalised_frames_follow_their_keyframe() -> None:
     cfg = SlamConfig(
         landmark_cap=None,
         pose_window=8,
+        window_observations=None,
         uncapped_window_observations=None,
         max_keyframes=1000,
         keyframe_distance_m=0.6,
@@ -325,6 +326,7 @@ def test_a_pose_holding_a_candidates_first_ray_stays_as_keyframe(keep: bool) -> 
 
     cfg = SlamConfig(
         landmark_cap=None,
+        window_observations=None,
         uncapped_window_observations=None,
         pose_window=3,
         keyframe_distance_m=100.0,

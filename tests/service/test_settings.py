@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -153,3 +156,26 @@ def test_serve_refuses_a_store_url_like_the_variable(
 ) -> None:
     err = _serve_refusal(["--store-url", "mysql://db/maps", "--data-dir", str(tmp_path)], capsys)
     assert "store.url" in err and "mysql://db/maps" in err
+
+
+@pytest.mark.parametrize(("setting", "expected"), [(1, {1}), (2, {2})])
+def test_a_worker_limits_its_blas_threads(setting: int, expected: set[int]) -> None:
+    """workers.blas_threads reaches every BLAS library loaded in a worker process (in a
+    child here: the limit is process-wide). Two settings, so that neither can pass by
+    being the library's default."""
+    code = (
+        "import json, sys\n"
+        "from threadpoolctl import threadpool_info\n"
+        "from service import worker\n"
+        "from service.settings import Settings\n"
+        f"s = Settings(workers={{'nice': 0, 'blas_threads': {setting}}})\n"
+        "worker.init_worker(s.model_dump(mode='json'), 0, own_signals=False)\n"
+        "json.dump([i['num_threads'] for i in threadpool_info()"
+        " if i['user_api'] == 'blas'], sys.stdout)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    threads = json.loads(out.stdout)
+    assert threads, "numpy's BLAS is loaded in a worker"
+    assert set(threads) == expected
