@@ -22,17 +22,19 @@ import numpy as np
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam, RemovalRecord
-from graph.snapshot import SnapshotError, capture, restore_with_extra
+from graph.snapshot import SnapshotError
 from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from graph.validation import validate_frame
-from service.camera_localisation import process_image
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
 from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
-from service.localisation import Localised, MapLocalisation
 from service.mapconfig import MapConfig, slam_config, slam_config_dict
+from service.pipeline import FrameStep, ImageFeatures, MapPipeline
+from service.pipeline.images import parse_state_doc
+from service.pipeline.localiser import PlaceLocaliser
+from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place
 from service.views import (
@@ -43,7 +45,6 @@ from service.views import (
     restored_events,
     trajectory_doc,
 )
-from service.vision import parse_state_doc
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ class MapSession:
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
         self.vision = MapVision.for_config(self.record.config)
         """The front end of a map with a camera (image frames); None without one."""
-        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+        self.pipeline, self._last_log_id, self._since_snapshot = self._load()
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
@@ -167,22 +168,28 @@ class MapSession:
             self.vision.close()
         self.store.close()
 
-    def _fresh(self) -> BearingSlam:
+    @property
+    def slam(self) -> BearingSlam:
+        """The map's estimator."""
+        return self.pipeline.slam
+
+    def _fresh(self) -> MapPipeline:
         config = slam_config(self.record.config, self.record.mode)
-        seed = MapConfig.model_validate(self.record.config).seed
-        return BearingSlam(
+        slam = BearingSlam(
             config,
-            rng=np.random.default_rng(seed),
+            rng=np.random.default_rng(self._seed()),
             removal_sink=self._removals.append,
             trajectory_sink=self._poses.extend,
         )
+        front_end = None if self.vision is None else self.vision.front_end
+        return fresh_pipeline(slam, seed=self._seed(), front_end=front_end)
 
-    def _load(self) -> tuple[BearingSlam, MapLocalisation, int, int]:
-        """Latest snapshot + the log's tail: (estimator, place localiser, last log id,
-        frames since snapshot)."""
+    def _load(self) -> tuple[MapPipeline, int, int]:
+        """Latest snapshot + the log's tail: (pipeline, last log id, frames since
+        snapshot)."""
         t0 = time.perf_counter()
         snap = self.store.latest_snapshot()
-        slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
+        pipeline, upto = None, 0
         frontend = None if self.vision is None else self.store.latest_frontend_state()
         if snap is not None and self.vision is not None and frontend is None:
             log.warning(
@@ -191,31 +198,32 @@ class MapSession:
             snap = None
         if snap is not None:
             try:
-                slam, extra = restore_with_extra(
-                    snap[1], removal_sink=self._removals.append, trajectory_sink=self._poses.extend
+                pipeline = restore_pipeline(
+                    snap[1],
+                    frontend,
+                    seed=self._seed(),
+                    front_end=None if self.vision is None else self.vision.front_end,
+                    removal_sink=self._removals.append,
+                    trajectory_sink=self._poses.extend,
                 )
-                slam.config = slam_config(self.record.config, self.record.mode)
-                if isinstance(extra, MapLocalisation):
-                    loc = extra
+                pipeline.slam.config = slam_config(self.record.config, self.record.mode)
                 upto = snap[0]
-                if self.vision is not None:
-                    self.vision.attach(slam, frontend)
             except (SnapshotError, ValueError, pickle.UnpicklingError):
                 log.exception("map %s: unreadable snapshot, replaying the whole log", self.place)
-                slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
-        if self.vision is not None and upto == 0:
-            self.vision.attach(slam)
+                pipeline, upto = None, 0
+        if pipeline is None:
+            pipeline = self._fresh()
         tail = self.store.frames_after(upto)
         self.loaded_from_snapshot = upto
         last = upto
         imported = None if self.vision is None else self.store.get_meta(IMPORTED_FRONTEND)
         for stored in tail:
-            self._restore_imported_frontend(imported, upto, last)
-            self._replay(slam, loc, stored)
+            self._restore_imported_frontend(pipeline, imported, upto, last)
+            self._replay(pipeline, stored)
             last = stored.id
             if len(self._poses.items) >= _POSE_FLUSH:
                 self.store.put_poses(self._poses.take())
-        self._restore_imported_frontend(imported, upto, last)
+        self._restore_imported_frontend(pipeline, imported, upto, last)
         # Rows the tail made final again (replaced: a restored estimator may round a
         # little differently from the one that first made them final).
         self.store.put_poses(self._poses.take())
@@ -226,18 +234,21 @@ class MapSession:
             len(tail),
             1e3 * (time.perf_counter() - t0),
         )
-        return slam, loc, last, len(tail)
+        return pipeline, last, len(tail)
 
-    def _restore_imported_frontend(self, imported: Any, upto: int, last: int) -> None:
+    @staticmethod
+    def _restore_imported_frontend(
+        pipeline: MapPipeline, imported: Any, upto: int, last: int
+    ) -> None:
         """Replaying an imported map's log without a snapshot from after its import: put
         the export's front-end state back where the import did (after log frame `after`)."""
-        if imported is None or self.vision is None:
+        if imported is None or pipeline.images is None:
             return
         after = int(imported["after"])
         if last == after and upto <= after:
-            self.vision.set_state_doc(imported["state"])
+            pipeline.images.set_state_doc(imported["state"])
 
-    def _replay(self, slam: BearingSlam, loc: MapLocalisation, stored: StoredFrame) -> None:
+    def _replay(self, pipeline: MapPipeline, stored: StoredFrame) -> None:
         if stored.result is None:
             # Logged but never finished: the process died while handling it. If that
             # happened on every reload as well, the frame itself kills the worker
@@ -261,10 +272,9 @@ class MapSession:
         observations = None
         try:
             if "image" in doc:
-                localised, observations = self._replay_image(slam, loc, stored.id, frame)
+                step, observations = self._replay_image(pipeline, stored.id, frame)
             else:
-                localised = loc.process(slam, frame)
-                self._note_json_frame(localised)
+                step = pipeline.step(frame)
         except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
@@ -280,24 +290,23 @@ class MapSession:
             return
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
-            result = self._result_doc(slam, localised, stored.id, {})
+            result = self._result_doc(pipeline.slam, step, stored.id, {})
             self._complete(
-                slam,
+                pipeline.slam,
                 stored.id,
                 json.dumps(result),
-                localised,
+                step,
                 removals,
                 observations,
                 self._poses.take(),
             )
 
     def _replay_image(
-        self, slam: BearingSlam, loc: MapLocalisation, log_id: int, frame: FrameInput
-    ) -> tuple[Localised, str | None]:
+        self, pipeline: MapPipeline, log_id: int, frame: FrameInput
+    ) -> tuple[FrameStep, str | None]:
         """A logged image frame again: through the front end from its image, or (an
         imported frame, no image) from the observations its image gave. Returns the
-        frame through the localiser and the observations as JSON text (None for an
-        imported frame)."""
+        frame's step and the observations as JSON text (None for an imported frame)."""
         if self.vision is None:
             raise InvalidFrame("image", f"log frame {log_id}: the map has no camera")
         image = self.store.frame_image(log_id)
@@ -306,28 +315,10 @@ class MapSession:
             if observations is None:
                 raise InvalidFrame("image", f"log frame {log_id}: image and observations missing")
             observed = frame_from_dict({**frame_to_dict(frame), "observations": observations})
-            return self._process_observed(slam, loc, observed), None
+            return pipeline.step(observed, landmark_covariances=False), None
         features, sig, _ = self.vision.features_of(image)
-        done = process_image(loc, slam, self.vision.pipeline, frame, features, sig)
-        return done.localised, _observations_json(done.observations)
-
-    def _process_observed(
-        self, slam: BearingSlam, loc: MapLocalisation, frame: FrameInput
-    ) -> Localised:
-        """An imported image frame: the observations its image gave (the association's
-        when the graph took it, the pose-free matches its filter weighed otherwise) go
-        through the place localiser as labelled bearings do, and the front end learns
-        the robot's pose."""
-        assert self.vision is not None
-        localised = loc.process(slam, frame, landmark_covariances=False)
-        self._note_json_frame(localised)
-        return localised
-
-    def _note_json_frame(self, localised: Localised) -> None:
-        """A JSON frame in a camera map moved the robot in the graph: its next image
-        frame is predicted from this pose, not from its last image frame."""
-        if self.vision is not None and localised.outcome is not None:
-            self.vision.pipeline.note_pose(localised.robot, localised.pose, localised.covariance)
+        step = pipeline.step(frame, image=ImageFeatures(features, sig))
+        return step, _observations_json(step.observations)
 
     @property
     def snapshot_due(self) -> bool:
@@ -344,11 +335,12 @@ class MapSession:
             self.snapshot()  # never idle (a continuous stream): bound the replay anyway
 
     def snapshot(self) -> None:
+        blob, frontend = snapshot_pipeline(self.pipeline)
         self.store.save_snapshot(
             self._last_log_id,
-            capture(self.slam, extra=self.loc),
+            blob,
             keep=self._settings.snapshots_kept,
-            frontend=None if self.vision is None else self.vision.state(),
+            frontend=frontend,
             prune_images=self._settings.prune_images,
         )
         self.store.prune_events(self._settings.events_kept)
@@ -398,7 +390,7 @@ class MapSession:
         pending = None
         if self.vision is not None and image is not None:
             pending = prefetched or self.vision.extract(image)
-        last = self.loc.last_accepted(self.slam).get(frame.robot)
+        last = self.pipeline.last_accepted().get(frame.robot)
         try:
             validate_frame(
                 frame,
@@ -415,13 +407,10 @@ class MapSession:
         t1 = time.perf_counter()
         vision_ms: dict[str, float] = {}
         try:
-            if imported:
-                localised = self._process_observed(self.slam, self.loc, frame)
-            elif pending is None:
-                localised = self.loc.process(self.slam, frame)
-                self._note_json_frame(localised)
+            if pending is None:
+                step = self.pipeline.step(frame, landmark_covariances=not imported)
             else:
-                localised, observations, vision_ms = self._process_image(frame, pending)
+                step, observations, vision_ms = self._process_image(frame, pending)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -443,17 +432,15 @@ class MapSession:
             self._forget_frame(log_id)
             raise
         removals = self._removals.take()
-        final = localised.outcome
-        result = self._result_doc(
-            self.slam, localised, log_id, {"log": 1e3 * (t1 - t0), **vision_ms}
-        )
+        final = step.outcome
+        result = self._result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
         event_ids = self._complete(
             self.slam,
             log_id,
             text,
-            localised,
+            step,
             removals,
             None if imported else observations,
             self._poses.take(),
@@ -479,32 +466,30 @@ class MapSession:
         self.store.delete_frame(log_id)
         self._removals.take()
         self._poses.take()
-        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+        self.pipeline, self._last_log_id, self._since_snapshot = self._load()
 
     def _check_image_frame(self, frame: Any) -> None:
         if self.vision is None:
             raise no_camera(self.record.id)
         try:
             self.vision.check(frame)
-            known = frame.robot in self.loc.last_accepted(self.slam)
+            known = frame.robot in self.pipeline.last_accepted()
             self.vision.check_localisable(frame, known=known)
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
 
     def _process_image(
         self, frame: Any, pending: Pending
-    ) -> tuple[Localised, str, dict[str, float]]:
-        """(the frame through the front end and the localiser, the observations it is
-        recorded with as JSON text, timings ms)."""
+    ) -> tuple[FrameStep, str, dict[str, float]]:
+        """(the frame's step, the observations it is recorded with as JSON text, the
+        front end's timings ms)."""
         assert self.vision is not None
         features, sig, timing = self.vision.features_of(pending)
-        done = process_image(self.loc, self.slam, self.vision.pipeline, frame, features, sig)
-        timing["association"] = done.timing_ms["association"]
-        timing["localise_cpu"] = done.timing_ms["localise_cpu"]
-        return done.localised, _observations_json(done.observations), timing
+        step = self.pipeline.step(frame, image=ImageFeatures(features, sig))
+        return step, _observations_json(step.observations), timing
 
     def _result_doc(
-        self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]
+        self, slam: BearingSlam, localised: FrameStep, log_id: int, timing: dict[str, float]
     ) -> dict[str, Any]:
         outcome = localised.outcome
         pose = localised.pose
@@ -528,8 +513,9 @@ class MapSession:
             },
             "timing_ms": {
                 **({} if outcome is None else outcome.timing_ms),
-                "localise": localised.ms,
+                "localise": localised.timing_ms["localise"],
                 **timing,
+                **{k: v for k, v in localised.timing_ms.items() if k != "localise"},
             },
         }
 
@@ -538,7 +524,7 @@ class MapSession:
         slam: BearingSlam,
         log_id: int,
         result_json: str,
-        localised: Localised,
+        localised: FrameStep,
         removals: list[RemovalRecord],
         observations: str | None = None,
         poses: list[PoseRow] | None = None,
@@ -578,9 +564,9 @@ class MapSession:
     # ------------------------------------------------------------ queries
     def summary(self) -> dict[str, Any]:
         ms = np.asarray(self._timing) if self._timing else None
-        off_graph = self.loc.off_graph.count()
+        off_graph = self.pipeline.off_graph_count()
         robots = self.slam.robots
-        robots += [r for r in self.loc.off_graph.robots() if r not in robots]
+        robots += [r for r in self.pipeline.off_graph_robots() if r not in robots]
         return {
             **self.record.as_dict(),
             "estimator": slam_config_dict(self.slam.config),
@@ -607,6 +593,11 @@ class MapSession:
             },
         }
 
+    @property
+    def _loc(self) -> PlaceLocaliser:
+        assert self.pipeline.localiser is not None
+        return self.pipeline.localiser
+
     def _seed(self) -> int:
         return MapConfig.model_validate(self.record.config).seed
 
@@ -615,8 +606,8 @@ class MapSession:
         one: see MapLocalisation.robot_poses."""
         doc = pose_doc(self.slam, self.record.id)
         for name, robot in doc["robots"].items():
-            robot["localisation"] = self.loc.localisation(name)
-        for name, off in self.loc.robot_poses().items():
+            robot["localisation"] = self._loc.localisation(name, self.pipeline.robots.get(name))
+        for name, off in self._loc.robot_poses(self.pipeline.robots).items():
             if off["pose"] is None and name in doc["robots"]:
                 continue
             doc["robots"][name] = off
@@ -624,12 +615,12 @@ class MapSession:
 
     def places(self) -> dict[str, Any]:
         """Learnt places and the transitions between them."""
-        return {"map_id": self.record.id, **self.loc.places_doc()}
+        return {"map_id": self.record.id, **self._loc.places_doc()}
 
     def learn_place(self, robot: str | None) -> dict[str, Any]:
         """Learn a place at a robot's current pose now (default: the last robot that sent a
         frame); the snapshot taken after it keeps it across restarts."""
-        known = self.loc.last_accepted(self.slam)
+        known = self.pipeline.last_accepted()
         if robot is None:
             if not known:
                 raise ServiceError(
@@ -644,38 +635,39 @@ class MapSession:
                 f"robot: map {self.record.id!r} has no robot {robot!r}",
                 field="robot",
             )
-        if self.loc.status(robot) != "tracking":
+        if self._loc.status(robot) != "tracking":
             raise ServiceError(
                 409,
                 "not-localised",
                 "Robot not localised",
-                f"robot: {robot!r} is {self.loc.status(robot)}; a place is learnt at a "
+                f"robot: {robot!r} is {self._loc.status(robot)}; a place is learnt at a "
                 "tracked pose",
                 field="robot",
             )
-        place = self.loc.learn(self.slam, robot, stamp=known[robot][1])
+        place = self._loc.learn(self.slam, robot, stamp=known[robot][1])
         if place is None:
             raise ServiceError(
                 409,
                 "too-few-landmarks",
                 "Too few landmarks",
-                f"robot: fewer than {self.loc.localiser.config.places.min_landmarks} mapped "
-                f"landmarks lie within {self.loc.localiser.config.places.max_depth_m} m of "
+                f"robot: fewer than {self._loc.localiser.config.places.min_landmarks} mapped "
+                f"landmarks lie within {self._loc.localiser.config.places.max_depth_m} m of "
                 f"{robot!r}",
                 field="robot",
             )
         self.snapshot()
-        doc = self.loc.places_doc()
+        doc = self._loc.places_doc()
         return {"map_id": self.record.id, "place": doc["places"][place.id], **doc}
 
     def trajectory(
         self, robot: str | None = None, *, stats_every: int = 0
     ) -> dict[str, list[dict[str, Any]]]:
-        if robot is not None and robot not in self.slam.robots and robot in self.loc.last:
+        state = None if robot is None else self.pipeline.robots.get(robot)
+        if robot not in self.slam.robots and state is not None and state.last is not None:
             rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
         else:
             rows = dict(trajectory_doc(self.slam, self.store, self.record.id, robot))
-        self.loc.with_off_graph(rows, robot)
+        self.pipeline.with_off_graph(rows, robot)
         if stats_every > 0:
             labels = self.store.removed_labels()
             labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())
@@ -725,7 +717,8 @@ class MapSession:
                     "result": None if stored.result is None else json.loads(stored.result),
                 }
             )
-        front = {} if self.vision is None else {"frontend": self.vision.state_doc()}
+        images = self.pipeline.images
+        front = {} if images is None else {"frontend": images.state_doc()}
         return {
             "format": EXPORT_FORMAT,
             "version": EXPORT_VERSION,
@@ -777,7 +770,7 @@ class MapSession:
                     f"frames[{i}].frame: {exc.detail}",
                     field=f"frames[{i}].frame",
                 ) from exc
-        if frontend is not None and self.vision is not None:
-            self.vision.set_state_doc(frontend)
+        if frontend is not None and self.pipeline.images is not None:
+            self.pipeline.images.set_state_doc(frontend)
             self.store.set_meta(IMPORTED_FRONTEND, {"after": self._last_log_id, "state": frontend})
         self.snapshot()

@@ -1,4 +1,4 @@
-"""Camera robots through the place localiser (service.camera_localisation): a robot
+"""Camera robots through the place localiser (service.pipeline): a robot
 without initial_pose is relocalised from its images; a kidnapped camera robot goes lost
 and recovers; the state survives a snapshot + log tail reload."""
 
@@ -78,7 +78,7 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     assert (
         max(pose_error(r["pose"], t)[0] for r, t in zip(built, mapping.truth, strict=True)) < 0.05
     )
-    assert len(session.loc.appearance.places) >= 3
+    assert len(session.pipeline.localiser.appearance.places) >= 3
 
     results = _post(session, newcomer)
     statuses = [r["localisation"]["status"] for r in results]
@@ -159,7 +159,7 @@ def test_a_kidnapped_camera_robot_goes_lost_and_recovers(
     for r, t in zip(results[back:], truth[back:], strict=True):
         e_m, e_deg = pose_error(r["pose"], t)
         assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
-    assert session.loc.localiser.robots["r1"].lost_count == 1
+    assert session.pipeline.localiser.localiser.robots["r1"].lost_count == 1
 
     # A robot in the second room, which nobody mapped: its pose-free matches are
     # look-alikes; it must stay initialising rather than be relocalised somewhere wrong.
@@ -181,15 +181,17 @@ def test_a_searching_camera_robot_survives_a_snapshot_and_log_tail_reload(
     assert first[0]["localisation"]["status"] == INITIALISING
     session.snapshot()  # the filter of r2 is in the snapshot ...
     _post(session, newcomer, range(1, 2))  # ... and this frame in the log's tail
-    pf = session.loc.localiser.robots["r2"].pf
+    pf = session.pipeline.localiser.localiser.robots["r2"].pf
     particles, weights = pf.particles.copy(), pf.log_weights.copy()
-    last = session.vision.pipeline.state()["last"] if session.vision else {}
-    assert "r2" not in last, "the front end does not track a searching robot"
+    assert session.pipeline.images is not None
+    assert session.pipeline.images.last_pose("r2") is None, (
+        "the front end does not track a searching robot"
+    )
     session.close()
 
     reopened = MapSession(path, StoreSettings(snapshot_every=10**6))
     assert reopened.loaded_from_snapshot > 0
-    again = reopened.loc.localiser.robots["r2"].pf
+    again = reopened.pipeline.localiser.localiser.robots["r2"].pf
     assert np.array_equal(again.particles, particles)
     assert np.array_equal(again.log_weights, weights)
     results = _post(reopened, newcomer, range(2, len(newcomer.frames)))

@@ -17,6 +17,7 @@ import pytest
 from frontend.cameras import PanoramaCamera
 from service.datasets.render_run import write_rendered_run
 from service.errors import ServiceError
+from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -411,9 +412,9 @@ def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
 ) -> None:
     gap = range(14, 20)  # six frames of odometry only, posted as JSON
     session, results = _run_with_json_gap(tmp_path / "a.sqlite", run, gap)
-    assert session.vision is not None
+    assert session.pipeline.images is not None
     # The front end predicts the next image frame from the JSON frame's pose.
-    pose, _ = session.vision.pipeline._last["r1"]
+    pose, _ = session.pipeline.robots["r1"].pose or (None, None)
     last = results[-1]["pose"]
     np.testing.assert_allclose(pose, [last["x"], last["y"], last["theta"]], atol=1e-9)
     after = results[gap.stop]
@@ -424,13 +425,14 @@ def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
     # Reopened from its log (no snapshot), the map predicts the same way.
     session.close()
     reopened = MapSession(tmp_path / "a.sqlite", StoreSettings(snapshot_every=1000))
-    assert reopened.vision is not None
-    np.testing.assert_allclose(reopened.vision.pipeline._last["r1"][0], pose, atol=1e-9)
+    restored = reopened.pipeline.robots["r1"].pose
+    assert restored is not None
+    np.testing.assert_allclose(restored[0], pose, atol=1e-9)
     reopened.close()
     reference.close()
     # Without the JSON frames' poses, the image frame after the gap is predicted from the
     # last image frame plus one frame's odometry, far off, and matches little.
-    monkeypatch.setattr(MapSession, "_note_json_frame", lambda self, localised: None)
+    monkeypatch.setattr(ImageFrontEnd, "note_pose", lambda self, robot, pose, cov: None)
     stale, stale_results = _run_with_json_gap(tmp_path / "b.sqlite", run, gap)
     stale_observed = len(stale_results[gap.stop]["landmarks"]["observed"])
     assert stale_observed <= 0.5 * len(after["landmarks"]["observed"])  # measured 3

@@ -8,8 +8,8 @@ import sqlite3
 import time
 from pathlib import Path
 
-from graph.snapshot import capture
 from service.frames_io import frame_to_dict
+from service.pipeline.snapshot import snapshot_pipeline
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord
@@ -93,7 +93,7 @@ def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(
     assert reopened.landmarks("archived") == store_rows
 
     # a snapshot from before the archive (version 3) is refused: the log is replayed
-    state = pickle.loads(capture(reopened.slam, extra=reopened.loc))
+    state = pickle.loads(snapshot_pipeline(reopened.pipeline)[0])
     state["version"] = 3
     reopened.store.save_snapshot(reopened._last_log_id, pickle.dumps(state), keep=1)
     reopened.close()
