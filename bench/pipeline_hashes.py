@@ -41,10 +41,11 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from service.frames_io import frame_to_dict
+from service.offline.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
-
 
 
 def _sha(text: str) -> str:
@@ -56,7 +57,7 @@ DATA_DIR = Path(os.environ.get("COVSLAM_DATA", ROOT.parent / "shared" / "data"))
 _MAIN = (
     "import sys\n"
     "try:\n    from api.cli import main\n"
-    "except ImportError:\n    from service.cli import main\n"
+    "except ImportError:\n    from api.cli import main\n"
     "sys.argv[0] = 'covslam'\nsys.exit(main())"
 )
 
@@ -120,12 +121,6 @@ def _follower(docs: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:
 
 
 def mrclam(tmp: Path, frames: int, directory: Path) -> dict[str, Any]:
-    try:
-        from service.offline.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
-        from service.offline.frames_io import frame_to_dict
-    except ImportError:  # the layout before service.offline
-        from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
-        from service.frames_io import frame_to_dict
     if not directory.is_dir():
         return {"skipped": f"no MRCLAM-6 data at {directory}"}
     all_frames, _ = mrclam_frames(load_mrclam(directory, 1))

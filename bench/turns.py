@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from graph.localiser import LOST
-from service.datasets.camera_runs import CAMERA, render_turn_run, run_turns
+from service.offline.datasets.camera_runs import CAMERA, render_turn_run, run_turns
 
 
 def plot(doc: dict[str, Any], path: Path) -> None:

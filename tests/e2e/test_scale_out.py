@@ -89,7 +89,7 @@ def test_a_postgres_restart_costs_clients_a_retry_and_nothing_else(
 
 def test_engine_ray_without_ray_fails_with_one_line(tmp_path: Path) -> None:
     code = (
-        "import sys; sys.modules['ray'] = None; from service.cli import main; "
+        "import sys; sys.modules['ray'] = None; from api.cli import main; "
         "sys.exit(main(['serve', '--engine', 'ray', '--port', '0', '--data-dir', sys.argv[1]]))"
     )
     done = subprocess.run(

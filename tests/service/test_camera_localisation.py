@@ -15,7 +15,7 @@ import pytest
 
 from graph.angles import wrap_angle
 from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING
-from service.datasets.camera_runs import (
+from service.offline.datasets.camera_runs import (
     CONFIG,
     Leg,
     mapping_path,
@@ -25,7 +25,7 @@ from service.datasets.camera_runs import (
     start_pose,
     straight,
 )
-from service.datasets.render import TexturedWorld
+from service.offline.datasets.render import TexturedWorld
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from frontend.cameras import PanoramaCamera
-from service.datasets.render_run import write_rendered_run
 from service.errors import ServiceError
+from service.offline.datasets.render_run import write_rendered_run
 from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings

@@ -15,8 +15,8 @@ from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
 from graph.types import FrameInput, Odometry, Pose2D
-from service.datasets.indoor_sim import make_world
-from service.datasets.render import make_textured_world, render_panorama
+from service.offline.datasets.indoor_sim import make_world
+from service.offline.datasets.render import make_textured_world, render_panorama
 from service.pipeline.images import ImageFrontEnd
 from service.pipeline.robots import RobotState
 

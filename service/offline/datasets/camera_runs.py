@@ -27,10 +27,10 @@ from frontend.cameras import PanoramaCamera
 from graph.angles import wrap_angle
 from graph.localiser import LOST, Localiser
 from graph.types import FrameInput, Odometry, Pose2D
-from service.datasets.indoor_sim import make_world
-from service.datasets.mrclam import relative_motion
-from service.datasets.render import TexturedWorld, make_textured_world, render_panorama
 from service.frames_io import frame_to_dict
+from service.offline.datasets.indoor_sim import make_world
+from service.offline.datasets.mrclam import relative_motion
+from service.offline.datasets.render import TexturedWorld, make_textured_world, render_panorama
 from service.pipeline.covariance import to_map_frame
 from service.pipeline.localiser import landmark_map, map_localiser_config
 from service.session import MapSession
