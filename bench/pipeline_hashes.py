@@ -41,6 +41,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from service import queries
 from service.frames_io import frame_to_dict
 from service.offline.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
 from service.session import MapSession
@@ -97,7 +98,7 @@ def _session_run(
         results.append(doc)
         if session.snapshot_due:
             session.snapshot()
-    trajectory = session.trajectory()
+    trajectory = queries.trajectory(session)
     session.close()
     return {
         "results": _sha(json.dumps(results, sort_keys=True)),

@@ -27,24 +27,14 @@ from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
-from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
+from service.frame_results import frame_events, result_doc
 from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
-from service.mapconfig import MapConfig, slam_config, slam_config_dict
+from service.mapconfig import MapConfig, slam_config
 from service.pipeline import FrameStep, ImageFeatures, MapPipeline
-from service.pipeline.images import parse_state_doc
-from service.pipeline.localiser import PlaceLocaliser
 from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place
-from service.views import (
-    attach_frame_stats,
-    coverage_doc,
-    landmarks_doc,
-    pose_doc,
-    restored_events,
-    trajectory_doc,
-)
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +114,16 @@ class _Buffer(Generic[T]):
         return items
 
 
+def _restore_imported_frontend(pipeline: MapPipeline, imported: Any, upto: int, last: int) -> None:
+    """Replaying an imported map's log without a snapshot from after its import: put
+    the export's front-end state back where the import did (after log frame `after`)."""
+    if imported is None or pipeline.images is None:
+        return
+    after = int(imported["after"])
+    if last == after and upto <= after:
+        pipeline.images.set_state_doc(imported["state"])
+
+
 class MapSession:
     """One map: estimator + store. Not thread-safe; one worker process calls it."""
 
@@ -173,16 +173,21 @@ class MapSession:
         """The map's estimator."""
         return self.pipeline.slam
 
+    @property
+    def last_log_id(self) -> int:
+        """Id of the last frame in the map's log that the pipeline took."""
+        return self._last_log_id
+
     def _fresh(self) -> MapPipeline:
         config = slam_config(self.record.config, self.record.mode)
         slam = BearingSlam(
             config,
-            rng=np.random.default_rng(self._seed()),
+            rng=np.random.default_rng(self.seed()),
             removal_sink=self._removals.append,
             trajectory_sink=self._poses.extend,
         )
         front_end = None if self.vision is None else self.vision.front_end
-        return fresh_pipeline(slam, seed=self._seed(), front_end=front_end)
+        return fresh_pipeline(slam, seed=self.seed(), front_end=front_end)
 
     def _load(self) -> tuple[MapPipeline, int, int]:
         """Latest snapshot + the log's tail: (pipeline, last log id, frames since
@@ -201,7 +206,7 @@ class MapSession:
                 pipeline = restore_pipeline(
                     snap[1],
                     frontend,
-                    seed=self._seed(),
+                    seed=self.seed(),
                     front_end=None if self.vision is None else self.vision.front_end,
                     removal_sink=self._removals.append,
                     trajectory_sink=self._poses.extend,
@@ -218,12 +223,12 @@ class MapSession:
         last = upto
         imported = None if self.vision is None else self.store.get_meta(IMPORTED_FRONTEND)
         for stored in tail:
-            self._restore_imported_frontend(pipeline, imported, upto, last)
+            _restore_imported_frontend(pipeline, imported, upto, last)
             self._replay(pipeline, stored)
             last = stored.id
             if len(self._poses.items) >= _POSE_FLUSH:
                 self.store.put_poses(self._poses.take())
-        self._restore_imported_frontend(pipeline, imported, upto, last)
+        _restore_imported_frontend(pipeline, imported, upto, last)
         # Rows the tail made final again (replaced: a restored estimator may round a
         # little differently from the one that first made them final).
         self.store.put_poses(self._poses.take())
@@ -235,18 +240,6 @@ class MapSession:
             1e3 * (time.perf_counter() - t0),
         )
         return pipeline, last, len(tail)
-
-    @staticmethod
-    def _restore_imported_frontend(
-        pipeline: MapPipeline, imported: Any, upto: int, last: int
-    ) -> None:
-        """Replaying an imported map's log without a snapshot from after its import: put
-        the export's front-end state back where the import did (after log frame `after`)."""
-        if imported is None or pipeline.images is None:
-            return
-        after = int(imported["after"])
-        if last == after and upto <= after:
-            pipeline.images.set_state_doc(imported["state"])
 
     def _replay(self, pipeline: MapPipeline, stored: StoredFrame) -> None:
         if stored.result is None:
@@ -290,7 +283,7 @@ class MapSession:
             return
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
-            result = self._result_doc(pipeline.slam, step, stored.id, {})
+            result = result_doc(pipeline.slam, step, stored.id, {})
             self._complete(
                 pipeline.slam,
                 stored.id,
@@ -433,7 +426,7 @@ class MapSession:
             raise
         removals = self._removals.take()
         final = step.outcome
-        result = self._result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
+        result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
         event_ids = self._complete(
@@ -488,68 +481,20 @@ class MapSession:
         step = self.pipeline.step(frame, image=ImageFeatures(features, sig))
         return step, _observations_json(step.observations), timing
 
-    def _result_doc(
-        self, slam: BearingSlam, localised: FrameStep, log_id: int, timing: dict[str, float]
-    ) -> dict[str, Any]:
-        outcome = localised.outcome
-        pose = localised.pose
-        return {
-            "frame_id": log_id,
-            "robot": localised.robot,
-            "seq": localised.seq,
-            "stamp": localised.stamp,
-            "pose": {"x": pose.x, "y": pose.y, "theta": pose.theta},
-            "covariance": np.asarray(localised.covariance).tolist(),
-            "localisation": {
-                "status": localised.status,
-                "place": localised.place,
-                "confidence": localised.confidence,
-            },
-            "landmarks": {
-                "observed": [] if outcome is None else list(outcome.observed),
-                "added": [] if outcome is None else list(outcome.added),
-                "marginalised": [] if outcome is None else list(outcome.marginalised),
-                "live": len(slam.landmarks),
-            },
-            "timing_ms": {
-                **({} if outcome is None else outcome.timing_ms),
-                "localise": localised.timing_ms["localise"],
-                **timing,
-                **{k: v for k, v in localised.timing_ms.items() if k != "localise"},
-            },
-        }
-
     def _complete(
         self,
         slam: BearingSlam,
         log_id: int,
         result_json: str,
-        localised: FrameStep,
+        step: FrameStep,
         removals: list[RemovalRecord],
         observations: str | None = None,
         poses: list[PoseRow] | None = None,
     ) -> list[int]:
-        events: list[tuple[str, str]] = [("frame", result_json)]
-        added = () if localised.outcome is None else localised.outcome.added
-        if localised.learnt is not None:
-            doc = {"id": localised.learnt.id, "robot": localised.learnt.robot}
-            events.append(("place_learnt", json.dumps({**doc, "frame_id": log_id})))
-        for lid in added:
-            if lid in slam.landmarks:
-                x, y = (float(v) for v in slam.landmark_position(lid))
-                doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
-                events.append(("landmark_added", json.dumps({**doc, "frame_id": log_id})))
-        restored = () if localised.outcome is None else localised.outcome.restored
-        events.extend(restored_events(slam, restored, log_id))
-        rows = []
-        archived = []
-        for r in removals:
-            doc = {**r.as_dict(), "frame_id": log_id}
-            events.append(("landmark_marginalised", json.dumps(doc)))
-            rows.append((r.landmark_id, r.frame, json.dumps(doc)))
-            entry = slam.archive.get(r.landmark_id)
-            if entry is not None:
-                archived.append((r.landmark_id, r.frame, json.dumps(entry.as_dict())))
+        """Store the frame's result with its events, removals, archived landmarks and
+        final trajectory rows (one transaction); the events' ids."""
+        events, rows, archived = frame_events(slam, step, result_json, removals, log_id)
+        restored = () if step.outcome is None else step.outcome.restored
         return self.store.complete_frame(
             log_id,
             result_json,
@@ -561,216 +506,10 @@ class MapSession:
             restored=restored,
         )
 
-    # ------------------------------------------------------------ queries
-    def summary(self) -> dict[str, Any]:
-        ms = np.asarray(self._timing) if self._timing else None
-        off_graph = self.pipeline.off_graph_count()
-        robots = self.slam.robots
-        robots += [r for r in self.pipeline.off_graph_robots() if r not in robots]
-        return {
-            **self.record.as_dict(),
-            "estimator": slam_config_dict(self.slam.config),
-            "counts": {
-                "frames": self.slam.frame_count + off_graph,
-                "off_graph_frames": off_graph,
-                "graph_frames": self.slam.graph_frame_count,
-                "robots": len(robots),
-                "live_landmarks": len(self.slam.landmarks),
-                "candidates": self.slam.candidate_count,
-                "removals": self.store.removal_count(),
-                "graph_variables": self.slam.graph.num_variables,
-                "graph_factors": self.slam.graph.num_factors,
-                "replay_errors": self.replay_errors,
-            },
-            "robots": robots,
-            "timing_ms": None
-            if ms is None
-            else {
-                "frames": len(ms),
-                "mean": float(ms.mean()),
-                "p50": float(np.percentile(ms, 50)),
-                "p99": float(np.percentile(ms, 99)),
-            },
-        }
-
-    @property
-    def _loc(self) -> PlaceLocaliser:
-        assert self.pipeline.localiser is not None
-        return self.pipeline.localiser
-
-    def _seed(self) -> int:
+    def seed(self) -> int:
+        """The map's seed (its config's)."""
         return MapConfig.model_validate(self.record.config).seed
 
-    def pose(self) -> dict[str, Any]:
-        """Latest pose per robot, the graph's or (initialising, lost) the best off-graph
-        one: see MapLocalisation.robot_poses."""
-        doc = pose_doc(self.slam, self.record.id)
-        for name, robot in doc["robots"].items():
-            robot["localisation"] = self._loc.localisation(name, self.pipeline.robots.get(name))
-        for name, off in self._loc.robot_poses(self.pipeline.robots).items():
-            if off["pose"] is None and name in doc["robots"]:
-                continue
-            doc["robots"][name] = off
-        return doc
-
-    def places(self) -> dict[str, Any]:
-        """Learnt places and the transitions between them."""
-        return {"map_id": self.record.id, **self._loc.places_doc()}
-
-    def learn_place(self, robot: str | None) -> dict[str, Any]:
-        """Learn a place at a robot's current pose now (default: the last robot that sent a
-        frame); the snapshot taken after it keeps it across restarts."""
-        known = self.pipeline.last_accepted()
-        if robot is None:
-            if not known:
-                raise ServiceError(
-                    409, "no-robot", "No robot yet", "robot: the map has no robot to learn at"
-                )
-            robot = max(known, key=lambda r: known[r][1])
-        if robot not in known:
-            raise ServiceError(
-                404,
-                "unknown-robot",
-                "Unknown robot",
-                f"robot: map {self.record.id!r} has no robot {robot!r}",
-                field="robot",
-            )
-        if self._loc.status(robot) != "tracking":
-            raise ServiceError(
-                409,
-                "not-localised",
-                "Robot not localised",
-                f"robot: {robot!r} is {self._loc.status(robot)}; a place is learnt at a "
-                "tracked pose",
-                field="robot",
-            )
-        place = self._loc.learn(self.slam, robot, stamp=known[robot][1])
-        if place is None:
-            raise ServiceError(
-                409,
-                "too-few-landmarks",
-                "Too few landmarks",
-                f"robot: fewer than {self._loc.localiser.config.places.min_landmarks} mapped "
-                f"landmarks lie within {self._loc.localiser.config.places.max_depth_m} m of "
-                f"{robot!r}",
-                field="robot",
-            )
-        self.snapshot()
-        doc = self._loc.places_doc()
-        return {"map_id": self.record.id, "place": doc["places"][place.id], **doc}
-
-    def trajectory(
-        self, robot: str | None = None, *, stats_every: int = 0
-    ) -> dict[str, list[dict[str, Any]]]:
-        state = None if robot is None else self.pipeline.robots.get(robot)
-        if robot not in self.slam.robots and state is not None and state.last is not None:
-            rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
-        else:
-            rows = dict(trajectory_doc(self.slam, self.store, self.record.id, robot))
-        self.pipeline.with_off_graph(rows, robot)
-        if stats_every > 0:
-            labels = self.store.removed_labels()
-            labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())
-            attach_frame_stats(rows, self.store.frame_stats(), labels, every=stats_every)
-        return rows
-
-    def landmarks(self, state: str = "live") -> list[dict[str, Any]]:
-        """The live landmarks, or (`state` "archived") those in the archive."""
-        if state == "archived":
-            return self.store.archived()
-        return landmarks_doc(self.slam, self._seed())
-
-    def coverage(self, *, cell_m: float, radius_m: float, removals: int) -> dict[str, Any]:
-        return coverage_doc(
-            self.slam,
-            self.store,
-            self.record.id,
-            self._seed(),
-            cell_m=cell_m,
-            radius_m=radius_m,
-            removals=removals,
-        )
-
-    # ------------------------------------------------------------ export / import
-    def export(self) -> dict[str, Any]:
-        """The map document. An image frame carries its image's digest and the
-        observations the front end made of it (not the image); a camera map's document
-        has the front end's state (`frontend`: landmark descriptors, tracks, last poses)."""
-        frames = []
-        for stored in self.store.frames_after(0):
-            body = json.loads(stored.body)
-            if "image" in body:
-                observations = self.store.image_observations(stored.id)
-                if observations is None:
-                    raise ServiceError(
-                        422,
-                        "not-exportable",
-                        "Map cannot be exported",
-                        f"frame {stored.id} (robot {stored.robot!r} seq {stored.seq}): an "
-                        "image frame whose observations were not recorded (logged by an "
-                        "older version); an export carries observations, not images",
-                    )
-                body["observations"] = observations
-            frames.append(
-                {
-                    "frame": body,
-                    "result": None if stored.result is None else json.loads(stored.result),
-                }
-            )
-        images = self.pipeline.images
-        front = {} if images is None else {"frontend": images.state_doc()}
-        return {
-            "format": EXPORT_FORMAT,
-            "version": EXPORT_VERSION,
-            "exported": time.time(),
-            "map": self.record.as_dict(),
-            "estimator": slam_config_dict(self.slam.config),
-            "landmarks": self.landmarks(),
-            "trajectories": self.trajectory(),
-            "removals": self.store.removals(),
-            "frames": frames,
-            **front,
-        }
-
-    def import_frames(self, frames: list[dict[str, Any]], frontend: Any = None) -> None:
-        """Replay an export's frame log into this (new, empty) map; then put back the
-        front end's state of a camera map (`frontend`, the export's; without it the
-        front end starts afresh: its landmarks have no descriptors to match)."""
-        if frontend is not None and self.vision is None:
-            raise ServiceError(
-                422,
-                "invalid-import",
-                "Invalid map document",
-                "frontend: a front-end state for a map without a camera",
-                field="frontend",
-            )
-        if frontend is not None and self.vision is not None:
-            try:  # refuse a bad state before replaying anything
-                parse_state_doc(frontend, self.vision.front_end.associator.config)
-            except ValueError as exc:
-                raise ServiceError(
-                    422, "invalid-import", "Invalid map document", str(exc), field="frontend"
-                ) from exc
-        for i, item in enumerate(frames):
-            if not isinstance(item, dict) or not isinstance(item.get("frame"), dict):
-                raise ServiceError(
-                    422,
-                    "invalid-import",
-                    "Invalid map document",
-                    f"frames[{i}].frame: must be a frame object",
-                    field=f"frames[{i}].frame",
-                )
-            try:
-                self.submit(item["frame"], imported="image" in item["frame"])
-            except ServiceError as exc:
-                raise ServiceError(
-                    422,
-                    "invalid-import",
-                    "Invalid map document",
-                    f"frames[{i}].frame: {exc.detail}",
-                    field=f"frames[{i}].frame",
-                ) from exc
-        if frontend is not None and self.pipeline.images is not None:
-            self.pipeline.images.set_state_doc(frontend)
-            self.store.set_meta(IMPORTED_FRONTEND, {"after": self._last_log_id, "state": frontend})
-        self.snapshot()
+    def frame_ms(self) -> list[float]:
+        """Processing time of the last (up to 1000) frames this session took, ms."""
+        return list(self._timing)
