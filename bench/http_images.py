@@ -8,7 +8,7 @@ Run from the repository root (never during someone else's benchmark: 2 cores)::
 A rendered run (service.offline.datasets.render_run, the 3x3 indoor world, PNG files) is
 posted frame by frame. Every frame goes, in turn, through:
 
-``pipeline``   ``ImagePipeline.submit(frame, png_bytes)`` in this process: decode,
+``pipeline``   ``ImageFrontEnd.submit(frame, png_bytes)`` in this process: decode,
                features, association, estimator (no log);
 ``session``    ``MapSession.submit(meta, png_bytes)`` in this process: the above plus
                the durable log (frame row + image blob, SQLite WAL) and the helper
@@ -48,7 +48,6 @@ from typing import Any
 
 import httpx
 import numpy as np
-from service.vision import ImagePipeline
 
 from frontend.cameras import PanoramaCamera
 from frontend.pipeline import FrontEnd
@@ -56,6 +55,7 @@ from graph.slam import BearingSlam
 from service.frames_io import frame_from_dict
 from service.mapconfig import CAMERA_NOISE_DEFAULTS, MapConfig, slam_config
 from service.offline.datasets.render_run import write_rendered_run
+from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     config = MapConfig.model_validate(config).for_new_map(None).model_dump(mode="json")
     load_start = os.getloadavg()
     print(f"{len(frames)} frames, load average {load_start[0]:.1f}, config {config}")
-    pipeline = ImagePipeline(
+    pipeline = ImageFrontEnd(
         BearingSlam(slam_config(config, "mapping"), rng=np.random.default_rng(0)),
         FrontEnd(camera),
     )

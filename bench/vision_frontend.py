@@ -4,7 +4,7 @@ A robot drives `indoor_sim`'s 3x3 rooms (doors, revisits); every frame is
 rendered as a 2048x512 panorama (service.offline.datasets.render). Two maps are run on
 the same frames with the same estimator settings:
 
-- images: the front end's features and association (service.vision.ImagePipeline);
+- images: the front end's features and association (service.pipeline.images.ImageFrontEnd);
 - oracle: the same features, labelled with their true identity (the poster
   corner they lie on, within `--truth-px` pixels; others dropped).
 
@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from service.vision import ImagePipeline
 
 from frontend.association import AssociationConfig
 from frontend.cameras import PanoramaCamera
@@ -60,6 +59,7 @@ from service.offline.datasets.render import (
     visible_corners,
 )
 from service.offline.evaluation import Trajectory, ate_rmse
+from service.pipeline.images import ImageFrontEnd
 
 log = logging.getLogger("bench.vision_frontend")
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -216,7 +216,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         association = replace(association, coincident_rad=math.radians(args.coincident_deg))
     if args.elevation_gate is not None:
         association = replace(association, landmark_elevation_gate=args.elevation_gate)
-    pipeline = ImagePipeline(
+    pipeline = ImageFrontEnd(
         BearingSlam(config, rng=np.random.default_rng(args.seed)),
         FrontEnd(camera, association=association),
     )

@@ -42,7 +42,7 @@ FloatArray = NDArray[np.float64]
 
 COMPASS_GATE = 3.0
 """Odometry heading sigmas beyond which the visual compass's turn replaces the odometry's
-in the prediction (see ImagePipeline.predict)."""
+in the prediction (see ImageFrontEnd.predict)."""
 COMPASS_MIN_SCORE = 0.6
 """Correlation two consecutive panoramas' signatures need for the compass to count."""
 
