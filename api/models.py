@@ -13,15 +13,12 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.exchange import MAP_NAME_MAX_CHARS
+from service.frame_results import COV3, Localisation, PoseXYTheta
+from service.frame_results import FrameResult as FrameResult  # the frames route's model
 from service.keys import Scope
 from service.mapconfig import MapConfig, Mode
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-COV3 = (
-    "3x3 covariance of (x [m], y [m], theta [rad]) of the pose, x/y in the map frame, "
-    "row-major, units m², m·rad, rad²"
-)
 
 
 class FieldError(BaseModel):
@@ -131,53 +128,6 @@ class MapBrief(BaseModel):
 
 # A posted frame's model is service.frame_model.FrameIn: the one validation of a frame
 # (posted, in a frame file or in a map's log) and its OpenAPI schema.
-
-
-class PoseXYTheta(BaseModel):
-    """A pose in the map frame."""
-
-    x: float = Field(description="metres, map frame")
-    y: float = Field(description="metres, map frame")
-    theta: float = Field(
-        description="yaw, radians, counter-clockwise from the map's +x axis, in (-pi, pi]"
-    )
-
-
-class Localisation(BaseModel):
-    status: Literal["initialising", "tracking", "lost", "relocalised"] = Field(
-        description="initialising (no pose yet: the filter searches), tracking (the graph "
-        "tracks the robot), lost (graph and filter disagree: the filter re-localises), "
-        "relocalised (this frame anchored the robot's pose chain at the filter's estimate)"
-    )
-    place: int | None = Field(None, description="id of the current place, if any")
-    confidence: float | None = Field(None, description="confidence in [0, 1], if known")
-
-
-class LandmarkChanges(BaseModel):
-    observed: list[int] = Field(description="ids of live landmarks observed in this frame")
-    added: list[int] = Field(description="ids of landmarks this frame initialised")
-    marginalised: list[int] = Field(description="ids the landmark budget removed after it")
-    live: int = Field(description="live landmarks after the frame")
-
-
-class FrameResult(BaseModel):
-    """What one frame did to the map."""
-
-    frame_id: int = Field(description="position of the frame in the map's log (1-based)")
-    robot: str = Field(description="robot name, as posted")
-    seq: int = Field(description="seq, as posted")
-    stamp: float = Field(description="seconds, as posted")
-    pose: PoseXYTheta = Field(description="the robot's estimated pose at this frame")
-    covariance: list[list[float]] | None = Field(description=COV3)
-    localisation: Localisation = Field(description="localisation status of the robot")
-    landmarks: LandmarkChanges = Field(description="what the frame did to the landmarks")
-    timing_ms: dict[str, float] = Field(
-        description="worker time per stage, milliseconds (prepare, update, budget, "
-        "covariance, total; log = parse, checks and the committed append to the durable log; "
-        "image frames also: decode = PNG/JPEG decoding + validation (+ omni unwrap) and "
-        "features = feature extraction, both in the helper thread, "
-        "features_wait = how long the frame waited for them after logging, association)"
-    )
 
 
 # --------------------------------------------------------------------------- queries

@@ -4,7 +4,7 @@ Per robot and policy: ATE RMSE (unaligned: every run is anchored at ground truth
 its first frame; and after a least-squares SE(2) alignment), removals, restorations
 of archived landmarks, landmark ids handed out, median ms per frame and the replay's
 CPU seconds (the machine may be shared: CPU time is the fairer comparison). Odometry noise:
-graph defaults plus MRCLAM's heading drift (service.datasets.mrclam.mrclam_noise).
+graph defaults plus MRCLAM's heading drift (service.offline.datasets.mrclam.mrclam_noise).
 
     python -m bench.archive_mrclam --restore on  --out bench/results/archive_mrclam_on.json
     python -m bench.archive_mrclam --restore off --out bench/results/archive_mrclam_off.json
@@ -28,9 +28,14 @@ from typing import Any
 import numpy as np
 
 from graph.config import SlamConfig
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames, mrclam_noise
-from service.evaluation import ate_rmse
-from service.replay import replay
+from service.offline.datasets.mrclam import (
+    default_mrclam_dir,
+    load_mrclam,
+    mrclam_frames,
+    mrclam_noise,
+)
+from service.offline.evaluation import ate_rmse
+from service.offline.replay import replay
 
 POLICIES = ("information", "coverage")
 

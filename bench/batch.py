@@ -26,7 +26,7 @@ from graph.factors import (
 )
 from graph.triangulation import triangulate
 from graph.types import FrameInput
-from service.evaluation import Trajectory, dead_reckoning
+from service.offline.evaluation import Trajectory, dead_reckoning
 
 
 @dataclass(frozen=True)

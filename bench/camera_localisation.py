@@ -36,7 +36,7 @@ import numpy as np
 
 from graph.angles import wrap_angle
 from graph.localiser import INITIALISING, LOST, RELOCALISED
-from service.datasets.camera_runs import (
+from service.offline.datasets.camera_runs import (
     CAMERA,
     CONFIG,
     Leg,
@@ -47,7 +47,7 @@ from service.datasets.camera_runs import (
     start_pose,
     straight,
 )
-from service.datasets.render import TexturedWorld
+from service.offline.datasets.render import TexturedWorld
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord

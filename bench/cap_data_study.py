@@ -54,9 +54,14 @@ from bench.lifelong import machine_info
 from graph.config import SlamConfig
 from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames, mrclam_noise
-from service.evaluation import Trajectory, ate_rmse
-from service.replay import ReplayResult, replay
+from service.offline.datasets.mrclam import (
+    default_mrclam_dir,
+    load_mrclam,
+    mrclam_frames,
+    mrclam_noise,
+)
+from service.offline.evaluation import Trajectory, ate_rmse
+from service.offline.replay import ReplayResult, replay
 
 log = logging.getLogger("bench.cap_data_study")
 

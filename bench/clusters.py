@@ -328,7 +328,7 @@ class Service:
         full_env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning", **(env or {})}
         with log.open("ab") as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port), *args],
+                [sys.executable, "-m", "api.cli", "serve", "--port", str(self.port), *args],
                 env=full_env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
             )  # fmt: skip
 

@@ -5,10 +5,10 @@ Run from the repository root (never during someone else's benchmark: 2 cores)::
     python -m bench.http_images [--frames 300] [--width 2048] [--render-dir DIR]
                                 [--out bench/results]
 
-A rendered run (service.datasets.render_run, the 3x3 indoor world, PNG files) is
+A rendered run (service.offline.datasets.render_run, the 3x3 indoor world, PNG files) is
 posted frame by frame. Every frame goes, in turn, through:
 
-``pipeline``   ``ImagePipeline.submit(frame, png_bytes)`` in this process: decode,
+``pipeline``   ``ImageFrontEnd.submit(frame, png_bytes)`` in this process: decode,
                features, association, estimator (no log);
 ``session``    ``MapSession.submit(meta, png_bytes)`` in this process: the above plus
                the durable log (frame row + image blob, SQLite WAL) and the helper
@@ -52,13 +52,13 @@ import numpy as np
 from frontend.cameras import PanoramaCamera
 from frontend.pipeline import FrontEnd
 from graph.slam import BearingSlam
-from service.datasets.render_run import write_rendered_run
 from service.frames_io import frame_from_dict
 from service.mapconfig import CAMERA_NOISE_DEFAULTS, MapConfig, slam_config
+from service.offline.datasets.render_run import write_rendered_run
+from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord
-from service.vision import ImagePipeline
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = (
@@ -102,7 +102,7 @@ def _serve(data_dir: Path, read_ahead: int | None = None) -> tuple[subprocess.Po
     if read_ahead is not None:
         env["COVSLAM_WORKERS__READ_AHEAD"] = str(read_ahead)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--port", str(port),
+        [sys.executable, "-m", "api.cli", "serve", "--port", str(port),
          "--data-dir", str(data_dir), "--workers", "2"],
         cwd=REPO, env=env, start_new_session=True,
     )  # fmt: skip
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     config = MapConfig.model_validate(config).for_new_map(None).model_dump(mode="json")
     load_start = os.getloadavg()
     print(f"{len(frames)} frames, load average {load_start[0]:.1f}, config {config}")
-    pipeline = ImagePipeline(
+    pipeline = ImageFrontEnd(
         BearingSlam(slam_config(config, "mapping"), rng=np.random.default_rng(0)),
         FrontEnd(camera),
     )

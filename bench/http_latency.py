@@ -53,10 +53,10 @@ from typing import Any, Literal
 import numpy as np
 
 from graph.types import FrameInput
-from service.datasets.indoor_sim import make_world, simulate
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.frames_io import frame_to_dict
 from service.mapconfig import slam_config
+from service.offline.datasets.indoor_sim import make_world, simulate
+from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord
@@ -154,7 +154,7 @@ def _serve(data_dir: Path, sync: str, nice: int) -> tuple[subprocess.Popen[bytes
         "COVSLAM_LOG_LEVEL": "warning",
     }
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--port", str(port),
+        [sys.executable, "-m", "api.cli", "serve", "--port", str(port),
          "--data-dir", str(data_dir), "--workers", "2"],
         cwd=REPO, env=env, start_new_session=True,
     )  # fmt: skip

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from frontend.cameras import PanoramaCamera
-from service.datasets.render_run import write_rendered_run
+from service.offline.datasets.render_run import write_rendered_run
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord

@@ -5,7 +5,7 @@ Run from the repository root::
     python -m bench.lifelong [--frames 20000] [--baseline-frames N]
                              [--baseline-budget-s 900] [--out bench/results]
 
-One deterministic simulated run (``service.datasets.indoor_sim``: 3x3 rooms, 225
+One deterministic simulated run (``service.offline.datasets.indoor_sim``: 3x3 rooms, 225
 landmarks, fixed seed) is fed through two estimators, each in its own fresh
 child process (``--worker``, started with ``subprocess``) so that one run's
 memory cannot show up in the other's RSS:
@@ -18,7 +18,7 @@ memory cannot show up in the other's RSS:
     over the same frames until ``--baseline-frames`` frames are done or
     ``--baseline-budget-s`` seconds of wall time are spent, whichever first.
 
-The child's loop is that of ``service.replay.replay`` (same map seed, no pose
+The child's loop is that of ``service.offline.replay.replay`` (same map seed, no pose
 covariance, ``perf_counter`` around ``BearingSlam.process``, current RSS every
 100 frames) plus the per-stage timings of ``FrameOutcome.timing_ms``, the
 wall-time budget, and a clean stop (reported) if the estimator raises.
@@ -73,9 +73,9 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from graph.config import SlamConfig
-from service.datasets.indoor_sim import DENSE_OBSERVATIONS, SimRun, make_world, simulate
-from service.evaluation import Trajectory, ate_rmse
-from service.replay import (
+from service.offline.datasets.indoor_sim import DENSE_OBSERVATIONS, SimRun, make_world, simulate
+from service.offline.evaluation import Trajectory, ate_rmse
+from service.offline.replay import (
     current_rss_mb,
     peak_rss_mb,
     reset_peak_rss,

@@ -45,9 +45,9 @@ from graph.angles import wrap_angle
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
 from graph.types import FrameInput, Odometry
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
-from service.evaluation import Trajectory, interpolate
 from service.frames_io import frame_to_dict
+from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.offline.evaluation import Trajectory, interpolate
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord

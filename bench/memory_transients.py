@@ -44,7 +44,7 @@ import numpy as np
 from bench.lifelong import RUNS, SEED, machine_info, make_run
 from graph.isam import IncrementalGraph
 from graph.slam import BearingSlam
-from service.replay import current_rss_mb, reset_peak_rss
+from service.offline.replay import current_rss_mb, reset_peak_rss
 
 TOP_FRAMES = 12
 """Frames with the largest transients listed with their steps."""

@@ -5,7 +5,7 @@ Every method is judged as a map's user sees it, with the losses kept apart:
 - ``ate_m``: trajectory error in the map's own frame (the frame of the initial pose
   the robot gave), and ``ate_aligned_m`` after the best rigid motion onto ground truth
   (the trajectory's shape);
-- the map's landmarks against their surveyed positions (service.evaluation.MapFit):
+- the map's landmarks against their surveyed positions (service.offline.evaluation.MapFit):
   where the map frame went (``rotation_deg``, ``shift_m``) and the landmarks' RMS error
   unaligned (``rmse_m``) and after the best rigid fit (``rmse_aligned_m``). A capped map
   is judged on every landmark it has met: a live one at its estimate, a removed one at
@@ -39,15 +39,15 @@ import numpy as np
 from bench.batch import batch_solve
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
-from service.datasets.mrclam import (
+from service.offline.datasets.mrclam import (
     default_mrclam_dir,
     load_mrclam,
     mrclam_frames,
     mrclam_noise,
     surveyed_landmarks,
 )
-from service.evaluation import Trajectory, ate_rmse, dead_reckoning, fit_landmarks
-from service.replay import ReplayResult, replay
+from service.offline.evaluation import Trajectory, ate_rmse, dead_reckoning, fit_landmarks
+from service.offline.replay import ReplayResult, replay
 
 CAP = 8
 STOCHASTIC = ("coverage", "coverage_paper", "random")

@@ -25,9 +25,14 @@ from typing import Any
 
 from graph.config import SlamConfig
 from graph.types import FrameInput
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames, mrclam_noise
-from service.evaluation import Trajectory, ate_rmse, read_tum
-from service.http_client import fetch_tum, replay_http
+from service.offline.datasets.mrclam import (
+    default_mrclam_dir,
+    load_mrclam,
+    mrclam_frames,
+    mrclam_noise,
+)
+from service.offline.evaluation import Trajectory, ate_rmse, read_tum
+from service.offline.http_client import fetch_tum, replay_http
 
 
 def merged_frames(directory: Path, robots: list[int]) -> tuple[list[FrameInput], dict[str, Any]]:

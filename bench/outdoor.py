@@ -8,7 +8,7 @@ else's benchmark)::
     python -m bench.outdoor --url http://127.0.0.1:8000 [--seed 0] [--out bench/results]
         [--name outdoor] [--odometry-scale 1.01] [--maps default,outdoor,...]
 
-World (service.datasets.outdoor_sim, seed ``--seed``, the run ``--seed + 1``): a
+World (service.offline.datasets.outdoor_sim, seed ``--seed``, the run ``--seed + 1``): a
 rounded-rectangle loop road 160 x 80 m (445 m a lap), 150 trees 5-80 m from it; 1.5
 laps at 0.75 m a frame (892 frames), up to 12 bearings a frame (sigma 1 deg) to trees
 within 100 m, wheel odometry with 2 % noise and a 1 % scale error. Four maps, the
@@ -42,10 +42,10 @@ from typing import Any
 import httpx
 import numpy as np
 
-from service.datasets.indoor_sim import SimRun
-from service.datasets.outdoor_sim import make_outdoor_world, simulate_outdoor
-from service.evaluation import Trajectory, ate_rmse, dead_reckoning, landmark_errors
-from service.http_client import replay_http
+from service.offline.datasets.indoor_sim import SimRun
+from service.offline.datasets.outdoor_sim import make_outdoor_world, simulate_outdoor
+from service.offline.evaluation import Trajectory, ate_rmse, dead_reckoning, landmark_errors
+from service.offline.http_client import replay_http
 
 OUTDOOR_TRIANGULATION: dict[str, Any] = {
     "max_depth_m": 100.0,

@@ -1,6 +1,6 @@
 """Appearance-based place recognition on rendered panoramas (frontend.appearance).
 
-A textured 3x3-room world (service.datasets.render); places at random poses inside the
+A textured 3x3-room world (service.offline.datasets.render); places at random poses inside the
 rooms (away from the walls), each with the signature of the panorama rendered there at
 yaw 0. Queries near each place: any yaw (uniform over 0-360 deg), a position offset
 (`--offsets`, metres, random direction), and a lighting change (gain 0.5-1.5, gamma
@@ -30,8 +30,8 @@ import numpy as np
 from frontend.appearance import AppearanceIndex, SignatureConfig, signature
 from frontend.cameras import PanoramaCamera
 from graph.angles import wrap_angle
-from service.datasets.indoor_sim import make_world
-from service.datasets.render import make_textured_world, render_panorama
+from service.offline.datasets.indoor_sim import make_world
+from service.offline.datasets.render import make_textured_world, render_panorama
 
 
 def relight(image: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict[str, float]]:

@@ -5,7 +5,7 @@
    three TUM files must be byte-identical (their sha256 is reported).
 2. Failover: ray/PostgreSQL on a local two-node Ray cluster (``ray start``, one CPU per
    node). M maps, one client per map posting the first F frames of MRCLAM robot 1..M
-   (``service.http_client.replay_http``: it retries on 503 and transport errors, as any
+   (``service.offline.http_client.replay_http``: it retries on 503 and transport errors, as any
    client should). Once map 0 has K acknowledged frames, the process hosting its actor
    is killed with SIGKILL; the time until map 0 answers again is measured with GET
    /pose polled every 20 ms. Afterwards, for every map: the frame log holds exactly the
@@ -39,9 +39,9 @@ import numpy as np
 
 from bench.clusters import LocalRayCluster, PrivatePostgres, Service
 from graph.types import FrameInput
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.frames_io import frame_to_dict
-from service.http_client import HttpReplay, replay_http
+from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.offline.http_client import HttpReplay, replay_http
 
 MAP_CONFIG = {"landmark_cap": 8, "policy": "coverage"}
 
@@ -55,7 +55,7 @@ def _identity(name: str, args: list[str], robot: int, data: Path, work: Path) ->
         tum, stats = work / f"{stem}.tum", work / f"{stem}.json"
         t0 = time.monotonic()
         subprocess.run(
-            [sys.executable, "-m", "service.cli", "replay", "mrclam", str(data),
+            [sys.executable, "-m", "api.cli", "replay", "mrclam", str(data),
              "--robot", str(robot), "--url", service.url, "--trajectory", str(tum),
              "--stats", str(stats)],
             check=True, capture_output=True, text=True,

@@ -28,13 +28,13 @@ import numpy as np
 from bench.lifelong import machine_info
 from bench.mrclam_accuracy import CAP, _judge, map_landmarks
 from graph.config import SlamConfig
-from service.datasets.mrclam import (
+from service.offline.datasets.mrclam import (
     default_mrclam_dir,
     load_mrclam,
     mrclam_frames,
     surveyed_landmarks,
 )
-from service.replay import spooled_map
+from service.offline.replay import spooled_map
 
 POLICY = "information"
 METHODS: dict[str, dict[str, Any]] = {

@@ -13,7 +13,7 @@ Per frame: the status the frame result reports; the status of a watch filter (th
 place localiser's particle filter stepped on the association's labelled observations
 and the graph's pose, exactly as the service runs it on labelled frames: it goes `lost`
 when the filter and the graph disagree, or the observations stop fitting the map; the
-service now steps its own filter on image frames too (service.camera_localisation), on
+service now steps its own filter on image frames too (service.pipeline), on
 the landmark matches only, so the two can differ); the position and heading error of the
 reported pose; the landmarks the frame observed.
 
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from graph.localiser import LOST
-from service.datasets.camera_runs import CAMERA, render_turn_run, run_turns
+from service.offline.datasets.camera_runs import CAMERA, render_turn_run, run_turns
 
 
 def plot(doc: dict[str, Any], path: Path) -> None:

@@ -46,8 +46,8 @@ import numpy as np
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
 from graph.types import BearingObservation
-from service.datasets.indoor_sim import make_world, simulate
-from service.evaluation import Trajectory, ate_rmse
+from service.offline.datasets.indoor_sim import make_world, simulate
+from service.offline.evaluation import Trajectory, ate_rmse
 
 log = logging.getLogger("bench.vision_attribution")
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -138,7 +138,7 @@ def main() -> None:
     # The ground truth of the same run (vision_frontend's world and simulation, same seed).
     rng = np.random.default_rng(args.seed)
     world = make_world(rooms=(3, 3), landmarks=9, rng=rng)
-    from service.datasets.render import make_textured_world
+    from service.offline.datasets.render import make_textured_world
 
     make_textured_world(world, rng=rng)
     sim = simulate(world, frames=len(doc["frames"]), rng=rng, door_probability=0.5)

@@ -1,10 +1,10 @@
 """Vision front end on a rendered indoor run: bearing error, association precision, ATE, speed.
 
 A robot drives `indoor_sim`'s 3x3 rooms (doors, revisits); every frame is
-rendered as a 2048x512 panorama (service.datasets.render). Two maps are run on
+rendered as a 2048x512 panorama (service.offline.datasets.render). Two maps are run on
 the same frames with the same estimator settings:
 
-- images: the front end's features and association (service.vision.ImagePipeline);
+- images: the front end's features and association (service.pipeline.images.ImageFrontEnd);
 - oracle: the same features, labelled with their true identity (the poster
   corner they lie on, within `--truth-px` pixels; others dropped).
 
@@ -46,20 +46,20 @@ from graph.angles import wrap_angles
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
 from graph.types import BearingObservation
-from service.datasets.indoor_sim import SimRun, make_world, simulate
-from service.datasets.render import (
-    TexturedWorld,
-    make_textured_world,
-    render_panorama,
-    visible_corners,
-)
-from service.evaluation import Trajectory, ate_rmse
 from service.mapconfig import (
     CAMERA_GRAPH_FRAME_DISTANCE_M,
     CAMERA_LANDMARK_FACTORS,
     CAMERA_NOISE_DEFAULTS,
 )
-from service.vision import ImagePipeline
+from service.offline.datasets.indoor_sim import SimRun, make_world, simulate
+from service.offline.datasets.render import (
+    TexturedWorld,
+    make_textured_world,
+    render_panorama,
+    visible_corners,
+)
+from service.offline.evaluation import Trajectory, ate_rmse
+from service.pipeline.images import ImageFrontEnd
 
 log = logging.getLogger("bench.vision_frontend")
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -216,7 +216,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         association = replace(association, coincident_rad=math.radians(args.coincident_deg))
     if args.elevation_gate is not None:
         association = replace(association, landmark_elevation_gate=args.elevation_gate)
-    pipeline = ImagePipeline(
+    pipeline = ImageFrontEnd(
         BearingSlam(config, rng=np.random.default_rng(args.seed)),
         FrontEnd(camera, association=association),
     )
@@ -369,7 +369,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # contours): their share of the landmark matches.
     no_truth_labels = {lb for lb, ts in label_truth.items() if all(t < 0 for t in ts)}
     wrong_doc = diagnose_wrong(wrong_list, tw, identity, label_id, label_truth)
-    from service.evaluation import dead_reckoning
+    from service.offline.evaluation import dead_reckoning
 
     ate_dr = ate_rmse(dead_reckoning(sim.frames), sim.ground_truth)
     return {

@@ -33,9 +33,14 @@ import numpy as np
 from bench.lifelong import machine_info
 from graph.config import SlamConfig
 from graph.types import FrameInput, Pose2D
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames, mrclam_noise
-from service.evaluation import ate_rmse, dead_reckoning, interpolate
-from service.replay import replay
+from service.offline.datasets.mrclam import (
+    default_mrclam_dir,
+    load_mrclam,
+    mrclam_frames,
+    mrclam_noise,
+)
+from service.offline.evaluation import ate_rmse, dead_reckoning, interpolate
+from service.offline.replay import replay
 
 log = logging.getLogger("bench.window_study")
 

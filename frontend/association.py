@@ -127,7 +127,7 @@ class AssociationConfig:
     tolerances (`elevation_gate_rad` + gate_sigmas feature sigmas) of the elevation it
     predicts. At 2 (before 2026-12-03), look-alikes on other walls took over landmarks
     whose corner was out of sight: on a rendered world precision 98.81 % -> 99.33 % at 1.
-    Both fields go last: older pickled snapshots lack them, and ImagePipeline.set_state
+    Both fields go last: older pickled snapshots lack them, and ImageFrontEnd.set_associator
     gives a restored associator the service's own config."""
 
 

@@ -17,11 +17,16 @@ as the old one would.
 
 from __future__ import annotations
 
+import json
+import time
 from typing import Any
 
+from service import queries
 from service.errors import ServiceError
 from service.jsonio import loads_object
-from service.mapconfig import MapConfig, Mode
+from service.mapconfig import MapConfig, Mode, slam_config_dict
+from service.pipeline.images import parse_state_doc
+from service.session import IMPORTED_FRONTEND, MapSession
 
 EXPORT_FORMAT = "covslam.map"
 EXPORT_VERSION = 1
@@ -76,3 +81,90 @@ def parse_export(raw: bytes) -> tuple[str, Mode, MapConfig, list[Any], Any]:
     if not isinstance(frames, list):
         raise _bad_import("frames", "must be an array of {frame, result}")
     return name, mode, config, frames, doc.get("frontend")
+
+
+def export_map(session: MapSession) -> dict[str, Any]:
+    """The map document. An image frame carries its image's digest and the
+    observations the front end made of it (not the image); a camera map's document
+    has the front end's state (`frontend`: landmark descriptors, tracks, last poses)."""
+    frames = []
+    for stored in session.store.frames_after(0):
+        body = json.loads(stored.body)
+        if "image" in body:
+            observations = session.store.image_observations(stored.id)
+            if observations is None:
+                raise ServiceError(
+                    422,
+                    "not-exportable",
+                    "Map cannot be exported",
+                    f"frame {stored.id} (robot {stored.robot!r} seq {stored.seq}): an "
+                    "image frame whose observations were not recorded (logged by an "
+                    "older version); an export carries observations, not images",
+                )
+            body["observations"] = observations
+        frames.append(
+            {
+                "frame": body,
+                "result": None if stored.result is None else json.loads(stored.result),
+            }
+        )
+    images = session.pipeline.images
+    front = {} if images is None else {"frontend": images.state_doc()}
+    return {
+        "format": EXPORT_FORMAT,
+        "version": EXPORT_VERSION,
+        "exported": time.time(),
+        "map": session.record.as_dict(),
+        "estimator": slam_config_dict(session.slam.config),
+        "landmarks": queries.landmarks(session),
+        "trajectories": queries.trajectory(session),
+        "removals": session.store.removals(),
+        "frames": frames,
+        **front,
+    }
+
+
+def import_frames(session: MapSession, frames: list[dict[str, Any]], frontend: Any = None) -> None:
+    """Replay an export's frame log into this (new, empty) map; then put back the
+    front end's state of a camera map (`frontend`, the export's; without it the
+    front end starts afresh: its landmarks have no descriptors to match)."""
+    if frontend is not None and session.vision is None:
+        raise ServiceError(
+            422,
+            "invalid-import",
+            "Invalid map document",
+            "frontend: a front-end state for a map without a camera",
+            field="frontend",
+        )
+    if frontend is not None and session.vision is not None:
+        try:  # refuse a bad state before replaying anything
+            parse_state_doc(frontend, session.vision.front_end.associator.config)
+        except ValueError as exc:
+            raise ServiceError(
+                422, "invalid-import", "Invalid map document", str(exc), field="frontend"
+            ) from exc
+    for i, item in enumerate(frames):
+        if not isinstance(item, dict) or not isinstance(item.get("frame"), dict):
+            raise ServiceError(
+                422,
+                "invalid-import",
+                "Invalid map document",
+                f"frames[{i}].frame: must be a frame object",
+                field=f"frames[{i}].frame",
+            )
+        try:
+            session.submit(item["frame"], imported="image" in item["frame"])
+        except ServiceError as exc:
+            raise ServiceError(
+                422,
+                "invalid-import",
+                "Invalid map document",
+                f"frames[{i}].frame: {exc.detail}",
+                field=f"frames[{i}].frame",
+            ) from exc
+    if frontend is not None and session.pipeline.images is not None:
+        session.pipeline.images.set_state_doc(frontend)
+        session.store.set_meta(
+            IMPORTED_FRONTEND, {"after": session._last_log_id, "state": frontend}
+        )
+    session.snapshot()

@@ -1,14 +1,14 @@
 """Image frames of one camera map, inside its session (worker process).
 
-`MapVision` holds the map's front end (camera, features, association) and the
-`ImagePipeline` that ties it to the map's estimator. The session uses it in
-three steps per image frame:
+`MapVision` holds the map's front end (camera, features, association), which the
+map pipeline ties to the estimator. The session uses it in three steps per image
+frame:
 
 1. `extract(image)` starts decoding, validation and feature extraction in a
    helper thread (OpenCV releases the GIL), while the session checks the frame
    and appends it, image included, to the durable log;
-2. `process(frame, pending)` waits for the features, associates them with the
-   live landmarks and runs the estimator;
+2. `features_of(pending)` waits for the features, which the map pipeline then
+   associates with the live landmarks before the estimator takes the frame;
 3. a refused image (frontend.errors.ImageError) becomes `image_refused(exc)`,
    a 422 or 413 problem.
 
@@ -17,16 +17,13 @@ When a frame arrives while another is processed, the worker's reader thread call
 associated and estimated (Python and GTSAM, holding the GIL), and `take(image)`
 hands them to its own `submit`.
 
-Its state between frames (the associator's landmark views and candidate tracks,
-each robot's last pose) travels with the estimator's snapshots (`state`,
-`attach`), so a map reopened from a snapshot and the log's tail goes on as if it
-had never stopped.
+Its state between frames (the associator's landmark views and candidate tracks)
+is the map pipeline's (service.pipeline), and travels with its snapshots.
 """
 
 from __future__ import annotations
 
 import hashlib
-import pickle
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -36,16 +33,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontend.appearance import signature
-from frontend.association import Associator
 from frontend.errors import ImageError
 from frontend.features import Features
 from frontend.pipeline import FrontEnd
 from graph.errors import InvalidFrame
-from graph.slam import BearingSlam
 from graph.types import FrameInput
 from service.errors import ServiceError
 from service.mapconfig import camera_model
-from service.vision import ImagePipeline
 
 __all__ = ["MapVision", "image_digest", "image_refused"]
 
@@ -89,7 +83,6 @@ class MapVision:
     def __init__(self, front_end: FrontEnd) -> None:
         self.front_end = front_end
         self._threads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="covslam-features")
-        self._pipeline: ImagePipeline | None = None
         self._prefetched: dict[bytes, Pending] = {}
         self._lock = threading.Lock()
         """Guards `_prefetched`: the worker's reader thread prefetches, its main thread takes."""
@@ -104,39 +97,6 @@ class MapVision:
         self._threads.shutdown(wait=True)
         self.front_end.close()
 
-    @property
-    def pipeline(self) -> ImagePipeline:
-        if self._pipeline is None:
-            raise RuntimeError("MapVision used before attach()")
-        return self._pipeline
-
-    def attach(self, slam: BearingSlam, state: bytes | None = None) -> None:
-        """Work with `slam` from now on: the front end's state from a snapshot, or fresh.
-
-        Raises ValueError (or an unpickling error) when `state` cannot be read.
-        """
-        pipeline = ImagePipeline(slam, self.front_end)
-        if state is None:
-            self.front_end.associator = Associator(self.front_end.associator.config)
-        else:
-            doc = pickle.loads(state)
-            if not isinstance(doc, dict) or not isinstance(doc.get("associator"), Associator):
-                raise ValueError("not a front-end state")
-            pipeline.set_state(doc)
-        self._pipeline = pipeline
-
-    def state_doc(self) -> dict[str, Any]:
-        """The front end's state as JSON-ready data (a map export; see ImagePipeline)."""
-        return self.pipeline.state_doc()
-
-    def set_state_doc(self, doc: Any) -> None:
-        """Put back an export's front-end state; ValueError naming a bad field."""
-        self.pipeline.set_state_doc(doc)
-
-    def state(self) -> bytes:
-        """The front end's state as bytes (for the snapshot taken now)."""
-        return pickle.dumps(self.pipeline.state(), protocol=5)
-
     def check(self, frame: FrameInput) -> None:
         """Refuse what the front end cannot predict from (before anything is logged)."""
         if frame.observations:
@@ -149,11 +109,7 @@ class MapVision:
         """A robot the map does not know yet (`known` False) without initial_pose is
         localised by matching its images to the landmarks' stored views: refused while
         the map holds none."""
-        if (
-            frame.initial_pose is None
-            and not known
-            and not self.pipeline.front_end.associator.has_views()
-        ):
+        if frame.initial_pose is None and not known and not self.front_end.associator.has_views():
             raise InvalidFrame(
                 "meta.initial_pose",
                 f"robot {frame.robot!r} has sent no frame to this map yet, and the map has "

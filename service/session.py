@@ -22,28 +22,19 @@ import numpy as np
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam, RemovalRecord
-from graph.snapshot import SnapshotError, capture, restore_with_extra
+from graph.snapshot import SnapshotError
 from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from graph.validation import validate_frame
-from service.camera_localisation import process_image
 from service.errors import ServiceError, invalid_frame, out_of_order
-from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
+from service.frame_results import frame_events, result_doc
 from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
-from service.localisation import Localised, MapLocalisation
-from service.mapconfig import MapConfig, slam_config, slam_config_dict
+from service.mapconfig import MapConfig, slam_config
+from service.pipeline import FrameStep, ImageFeatures, MapPipeline
+from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place
-from service.views import (
-    attach_frame_stats,
-    coverage_doc,
-    landmarks_doc,
-    pose_doc,
-    restored_events,
-    trajectory_doc,
-)
-from service.vision import parse_state_doc
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +114,16 @@ class _Buffer(Generic[T]):
         return items
 
 
+def _restore_imported_frontend(pipeline: MapPipeline, imported: Any, upto: int, last: int) -> None:
+    """Replaying an imported map's log without a snapshot from after its import: put
+    the export's front-end state back where the import did (after log frame `after`)."""
+    if imported is None or pipeline.images is None:
+        return
+    after = int(imported["after"])
+    if last == after and upto <= after:
+        pipeline.images.set_state_doc(imported["state"])
+
+
 class MapSession:
     """One map: estimator + store. Not thread-safe; one worker process calls it."""
 
@@ -146,7 +147,7 @@ class MapSession:
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
         self.vision = MapVision.for_config(self.record.config)
         """The front end of a map with a camera (image frames); None without one."""
-        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+        self.pipeline, self._last_log_id, self._since_snapshot = self._load()
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
@@ -167,22 +168,33 @@ class MapSession:
             self.vision.close()
         self.store.close()
 
-    def _fresh(self) -> BearingSlam:
+    @property
+    def slam(self) -> BearingSlam:
+        """The map's estimator."""
+        return self.pipeline.slam
+
+    @property
+    def last_log_id(self) -> int:
+        """Id of the last frame in the map's log that the pipeline took."""
+        return self._last_log_id
+
+    def _fresh(self) -> MapPipeline:
         config = slam_config(self.record.config, self.record.mode)
-        seed = MapConfig.model_validate(self.record.config).seed
-        return BearingSlam(
+        slam = BearingSlam(
             config,
-            rng=np.random.default_rng(seed),
+            rng=np.random.default_rng(self.seed()),
             removal_sink=self._removals.append,
             trajectory_sink=self._poses.extend,
         )
+        front_end = None if self.vision is None else self.vision.front_end
+        return fresh_pipeline(slam, seed=self.seed(), front_end=front_end)
 
-    def _load(self) -> tuple[BearingSlam, MapLocalisation, int, int]:
-        """Latest snapshot + the log's tail: (estimator, place localiser, last log id,
-        frames since snapshot)."""
+    def _load(self) -> tuple[MapPipeline, int, int]:
+        """Latest snapshot + the log's tail: (pipeline, last log id, frames since
+        snapshot)."""
         t0 = time.perf_counter()
         snap = self.store.latest_snapshot()
-        slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
+        pipeline, upto = None, 0
         frontend = None if self.vision is None else self.store.latest_frontend_state()
         if snap is not None and self.vision is not None and frontend is None:
             log.warning(
@@ -191,31 +203,32 @@ class MapSession:
             snap = None
         if snap is not None:
             try:
-                slam, extra = restore_with_extra(
-                    snap[1], removal_sink=self._removals.append, trajectory_sink=self._poses.extend
+                pipeline = restore_pipeline(
+                    snap[1],
+                    frontend,
+                    seed=self.seed(),
+                    front_end=None if self.vision is None else self.vision.front_end,
+                    removal_sink=self._removals.append,
+                    trajectory_sink=self._poses.extend,
                 )
-                slam.config = slam_config(self.record.config, self.record.mode)
-                if isinstance(extra, MapLocalisation):
-                    loc = extra
+                pipeline.slam.config = slam_config(self.record.config, self.record.mode)
                 upto = snap[0]
-                if self.vision is not None:
-                    self.vision.attach(slam, frontend)
             except (SnapshotError, ValueError, pickle.UnpicklingError):
                 log.exception("map %s: unreadable snapshot, replaying the whole log", self.place)
-                slam, loc, upto = self._fresh(), MapLocalisation(self._seed()), 0
-        if self.vision is not None and upto == 0:
-            self.vision.attach(slam)
+                pipeline, upto = None, 0
+        if pipeline is None:
+            pipeline = self._fresh()
         tail = self.store.frames_after(upto)
         self.loaded_from_snapshot = upto
         last = upto
         imported = None if self.vision is None else self.store.get_meta(IMPORTED_FRONTEND)
         for stored in tail:
-            self._restore_imported_frontend(imported, upto, last)
-            self._replay(slam, loc, stored)
+            _restore_imported_frontend(pipeline, imported, upto, last)
+            self._replay(pipeline, stored)
             last = stored.id
             if len(self._poses.items) >= _POSE_FLUSH:
                 self.store.put_poses(self._poses.take())
-        self._restore_imported_frontend(imported, upto, last)
+        _restore_imported_frontend(pipeline, imported, upto, last)
         # Rows the tail made final again (replaced: a restored estimator may round a
         # little differently from the one that first made them final).
         self.store.put_poses(self._poses.take())
@@ -226,18 +239,9 @@ class MapSession:
             len(tail),
             1e3 * (time.perf_counter() - t0),
         )
-        return slam, loc, last, len(tail)
+        return pipeline, last, len(tail)
 
-    def _restore_imported_frontend(self, imported: Any, upto: int, last: int) -> None:
-        """Replaying an imported map's log without a snapshot from after its import: put
-        the export's front-end state back where the import did (after log frame `after`)."""
-        if imported is None or self.vision is None:
-            return
-        after = int(imported["after"])
-        if last == after and upto <= after:
-            self.vision.set_state_doc(imported["state"])
-
-    def _replay(self, slam: BearingSlam, loc: MapLocalisation, stored: StoredFrame) -> None:
+    def _replay(self, pipeline: MapPipeline, stored: StoredFrame) -> None:
         if stored.result is None:
             # Logged but never finished: the process died while handling it. If that
             # happened on every reload as well, the frame itself kills the worker
@@ -261,10 +265,9 @@ class MapSession:
         observations = None
         try:
             if "image" in doc:
-                localised, observations = self._replay_image(slam, loc, stored.id, frame)
+                step, observations = self._replay_image(pipeline, stored.id, frame)
             else:
-                localised = loc.process(slam, frame)
-                self._note_json_frame(localised)
+                step = pipeline.step(frame)
         except (InvalidFrame, EstimationError, ImageError):
             self.replay_errors += 1
             self._removals.take()
@@ -280,24 +283,23 @@ class MapSession:
             return
         removals = self._removals.take()
         if stored.result is None:  # appended but not completed before a crash
-            result = self._result_doc(slam, localised, stored.id, {})
+            result = result_doc(pipeline.slam, step, stored.id, {})
             self._complete(
-                slam,
+                pipeline.slam,
                 stored.id,
                 json.dumps(result),
-                localised,
+                step,
                 removals,
                 observations,
                 self._poses.take(),
             )
 
     def _replay_image(
-        self, slam: BearingSlam, loc: MapLocalisation, log_id: int, frame: FrameInput
-    ) -> tuple[Localised, str | None]:
+        self, pipeline: MapPipeline, log_id: int, frame: FrameInput
+    ) -> tuple[FrameStep, str | None]:
         """A logged image frame again: through the front end from its image, or (an
         imported frame, no image) from the observations its image gave. Returns the
-        frame through the localiser and the observations as JSON text (None for an
-        imported frame)."""
+        frame's step and the observations as JSON text (None for an imported frame)."""
         if self.vision is None:
             raise InvalidFrame("image", f"log frame {log_id}: the map has no camera")
         image = self.store.frame_image(log_id)
@@ -306,28 +308,10 @@ class MapSession:
             if observations is None:
                 raise InvalidFrame("image", f"log frame {log_id}: image and observations missing")
             observed = frame_from_dict({**frame_to_dict(frame), "observations": observations})
-            return self._process_observed(slam, loc, observed), None
+            return pipeline.step(observed, landmark_covariances=False), None
         features, sig, _ = self.vision.features_of(image)
-        done = process_image(loc, slam, self.vision.pipeline, frame, features, sig)
-        return done.localised, _observations_json(done.observations)
-
-    def _process_observed(
-        self, slam: BearingSlam, loc: MapLocalisation, frame: FrameInput
-    ) -> Localised:
-        """An imported image frame: the observations its image gave (the association's
-        when the graph took it, the pose-free matches its filter weighed otherwise) go
-        through the place localiser as labelled bearings do, and the front end learns
-        the robot's pose."""
-        assert self.vision is not None
-        localised = loc.process(slam, frame, landmark_covariances=False)
-        self._note_json_frame(localised)
-        return localised
-
-    def _note_json_frame(self, localised: Localised) -> None:
-        """A JSON frame in a camera map moved the robot in the graph: its next image
-        frame is predicted from this pose, not from its last image frame."""
-        if self.vision is not None and localised.outcome is not None:
-            self.vision.pipeline.note_pose(localised.robot, localised.pose, localised.covariance)
+        step = pipeline.step(frame, image=ImageFeatures(features, sig))
+        return step, _observations_json(step.observations)
 
     @property
     def snapshot_due(self) -> bool:
@@ -344,11 +328,12 @@ class MapSession:
             self.snapshot()  # never idle (a continuous stream): bound the replay anyway
 
     def snapshot(self) -> None:
+        blob, frontend = snapshot_pipeline(self.pipeline)
         self.store.save_snapshot(
             self._last_log_id,
-            capture(self.slam, extra=self.loc),
+            blob,
             keep=self._settings.snapshots_kept,
-            frontend=None if self.vision is None else self.vision.state(),
+            frontend=frontend,
             prune_images=self._settings.prune_images,
         )
         self.store.prune_events(self._settings.events_kept)
@@ -398,7 +383,7 @@ class MapSession:
         pending = None
         if self.vision is not None and image is not None:
             pending = prefetched or self.vision.extract(image)
-        last = self.loc.last_accepted(self.slam).get(frame.robot)
+        last = self.pipeline.last_accepted().get(frame.robot)
         try:
             validate_frame(
                 frame,
@@ -415,13 +400,10 @@ class MapSession:
         t1 = time.perf_counter()
         vision_ms: dict[str, float] = {}
         try:
-            if imported:
-                localised = self._process_observed(self.slam, self.loc, frame)
-            elif pending is None:
-                localised = self.loc.process(self.slam, frame)
-                self._note_json_frame(localised)
+            if pending is None:
+                step = self.pipeline.step(frame, landmark_covariances=not imported)
             else:
-                localised, observations, vision_ms = self._process_image(frame, pending)
+                step, observations, vision_ms = self._process_image(frame, pending)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -443,17 +425,15 @@ class MapSession:
             self._forget_frame(log_id)
             raise
         removals = self._removals.take()
-        final = localised.outcome
-        result = self._result_doc(
-            self.slam, localised, log_id, {"log": 1e3 * (t1 - t0), **vision_ms}
-        )
+        final = step.outcome
+        result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
         event_ids = self._complete(
             self.slam,
             log_id,
             text,
-            localised,
+            step,
             removals,
             None if imported else observations,
             self._poses.take(),
@@ -479,91 +459,42 @@ class MapSession:
         self.store.delete_frame(log_id)
         self._removals.take()
         self._poses.take()
-        self.slam, self.loc, self._last_log_id, self._since_snapshot = self._load()
+        self.pipeline, self._last_log_id, self._since_snapshot = self._load()
 
     def _check_image_frame(self, frame: Any) -> None:
         if self.vision is None:
             raise no_camera(self.record.id)
         try:
             self.vision.check(frame)
-            known = frame.robot in self.loc.last_accepted(self.slam)
+            known = frame.robot in self.pipeline.last_accepted()
             self.vision.check_localisable(frame, known=known)
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
 
     def _process_image(
         self, frame: Any, pending: Pending
-    ) -> tuple[Localised, str, dict[str, float]]:
-        """(the frame through the front end and the localiser, the observations it is
-        recorded with as JSON text, timings ms)."""
+    ) -> tuple[FrameStep, str, dict[str, float]]:
+        """(the frame's step, the observations it is recorded with as JSON text, the
+        front end's timings ms)."""
         assert self.vision is not None
         features, sig, timing = self.vision.features_of(pending)
-        done = process_image(self.loc, self.slam, self.vision.pipeline, frame, features, sig)
-        timing["association"] = done.timing_ms["association"]
-        timing["localise_cpu"] = done.timing_ms["localise_cpu"]
-        return done.localised, _observations_json(done.observations), timing
-
-    def _result_doc(
-        self, slam: BearingSlam, localised: Localised, log_id: int, timing: dict[str, float]
-    ) -> dict[str, Any]:
-        outcome = localised.outcome
-        pose = localised.pose
-        return {
-            "frame_id": log_id,
-            "robot": localised.robot,
-            "seq": localised.seq,
-            "stamp": localised.stamp,
-            "pose": {"x": pose.x, "y": pose.y, "theta": pose.theta},
-            "covariance": np.asarray(localised.covariance).tolist(),
-            "localisation": {
-                "status": localised.status,
-                "place": localised.place,
-                "confidence": localised.confidence,
-            },
-            "landmarks": {
-                "observed": [] if outcome is None else list(outcome.observed),
-                "added": [] if outcome is None else list(outcome.added),
-                "marginalised": [] if outcome is None else list(outcome.marginalised),
-                "live": len(slam.landmarks),
-            },
-            "timing_ms": {
-                **({} if outcome is None else outcome.timing_ms),
-                "localise": localised.ms,
-                **timing,
-            },
-        }
+        step = self.pipeline.step(frame, image=ImageFeatures(features, sig))
+        return step, _observations_json(step.observations), timing
 
     def _complete(
         self,
         slam: BearingSlam,
         log_id: int,
         result_json: str,
-        localised: Localised,
+        step: FrameStep,
         removals: list[RemovalRecord],
         observations: str | None = None,
         poses: list[PoseRow] | None = None,
     ) -> list[int]:
-        events: list[tuple[str, str]] = [("frame", result_json)]
-        added = () if localised.outcome is None else localised.outcome.added
-        if localised.learnt is not None:
-            doc = {"id": localised.learnt.id, "robot": localised.learnt.robot}
-            events.append(("place_learnt", json.dumps({**doc, "frame_id": log_id})))
-        for lid in added:
-            if lid in slam.landmarks:
-                x, y = (float(v) for v in slam.landmark_position(lid))
-                doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
-                events.append(("landmark_added", json.dumps({**doc, "frame_id": log_id})))
-        restored = () if localised.outcome is None else localised.outcome.restored
-        events.extend(restored_events(slam, restored, log_id))
-        rows = []
-        archived = []
-        for r in removals:
-            doc = {**r.as_dict(), "frame_id": log_id}
-            events.append(("landmark_marginalised", json.dumps(doc)))
-            rows.append((r.landmark_id, r.frame, json.dumps(doc)))
-            entry = slam.archive.get(r.landmark_id)
-            if entry is not None:
-                archived.append((r.landmark_id, r.frame, json.dumps(entry.as_dict())))
+        """Store the frame's result with its events, removals, archived landmarks and
+        final trajectory rows (one transaction); the events' ids."""
+        events, rows, archived = frame_events(slam, step, result_json, removals, log_id)
+        restored = () if step.outcome is None else step.outcome.restored
         return self.store.complete_frame(
             log_id,
             result_json,
@@ -575,209 +506,10 @@ class MapSession:
             restored=restored,
         )
 
-    # ------------------------------------------------------------ queries
-    def summary(self) -> dict[str, Any]:
-        ms = np.asarray(self._timing) if self._timing else None
-        off_graph = self.loc.off_graph.count()
-        robots = self.slam.robots
-        robots += [r for r in self.loc.off_graph.robots() if r not in robots]
-        return {
-            **self.record.as_dict(),
-            "estimator": slam_config_dict(self.slam.config),
-            "counts": {
-                "frames": self.slam.frame_count + off_graph,
-                "off_graph_frames": off_graph,
-                "graph_frames": self.slam.graph_frame_count,
-                "robots": len(robots),
-                "live_landmarks": len(self.slam.landmarks),
-                "candidates": self.slam.candidate_count,
-                "removals": self.store.removal_count(),
-                "graph_variables": self.slam.graph.num_variables,
-                "graph_factors": self.slam.graph.num_factors,
-                "replay_errors": self.replay_errors,
-            },
-            "robots": robots,
-            "timing_ms": None
-            if ms is None
-            else {
-                "frames": len(ms),
-                "mean": float(ms.mean()),
-                "p50": float(np.percentile(ms, 50)),
-                "p99": float(np.percentile(ms, 99)),
-            },
-        }
-
-    def _seed(self) -> int:
+    def seed(self) -> int:
+        """The map's seed (its config's)."""
         return MapConfig.model_validate(self.record.config).seed
 
-    def pose(self) -> dict[str, Any]:
-        """Latest pose per robot, the graph's or (initialising, lost) the best off-graph
-        one: see MapLocalisation.robot_poses."""
-        doc = pose_doc(self.slam, self.record.id)
-        for name, robot in doc["robots"].items():
-            robot["localisation"] = self.loc.localisation(name)
-        for name, off in self.loc.robot_poses().items():
-            if off["pose"] is None and name in doc["robots"]:
-                continue
-            doc["robots"][name] = off
-        return doc
-
-    def places(self) -> dict[str, Any]:
-        """Learnt places and the transitions between them."""
-        return {"map_id": self.record.id, **self.loc.places_doc()}
-
-    def learn_place(self, robot: str | None) -> dict[str, Any]:
-        """Learn a place at a robot's current pose now (default: the last robot that sent a
-        frame); the snapshot taken after it keeps it across restarts."""
-        known = self.loc.last_accepted(self.slam)
-        if robot is None:
-            if not known:
-                raise ServiceError(
-                    409, "no-robot", "No robot yet", "robot: the map has no robot to learn at"
-                )
-            robot = max(known, key=lambda r: known[r][1])
-        if robot not in known:
-            raise ServiceError(
-                404,
-                "unknown-robot",
-                "Unknown robot",
-                f"robot: map {self.record.id!r} has no robot {robot!r}",
-                field="robot",
-            )
-        if self.loc.status(robot) != "tracking":
-            raise ServiceError(
-                409,
-                "not-localised",
-                "Robot not localised",
-                f"robot: {robot!r} is {self.loc.status(robot)}; a place is learnt at a "
-                "tracked pose",
-                field="robot",
-            )
-        place = self.loc.learn(self.slam, robot, stamp=known[robot][1])
-        if place is None:
-            raise ServiceError(
-                409,
-                "too-few-landmarks",
-                "Too few landmarks",
-                f"robot: fewer than {self.loc.localiser.config.places.min_landmarks} mapped "
-                f"landmarks lie within {self.loc.localiser.config.places.max_depth_m} m of "
-                f"{robot!r}",
-                field="robot",
-            )
-        self.snapshot()
-        doc = self.loc.places_doc()
-        return {"map_id": self.record.id, "place": doc["places"][place.id], **doc}
-
-    def trajectory(
-        self, robot: str | None = None, *, stats_every: int = 0
-    ) -> dict[str, list[dict[str, Any]]]:
-        if robot is not None and robot not in self.slam.robots and robot in self.loc.last:
-            rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
-        else:
-            rows = dict(trajectory_doc(self.slam, self.store, self.record.id, robot))
-        self.loc.with_off_graph(rows, robot)
-        if stats_every > 0:
-            labels = self.store.removed_labels()
-            labels.update((lid, rec.label) for lid, rec in self.slam.landmarks.items())
-            attach_frame_stats(rows, self.store.frame_stats(), labels, every=stats_every)
-        return rows
-
-    def landmarks(self, state: str = "live") -> list[dict[str, Any]]:
-        """The live landmarks, or (`state` "archived") those in the archive."""
-        if state == "archived":
-            return self.store.archived()
-        return landmarks_doc(self.slam, self._seed())
-
-    def coverage(self, *, cell_m: float, radius_m: float, removals: int) -> dict[str, Any]:
-        return coverage_doc(
-            self.slam,
-            self.store,
-            self.record.id,
-            self._seed(),
-            cell_m=cell_m,
-            radius_m=radius_m,
-            removals=removals,
-        )
-
-    # ------------------------------------------------------------ export / import
-    def export(self) -> dict[str, Any]:
-        """The map document. An image frame carries its image's digest and the
-        observations the front end made of it (not the image); a camera map's document
-        has the front end's state (`frontend`: landmark descriptors, tracks, last poses)."""
-        frames = []
-        for stored in self.store.frames_after(0):
-            body = json.loads(stored.body)
-            if "image" in body:
-                observations = self.store.image_observations(stored.id)
-                if observations is None:
-                    raise ServiceError(
-                        422,
-                        "not-exportable",
-                        "Map cannot be exported",
-                        f"frame {stored.id} (robot {stored.robot!r} seq {stored.seq}): an "
-                        "image frame whose observations were not recorded (logged by an "
-                        "older version); an export carries observations, not images",
-                    )
-                body["observations"] = observations
-            frames.append(
-                {
-                    "frame": body,
-                    "result": None if stored.result is None else json.loads(stored.result),
-                }
-            )
-        front = {} if self.vision is None else {"frontend": self.vision.state_doc()}
-        return {
-            "format": EXPORT_FORMAT,
-            "version": EXPORT_VERSION,
-            "exported": time.time(),
-            "map": self.record.as_dict(),
-            "estimator": slam_config_dict(self.slam.config),
-            "landmarks": self.landmarks(),
-            "trajectories": self.trajectory(),
-            "removals": self.store.removals(),
-            "frames": frames,
-            **front,
-        }
-
-    def import_frames(self, frames: list[dict[str, Any]], frontend: Any = None) -> None:
-        """Replay an export's frame log into this (new, empty) map; then put back the
-        front end's state of a camera map (`frontend`, the export's; without it the
-        front end starts afresh: its landmarks have no descriptors to match)."""
-        if frontend is not None and self.vision is None:
-            raise ServiceError(
-                422,
-                "invalid-import",
-                "Invalid map document",
-                "frontend: a front-end state for a map without a camera",
-                field="frontend",
-            )
-        if frontend is not None and self.vision is not None:
-            try:  # refuse a bad state before replaying anything
-                parse_state_doc(frontend, self.vision.front_end.associator.config)
-            except ValueError as exc:
-                raise ServiceError(
-                    422, "invalid-import", "Invalid map document", str(exc), field="frontend"
-                ) from exc
-        for i, item in enumerate(frames):
-            if not isinstance(item, dict) or not isinstance(item.get("frame"), dict):
-                raise ServiceError(
-                    422,
-                    "invalid-import",
-                    "Invalid map document",
-                    f"frames[{i}].frame: must be a frame object",
-                    field=f"frames[{i}].frame",
-                )
-            try:
-                self.submit(item["frame"], imported="image" in item["frame"])
-            except ServiceError as exc:
-                raise ServiceError(
-                    422,
-                    "invalid-import",
-                    "Invalid map document",
-                    f"frames[{i}].frame: {exc.detail}",
-                    field=f"frames[{i}].frame",
-                ) from exc
-        if frontend is not None and self.vision is not None:
-            self.vision.set_state_doc(frontend)
-            self.store.set_meta(IMPORTED_FRONTEND, {"after": self._last_log_id, "state": frontend})
-        self.snapshot()
+    def frame_ms(self) -> list[float]:
+        """Processing time of the last (up to 1000) frames this session took, ms."""
+        return list(self._timing)

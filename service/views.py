@@ -21,8 +21,8 @@ from graph.snapshot import last_accepted
 from graph.trajectory import with_final_rows
 from service.coverage import coverage_grid
 from service.errors import ServiceError
-from service.evaluation import Trajectory, write_tum
 from service.store import FrameFigures, MapStore
+from service.tum import Trajectory, write_tum
 
 
 def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:

@@ -24,8 +24,9 @@ from typing import Any
 from threadpoolctl import threadpool_limits
 
 from frontend.pipeline import FrontEnd
+from service import queries
 from service.errors import ServiceError, internal_error, unknown_map
-from service.exchange import parse_export
+from service.exchange import export_map, import_frames, parse_export
 from service.mapconfig import camera_model, slam_config
 from service.session import MapSession
 from service.settings import Settings
@@ -105,7 +106,7 @@ def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     if old is not None:
         old.close()
     _sessions[map_id] = MapSession.create(_place(map_id), record, _cfg().store)
-    return _sessions[map_id].summary()
+    return queries.summary(_sessions[map_id])
 
 
 def _open(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
@@ -133,23 +134,23 @@ def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     _create(map_id, {"record": record.as_dict()})
     try:
         session = _sessions[map_id]
-        session.import_frames(frames, frontend)
+        import_frames(session, frames, frontend)
         if mode != "mapping":
             session.set_mode(mode)
     except BaseException:
         _delete(map_id, {})
         raise
-    return {"record": session.record.as_dict(), "summary": session.summary()}
+    return {"record": session.record.as_dict(), "summary": queries.summary(session)}
 
 
 def _export(map_id: str, payload: dict[str, Any]) -> bytes:
-    return json.dumps(_session(map_id).export(), separators=(",", ":")).encode()
+    return json.dumps(export_map(_session(map_id)), separators=(",", ":")).encode()
 
 
 def _set_mode(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     session = _session(map_id)
     session.set_mode(payload["mode"])
-    return session.summary()
+    return queries.summary(session)
 
 
 _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
@@ -160,15 +161,15 @@ _OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
     "import": _import,
     "set_mode": _set_mode,
     "frame": lambda m, p: _session(m).submit(p["frame"], p.get("image")),
-    "summary": lambda m, p: _session(m).summary(),
-    "pose": lambda m, p: _session(m).pose(),
-    "trajectory": lambda m, p: _session(m).trajectory(
-        p.get("robot"), stats_every=p.get("stats_every", 0)
+    "summary": lambda m, p: queries.summary(_session(m)),
+    "pose": lambda m, p: queries.pose(_session(m)),
+    "trajectory": lambda m, p: queries.trajectory(
+        _session(m), p.get("robot"), stats_every=p.get("stats_every", 0)
     ),
-    "landmarks": lambda m, p: _session(m).landmarks(p.get("state", "live")),
-    "coverage": lambda m, p: _session(m).coverage(**p),
-    "places": lambda m, p: _session(m).places(),
-    "learn_place": lambda m, p: _session(m).learn_place(p.get("robot")),
+    "landmarks": lambda m, p: queries.landmarks(_session(m), p.get("state", "live")),
+    "coverage": lambda m, p: queries.coverage(_session(m), **p),
+    "places": lambda m, p: queries.places(_session(m)),
+    "learn_place": lambda m, p: queries.learn_place(_session(m), p.get("robot")),
     "export": _export,
 }
 

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from graph.types import FrameInput
-from service.datasets.indoor_sim import make_world, simulate
 from service.frames_io import frame_to_dict
+from service.offline.datasets.indoor_sim import make_world, simulate
 from tests.e2e.chromium import CHROMIUM_ARGS
 
 REPO = Path(__file__).resolve().parents[2]
@@ -62,7 +62,7 @@ class Server:
                 [
                     sys.executable,
                     "-m",
-                    "service.cli",
+                    "api.cli",
                     "serve",
                     "--port",
                     str(self.port),

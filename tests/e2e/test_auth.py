@@ -13,7 +13,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.http_client import API_KEY_VARIABLE, ReplayHTTPError, fetch_tum, replay_http
+from service.offline.http_client import API_KEY_VARIABLE, ReplayHTTPError, fetch_tum, replay_http
 from tests.e2e.conftest import Server, frame_dicts, sim_frames
 from tests.e2e.test_dashboard import _wait_for
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from graph.localiser import INITIALISING, RELOCALISED, TRACKING
-from service.datasets.camera_runs import (
+from service.offline.datasets.camera_runs import (
     CONFIG,
     Leg,
     mapping_path,

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from frontend.cameras import PanoramaCamera
-from service.datasets.render_run import RenderedRun, write_rendered_run
-from service.evaluation import ate_rmse, dead_reckoning, read_tum
-from service.http_client import fetch_tum, image_frame_parts, replay_http
 from service.mapconfig import CAMERA_GRAPH_FRAME_DISTANCE_M
-from service.replay import ImageFrame, read_replay_frames
+from service.offline.datasets.render_run import RenderedRun, write_rendered_run
+from service.offline.evaluation import ate_rmse, dead_reckoning, read_tum
+from service.offline.http_client import fetch_tum, image_frame_parts, replay_http
+from service.offline.replay import ImageFrame, read_replay_frames
 from tests.e2e.conftest import Server, create_map
 from tests.frontend import _synthetic as synthetic
 
@@ -270,7 +270,7 @@ def _meta_with(meta: dict[str, str], **changes: Any) -> str:
 def test_replay_cli_posts_image_frames_with_the_camera_config(
     server: Server, client: httpx.Client, rendered: RenderedRun, capsys: pytest.CaptureFixture
 ) -> None:
-    from service.cli import main
+    from api.cli import main
 
     short = rendered.frames_path.parent / "short.jsonl"
     short.write_text("".join(rendered.frames_path.read_text().splitlines(True)[:8]))

@@ -9,8 +9,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
-from service.evaluation import ate_rmse, dead_reckoning, read_tum
+from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.offline.evaluation import ate_rmse, dead_reckoning, read_tum
 from tests.e2e.conftest import REPO, Server
 
 DATA = default_mrclam_dir()
@@ -27,7 +27,7 @@ def test_mrclam_robot1_over_http(server: Server, tmp_path) -> None:
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "api.cli",
             "replay",
             "mrclam",
             str(DATA),

@@ -116,7 +116,7 @@ def test_the_scale_compose_file_runs_ray_and_postgres() -> None:
 
 def test_engine_ray_without_ray_fails_with_one_line(tmp_path: Path) -> None:
     code = (
-        "import sys; sys.modules['ray'] = None; from service.cli import main; "
+        "import sys; sys.modules['ray'] = None; from api.cli import main; "
         "sys.exit(main(['serve', '--engine', 'ray', '--port', '0', '--data-dir', sys.argv[1]]))"
     )
     done = subprocess.run(

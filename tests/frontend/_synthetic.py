@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from service.datasets.indoor_sim import make_world
-from service.datasets.render import TexturedWorld, make_textured_world
+from service.offline.datasets.indoor_sim import make_world
+from service.offline.datasets.render import TexturedWorld, make_textured_world
 
 
 def blank(height: int, width: int, level: int = 90) -> NDArray[np.uint8]:

@@ -11,7 +11,7 @@ import pytest
 from frontend.appearance import AppearanceIndex, SignatureConfig, rotation_between, signature
 from frontend.cameras import PanoramaCamera
 from graph.angles import wrap_angle
-from service.datasets.render import render_panorama
+from service.offline.datasets.render import render_panorama
 from tests.frontend._synthetic import small_world
 
 CAMERA = PanoramaCamera(width=1024, height=256)

@@ -9,7 +9,7 @@ import numpy as np
 from frontend.cameras import OmniCamera, PanoramaCamera
 from frontend.features import FeatureConfig, FeatureExtractor
 from graph.angles import wrap_angles
-from service.datasets.render import raycast, render_omni, render_panorama, visible_corners
+from service.offline.datasets.render import raycast, render_omni, render_panorama, visible_corners
 from tests.frontend._synthetic import small_world
 
 POSE = (4.1, 2.7, 0.9)

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from api.cli import main
 from frontend.cameras import PanoramaCamera
-from service.cli import main
-from service.datasets.render_run import write_rendered_run
-from service.evaluation import read_tum
-from service.replay import ImageFrame, read_replay_frames
+from service.offline.datasets.render_run import write_rendered_run
+from service.offline.evaluation import read_tum
+from service.offline.replay import ImageFrame, read_replay_frames
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +76,8 @@ def test_image_frame_with_a_bad_image_field_is_refused(tmp_path: Path) -> None:
 
 
 def test_image_replay_takes_the_camera_loss_and_cap_unless_given() -> None:
+    from api.cli import _config, build_parser, camera_map_config
     from graph.config import SlamConfig
-    from service.cli import _config, build_parser, camera_map_config
     from service.mapconfig import CAMERA_LANDMARK_CAP, CAMERA_NOISE_DEFAULTS
 
     camera_cfg = PanoramaCamera(1024, 256).as_config()

@@ -9,7 +9,7 @@ import numpy as np
 from frontend.cameras import PanoramaCamera
 from frontend.features import FeatureConfig, FeatureExtractor
 from graph.angles import angle_diff
-from service.datasets.render import render_panorama
+from service.offline.datasets.render import render_panorama
 from tests.frontend._synthetic import blank, paint_corner, small_world
 
 

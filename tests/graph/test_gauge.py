@@ -19,7 +19,7 @@ import pytest
 from graph.config import SlamConfig
 from graph.factors import is_landmark_key, pose_key
 from graph.slam import BearingSlam
-from service.evaluation import fit_landmarks
+from service.offline.evaluation import fit_landmarks
 from tests.graph._world import circle_frames
 
 

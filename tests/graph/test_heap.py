@@ -11,7 +11,7 @@ import graph.slam
 from graph.config import SlamConfig
 from graph.heap import heap_release_available, release_free_heap
 from graph.slam import BearingSlam
-from service.replay import current_rss_mb
+from service.offline.replay import current_rss_mb
 from tests.graph._world import circle_frames
 
 needs_trim = pytest.mark.skipif(

@@ -1,4 +1,4 @@
-"""Camera robots through the place localiser (service.camera_localisation): a robot
+"""Camera robots through the place localiser (service.pipeline): a robot
 without initial_pose is relocalised from its images; a kidnapped camera robot goes lost
 and recovers; the state survives a snapshot + log tail reload."""
 
@@ -15,7 +15,9 @@ import pytest
 
 from graph.angles import wrap_angle
 from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING
-from service.datasets.camera_runs import (
+from service import queries
+from service.exchange import export_map, import_frames
+from service.offline.datasets.camera_runs import (
     CONFIG,
     Leg,
     mapping_path,
@@ -25,7 +27,7 @@ from service.datasets.camera_runs import (
     start_pose,
     straight,
 )
-from service.datasets.render import TexturedWorld
+from service.offline.datasets.render import TexturedWorld
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -78,7 +80,7 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     assert (
         max(pose_error(r["pose"], t)[0] for r, t in zip(built, mapping.truth, strict=True)) < 0.05
     )
-    assert len(session.loc.appearance.places) >= 3
+    assert len(session.pipeline.localiser.appearance.places) >= 3
 
     results = _post(session, newcomer)
     statuses = [r["localisation"]["status"] for r in results]
@@ -97,7 +99,7 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     assert all(not r["landmarks"]["observed"] for r in results[:k])
     # ... but none is lost: the trajectory has every frame, the early ones re-expressed
     # from the anchor frame by dead-reckoning backwards.
-    rows = session.trajectory("r2")["r2"]
+    rows = queries.trajectory(session, "r2")["r2"]
     assert [row["seq"] for row in rows] == [m["seq"] for m, _ in newcomer.frames]
     for row, t in zip(rows[:k], newcomer.truth[:k], strict=True):
         assert row["source"] == "odometry"
@@ -113,14 +115,14 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
 
     # Export / import: the imported map replays the recorded observations through the
     # localiser (no images, so no appearance hints): r2 is relocalised at the same frame.
-    doc = json.loads(json.dumps(session.export()))
+    doc = json.loads(json.dumps(export_map(session)))
     target = _session(tmp_path / "imported.sqlite")
-    target.import_frames(doc["frames"], doc["frontend"])
+    import_frames(target, doc["frames"], doc["frontend"])
     imported = [json.loads(f.result or "{}") for f in target.store.frames_after(0)]
     assert [r["localisation"]["status"] for r in imported if r["robot"] == "r2"] == statuses
     moved = [
         math.hypot(a["x"] - b["x"], a["y"] - b["y"])
-        for a, b in zip(target.trajectory("r2")["r2"], rows, strict=True)
+        for a, b in zip(queries.trajectory(target, "r2")["r2"], rows, strict=True)
     ]
     assert max(moved) < 0.05, moved
     target.close()
@@ -159,7 +161,7 @@ def test_a_kidnapped_camera_robot_goes_lost_and_recovers(
     for r, t in zip(results[back:], truth[back:], strict=True):
         e_m, e_deg = pose_error(r["pose"], t)
         assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
-    assert session.loc.localiser.robots["r1"].lost_count == 1
+    assert session.pipeline.localiser.localiser.robots["r1"].lost_count == 1
 
     # A robot in the second room, which nobody mapped: its pose-free matches are
     # look-alikes; it must stay initialising rather than be relocalised somewhere wrong.
@@ -181,15 +183,17 @@ def test_a_searching_camera_robot_survives_a_snapshot_and_log_tail_reload(
     assert first[0]["localisation"]["status"] == INITIALISING
     session.snapshot()  # the filter of r2 is in the snapshot ...
     _post(session, newcomer, range(1, 2))  # ... and this frame in the log's tail
-    pf = session.loc.localiser.robots["r2"].pf
+    pf = session.pipeline.localiser.localiser.robots["r2"].pf
     particles, weights = pf.particles.copy(), pf.log_weights.copy()
-    last = session.vision.pipeline.state()["last"] if session.vision else {}
-    assert "r2" not in last, "the front end does not track a searching robot"
+    assert session.pipeline.images is not None
+    assert session.pipeline.images.last_pose("r2") is None, (
+        "the front end does not track a searching robot"
+    )
     session.close()
 
     reopened = MapSession(path, StoreSettings(snapshot_every=10**6))
     assert reopened.loaded_from_snapshot > 0
-    again = reopened.loc.localiser.robots["r2"].pf
+    again = reopened.pipeline.localiser.localiser.robots["r2"].pf
     assert np.array_equal(again.particles, particles)
     assert np.array_equal(again.log_weights, weights)
     results = _post(reopened, newcomer, range(2, len(newcomer.frames)))
@@ -198,7 +202,7 @@ def test_a_searching_camera_robot_survives_a_snapshot_and_log_tail_reload(
     assert k + 3 <= RELOCALISE_WITHIN
     e_m, e_deg = pose_error(results[k]["pose"], newcomer.truth[k + 2])
     assert e_m < 0.3 and e_deg < 10.0
-    assert reopened.pose()["robots"]["r2"]["localisation"]["status"] == TRACKING
+    assert queries.pose(reopened)["robots"]["r2"]["localisation"]["status"] == TRACKING
     reopened.close()
 
 

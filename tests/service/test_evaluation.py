@@ -10,7 +10,7 @@ import pytest
 
 from graph.angles import wrap_angles
 from graph.types import FrameInput, Odometry, Pose2D
-from service.evaluation import (
+from service.offline.evaluation import (
     Trajectory,
     align_se2,
     associate,

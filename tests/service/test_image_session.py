@@ -15,8 +15,11 @@ import numpy as np
 import pytest
 
 from frontend.cameras import PanoramaCamera
-from service.datasets.render_run import write_rendered_run
+from service import queries
 from service.errors import ServiceError
+from service.exchange import export_map, import_frames
+from service.offline.datasets.render_run import write_rendered_run
+from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -82,14 +85,14 @@ def test_image_frames_are_logged_with_their_image_and_reload_identically(
     assert session.store.frame_image(stored[0].id) is None
     assert session.store.frame_image(stored[-1].id) == run[29][1]
     assert json.loads(stored[0].body)["image"]["bytes"] == len(run[0][1])
-    before = session.trajectory()["r1"]
+    before = queries.trajectory(session)["r1"]
     live_before = sorted(session.slam.landmarks)
     session.close()
 
     # Reopen: snapshot at frame 20 (with the front end's state) + 10 image frames replayed.
     reopened = MapSession(path, StoreSettings(snapshot_every=20))
     assert reopened.loaded_from_snapshot == 20
-    after = reopened.trajectory()["r1"]
+    after = queries.trajectory(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     assert _worst_move(after, before) < 0.02
     assert sorted(reopened.slam.landmarks) == live_before
@@ -106,13 +109,13 @@ def test_whole_log_replay_without_snapshot_reproduces_the_map(
     session = _new(path, every=10**6)
     for meta, image in run[:15]:
         session.submit(meta, image)
-    before = session.trajectory()["r1"]
+    before = queries.trajectory(session)["r1"]
     landmarks = sorted(session.slam.landmarks)
     session.close()
     reopened = MapSession(path, StoreSettings(snapshot_every=10**6))
     assert reopened.loaded_from_snapshot == 0
     assert sorted(reopened.slam.landmarks) == landmarks
-    after = reopened.trajectory()["r1"]
+    after = queries.trajectory(reopened)["r1"]
     assert max(abs(a["x"] - b["x"]) for a, b in zip(after, before, strict=True)) < 1e-6
     reopened.close()
 
@@ -127,7 +130,7 @@ def _images_and_trajectory(
         session.submit(meta, image)
         if session.snapshot_due:
             session.snapshot()
-    count, trajectory = session.store.image_count(), session.trajectory()["r1"]
+    count, trajectory = session.store.image_count(), queries.trajectory(session)["r1"]
     session.close()
     return count, trajectory
 
@@ -148,7 +151,7 @@ def test_images_are_pruned_once_every_kept_snapshot_covers_them(
     # Snapshot + tail: the tail's images are all there; the map is as it was.
     reopened = MapSession(path, settings)
     assert reopened.loaded_from_snapshot == 30
-    after = reopened.trajectory()["r1"]
+    after = queries.trajectory(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     assert _worst_move(after, before) < 0.02
     reopened.close()
@@ -163,7 +166,7 @@ def test_images_are_pruned_once_every_kept_snapshot_covers_them(
     conn.close()
     rebuilt = MapSession(path, settings)
     assert rebuilt.loaded_from_snapshot == 0 and rebuilt.replay_errors == 0
-    again = rebuilt.trajectory()["r1"]
+    again = queries.trajectory(rebuilt)["r1"]
     assert [p["seq"] for p in again] == [p["seq"] for p in before]
     drift = _worst_move(again, before)
     assert drift < 0.3, drift
@@ -260,13 +263,13 @@ def test_export_import_of_an_image_map_goes_on_associating_as_the_original(
     source = _new(tmp_path / "cam.sqlite", every=1000)
     for meta, image in run[:24]:
         source.submit(meta, image)
-    doc = json.loads(json.dumps(source.export()))  # through JSON, as over HTTP
+    doc = json.loads(json.dumps(export_map(source)))  # through JSON, as over HTTP
     image_frames = [f["frame"] for f in doc["frames"]]
     assert all("sha256" in f["image"] and f["observations"] for f in image_frames[1:])
     assert doc["frontend"]["associator"]["landmarks"], "landmark descriptors exported"
 
     target = _new(tmp_path / "imported.sqlite", every=1000)
-    target.import_frames(doc["frames"], doc["frontend"])
+    import_frames(target, doc["frames"], doc["frontend"])
     assert sorted(r.label for r in target.slam.landmarks.values()) == sorted(
         r.label for r in source.slam.landmarks.values()
     )
@@ -277,12 +280,12 @@ def test_export_import_of_an_image_map_goes_on_associating_as_the_original(
         assert _labels(a, source) == _labels(b, target)
         observed += len(_labels(a, source))
     assert observed > 50
-    ta, tb = source.trajectory()["r1"], target.trajectory()["r1"]
+    ta, tb = queries.trajectory(source)["r1"], queries.trajectory(target)["r1"]
     assert len(ta) == len(tb) == len(run)
     for pa, pb in zip(ta, tb, strict=True):
         assert abs(pa["x"] - pb["x"]) < 1e-6 and abs(pa["y"] - pb["y"]) < 1e-6
     # Its own export round-trips too (observations kept, no images needed).
-    again = target.export()
+    again = export_map(target)
     assert [f["frame"]["observations"] for f in again["frames"][:24]] == [
         f["observations"] for f in image_frames
     ]
@@ -297,7 +300,7 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
 
     session = _new(tmp_path / "cam.sqlite")
     results = [json.loads(session.submit(m, i)["result_json"]) for m, i in run[:30]]
-    places = session.places()["appearance_places"]
+    places = queries.places(session)["appearance_places"]
     assert len(places) >= 2, "the run crosses more than one place spacing"
     assert places[0]["robot"] == "r1" and places[0]["frame"] == 0
     assert results[0]["localisation"]["place"] == 0
@@ -326,7 +329,7 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
     result = json.loads(session.submit(meta, png.tobytes())["result_json"])
     assert result["localisation"]["place"] == 0
     assert result["localisation"]["confidence"] > 0.95
-    assert len(session.places()["appearance_places"]) == len(places)  # nothing new learnt
+    assert len(queries.places(session)["appearance_places"]) == len(places)  # nothing new learnt
 
 
 def test_imported_image_map_reloads_from_its_log_alone(
@@ -335,10 +338,10 @@ def test_imported_image_map_reloads_from_its_log_alone(
     source = _new(tmp_path / "cam.sqlite", every=1000)
     for meta, image in run[:20]:
         source.submit(meta, image)
-    doc = json.loads(json.dumps(source.export()))
+    doc = json.loads(json.dumps(export_map(source)))
     path = tmp_path / "imported.sqlite"
     target = _new(path, every=1000)
-    target.import_frames(doc["frames"], doc["frontend"])
+    import_frames(target, doc["frames"], doc["frontend"])
     target.close()
     # Without its snapshots the map is its log: imported frames replay from their
     # observations and the export's front-end state is put back after them.
@@ -362,7 +365,7 @@ def test_import_refuses_a_bad_front_end_state_and_keeps_nothing(
     source = _new(tmp_path / "cam.sqlite")
     for meta, image in run[:6]:
         source.submit(meta, image)
-    doc = json.loads(json.dumps(source.export()))
+    doc = json.loads(json.dumps(export_map(source)))
     source.close()
     state = doc["frontend"]
     bad_descriptor = json.loads(json.dumps(state))
@@ -376,7 +379,7 @@ def test_import_refuses_a_bad_front_end_state_and_keeps_nothing(
     ):
         target = _new(tmp_path / "imported.sqlite")
         with pytest.raises(ServiceError) as info:
-            target.import_frames(doc["frames"], bad)
+            import_frames(target, doc["frames"], bad)
         assert info.value.status == 422 and field in info.value.detail
         assert target.slam.frame_count == 0 and target.store.frame_count() == 0
         target.close()
@@ -385,7 +388,7 @@ def test_import_refuses_a_bad_front_end_state_and_keeps_nothing(
     frames[2]["frame"]["image"] = {"sha256": "nope", "bytes": 3}
     target = _new(tmp_path / "imported2.sqlite")
     with pytest.raises(ServiceError) as info:
-        target.import_frames(frames, state)
+        import_frames(target, frames, state)
     assert info.value.status == 422 and "frames[2].frame" in info.value.detail
     target.close()
 
@@ -411,9 +414,9 @@ def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
 ) -> None:
     gap = range(14, 20)  # six frames of odometry only, posted as JSON
     session, results = _run_with_json_gap(tmp_path / "a.sqlite", run, gap)
-    assert session.vision is not None
+    assert session.pipeline.images is not None
     # The front end predicts the next image frame from the JSON frame's pose.
-    pose, _ = session.vision.pipeline._last["r1"]
+    pose, _ = session.pipeline.robots["r1"].pose or (None, None)
     last = results[-1]["pose"]
     np.testing.assert_allclose(pose, [last["x"], last["y"], last["theta"]], atol=1e-9)
     after = results[gap.stop]
@@ -424,13 +427,14 @@ def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
     # Reopened from its log (no snapshot), the map predicts the same way.
     session.close()
     reopened = MapSession(tmp_path / "a.sqlite", StoreSettings(snapshot_every=1000))
-    assert reopened.vision is not None
-    np.testing.assert_allclose(reopened.vision.pipeline._last["r1"][0], pose, atol=1e-9)
+    restored = reopened.pipeline.robots["r1"].pose
+    assert restored is not None
+    np.testing.assert_allclose(restored[0], pose, atol=1e-9)
     reopened.close()
     reference.close()
     # Without the JSON frames' poses, the image frame after the gap is predicted from the
     # last image frame plus one frame's odometry, far off, and matches little.
-    monkeypatch.setattr(MapSession, "_note_json_frame", lambda self, localised: None)
+    monkeypatch.setattr(ImageFrontEnd, "note_pose", lambda self, robot, pose, cov: None)
     stale, stale_results = _run_with_json_gap(tmp_path / "b.sqlite", run, gap)
     stale_observed = len(stale_results[gap.stop]["landmarks"]["observed"])
     assert stale_observed <= 0.5 * len(after["landmarks"]["observed"])  # measured 3

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angles
-from service.datasets.indoor_sim import (
+from service.frames_io import read_frames
+from service.offline.datasets.indoor_sim import (
     IndoorWorld,
     SimRun,
     bearings_from_pose,
@@ -18,8 +19,7 @@ from service.datasets.indoor_sim import (
     simulate,
     write_run,
 )
-from service.evaluation import dead_reckoning, read_tum
-from service.frames_io import read_frames
+from service.offline.evaluation import dead_reckoning, read_tum
 
 
 @pytest.fixture(scope="module")

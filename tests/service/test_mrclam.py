@@ -10,7 +10,7 @@ import pytest
 
 from graph.angles import wrap_angles
 from graph.types import FrameInput
-from service.datasets.mrclam import (
+from service.offline.datasets.mrclam import (
     ROBOT_SUBJECTS,
     MrclamRobot,
     dead_reckoning,
@@ -21,7 +21,7 @@ from service.datasets.mrclam import (
     mrclam_frames,
     relative_motion,
 )
-from service.evaluation import Trajectory, ate_rmse, interpolate
+from service.offline.evaluation import Trajectory, ate_rmse, interpolate
 
 V, W = 0.4, 0.25  # m/s, rad/s
 P0 = np.array([1.0, 2.0, 0.5])  # pose at the first odometry sample, t = 100 s

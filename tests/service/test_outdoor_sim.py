@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angles
-from service.datasets.indoor_sim import bearings_from_pose
-from service.datasets.outdoor_sim import OutdoorWorld, make_outdoor_world, simulate_outdoor
-from service.evaluation import ate_rmse, dead_reckoning
+from service.offline.datasets.indoor_sim import bearings_from_pose
+from service.offline.datasets.outdoor_sim import OutdoorWorld, make_outdoor_world, simulate_outdoor
+from service.offline.evaluation import ate_rmse, dead_reckoning
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
-from service.datasets.mrclam import default_mrclam_dir
-from service.evaluation import read_tum
+from api.cli import main
+from service.offline.datasets.mrclam import default_mrclam_dir
+from service.offline.evaluation import read_tum
 
 
 def test_simulate_then_replay_writes_trajectory_and_stats(tmp_path: Path, capsys) -> None:

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from service.replay import current_rss_mb, peak_rss_mb, reset_peak_rss
+from service.offline.replay import current_rss_mb, peak_rss_mb, reset_peak_rss
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM and clear_refs are Linux's")

@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service import queries
 from service.errors import ServiceError
+from service.exchange import export_map
 from service.frames_io import frame_to_dict
 from service.session import MapSession, canonical_frame
 from service.settings import StoreSettings
@@ -36,14 +38,14 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(place: PlaceFactory) ->
         results.append(json.loads(session.submit(f)["result_json"]))
         if session.snapshot_due:  # what the worker does between requests
             session.snapshot()
-    before = session.trajectory()["r1"]
+    before = queries.trajectory(session)["r1"]
     session.close()
 
     reopened = MapSession(path, StoreSettings(snapshot_every=25))
     # 70 frames, a snapshot every 25: the reload restored frame 50's and replayed 20
     assert reopened.loaded_from_snapshot == 50
     assert reopened.slam.frame_count == 70
-    after = reopened.trajectory()["r1"]
+    after = queries.trajectory(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     moved = [
         abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, before, strict=True)
@@ -119,8 +121,8 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> No
 def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> None:
     session = _new(place("m1"))
     results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:60]]
-    plain = session.trajectory()["r1"]
-    rows = session.trajectory(stats_every=7)["r1"]
+    plain = queries.trajectory(session)["r1"]
+    rows = queries.trajectory(session, stats_every=7)["r1"]
     assert [{k: p[k] for k in ("seq", "x", "y")} for p in rows] == [
         {k: p[k] for k in ("seq", "x", "y")} for p in plain
     ]
@@ -130,9 +132,9 @@ def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> N
 
     # Labels of every landmark id, from the removal log and the live landmarks.
     label = {r["landmark_id"]: r["label"] for r in session.store.removals()}
-    label.update({lm["id"]: lm["label"] for lm in session.landmarks()})
+    label.update({lm["id"]: lm["label"] for lm in queries.landmarks(session)})
     removed_labels = [r["label"] for r in session.store.removals()]
-    readded = set(removed_labels) & {lm["label"] for lm in session.landmarks()}
+    readded = set(removed_labels) & {lm["label"] for lm in queries.landmarks(session)}
     assert readded, "the run should restore a removed landmark (the case counted once)"
     ids: list[int] = []
     for i, result in enumerate(results):
@@ -173,7 +175,7 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
     session = _new(place("m1"))
     for f in FRAMES[:12]:
         session.submit(f)
-    before = session.trajectory()["r1"]
+    before = queries.trajectory(session)["r1"]
     real = BearingSlam.process
 
     failed: list[int] = []
@@ -199,7 +201,7 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
 
     assert session.store.find_frame("r1", FRAMES[12]["seq"]) is None
     assert session.slam.frame_count == 12
-    assert session.trajectory()["r1"] == before
+    assert queries.trajectory(session)["r1"] == before
     got = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[12:14]]
     for a, b in zip(got, expected[12:14], strict=True):
         assert a["seq"] == b["seq"] and a["localisation"] == b["localisation"]
@@ -232,17 +234,17 @@ def test_final_trajectory_rows_are_stored_and_leave_the_estimator(place: PlaceFa
     for frame in frames:
         reference.process(frame)
     expected = reference.trajectory("r1")["r1"]
-    rows = session.trajectory()["r1"]
+    rows = queries.trajectory(session)["r1"]
     got = np.array([[p["seq"], p["stamp"], p["x"], p["y"], p["theta"]] for p in rows])
     np.testing.assert_array_equal(got, expected)
-    assert len(session.export()["trajectories"]["r1"]) == 120
+    assert len(export_map(session)["trajectories"]["r1"]) == 120
     session.close()
 
     # A reload replays the tail after the snapshot and rewrites the rows it finalises.
     reopened = MapSession(path, StoreSettings(snapshot_every=25))
     assert reopened.loaded_from_snapshot == 100
     assert reopened.store.pose_count() + reopened.slam.held_trajectory_rows == 120
-    after = reopened.trajectory()["r1"]
+    after = queries.trajectory(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in rows]
     assert (
         max(abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, rows, strict=True))
@@ -275,14 +277,14 @@ def test_a_failed_frame_stores_no_final_rows(
 
     monkeypatch.setattr(BearingSlam, "process", half_way)
     for f in frames[100:]:
-        before, stored = session.trajectory()["r1"], session.store.pose_count()
+        before, stored = queries.trajectory(session)["r1"], session.store.pose_count()
         try:
             session.submit(f)
         except ServiceError:
             break
     assert failed, "no frame finalised a row"
     assert session.store.pose_count() == stored
-    assert session.trajectory()["r1"] == before
+    assert queries.trajectory(session)["r1"] == before
     session.submit(frames[failed[0]])
     assert session.store.pose_count() > stored
-    assert len(session.trajectory()["r1"]) == failed[0] + 1
+    assert len(queries.trajectory(session)["r1"]) == failed[0] + 1

@@ -8,8 +8,9 @@ import sqlite3
 import time
 from pathlib import Path
 
-from graph.snapshot import capture
+from service import queries
 from service.frames_io import frame_to_dict
+from service.pipeline.snapshot import snapshot_pipeline
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord
@@ -52,7 +53,7 @@ def test_the_store_holds_the_archive_the_removal_log_and_restore_events(
     session = _run(place("m1"), FRAMES)
     slam = session.slam
     assert slam.restoration_count > 0
-    archived = session.landmarks("archived")
+    archived = queries.landmarks(session, "archived")
     assert archived == [e.as_dict() for e in sorted(slam.archive, key=lambda e: e.id)]
     assert {a["id"] for a in archived}.isdisjoint(slam.landmarks)
     # every removal is in the log, a landmark removed twice twice
@@ -71,7 +72,7 @@ def test_the_store_holds_the_archive_the_removal_log_and_restore_events(
             for m in marginalised
         )
     # the live answer is what it was: live landmarks only, with their clusters
-    live = session.landmarks()
+    live = queries.landmarks(session)
     assert sorted(lm["id"] for lm in live) == sorted(slam.landmarks)
     assert all("cluster" in lm and "removals" not in lm for lm in live)
     session.close()
@@ -82,7 +83,7 @@ def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(
 ) -> None:
     path = place("m1")
     session = _run(path, FRAMES)
-    archive, store_rows = session.slam.archive, session.landmarks("archived")
+    archive, store_rows = session.slam.archive, queries.landmarks(session, "archived")
     restorations = session.slam.restoration_count
     session.close()
 
@@ -90,10 +91,10 @@ def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(
     assert reopened.loaded_from_snapshot > 0
     assert [e.id for e in reopened.slam.archive] == [e.id for e in archive]
     assert reopened.slam.restoration_count == restorations
-    assert reopened.landmarks("archived") == store_rows
+    assert queries.landmarks(reopened, "archived") == store_rows
 
     # a snapshot from before the archive (version 3) is refused: the log is replayed
-    state = pickle.loads(capture(reopened.slam, extra=reopened.loc))
+    state = pickle.loads(snapshot_pipeline(reopened.pipeline)[0])
     state["version"] = 3
     reopened.store.save_snapshot(reopened._last_log_id, pickle.dumps(state), keep=1)
     reopened.close()

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angle
+from service import queries
 from service.frames_io import frame_to_dict
 from service.session import MapSession
 from service.settings import StoreSettings
@@ -43,8 +44,8 @@ def kidnapped(tmp_path_factory: pytest.TempPathFactory) -> dict:
             while_lost = {
                 "seq": seq,
                 "result": result,
-                "trajectory": session.trajectory("r1")["r1"],
-                "pose": session.pose()["robots"]["r1"],
+                "trajectory": queries.trajectory(session, "r1")["r1"],
+                "pose": queries.pose(session)["robots"]["r1"],
             }
     yield {"session": session, "statuses": statuses, "while_lost": while_lost}
     session.close()
@@ -71,7 +72,7 @@ def test_frames_acknowledged_while_lost_are_in_the_trajectory(kidnapped) -> None
     assert snap["pose"]["pose"]["x"] == last["x"]
 
     # Re-anchored: still every frame, in order; the gap dead-reckoned back from the anchor.
-    rows = kidnapped["session"].trajectory()["r1"]
+    rows = queries.trajectory(kidnapped["session"])["r1"]
     assert [r["seq"] for r in rows] == list(range(len(KEPT)))
     assert {r.get("source") for r in rows[lost + 1 : again]} == {"odometry"}
     assert all("source" not in r for r in (*rows[: lost + 1], *rows[again:]))
@@ -85,7 +86,7 @@ def test_frames_acknowledged_while_lost_are_in_the_trajectory(kidnapped) -> None
 
 
 def test_map_counts_every_acknowledged_frame(kidnapped) -> None:
-    counts = kidnapped["session"].summary()["counts"]
+    counts = queries.summary(kidnapped["session"])["counts"]
     statuses = kidnapped["statuses"]
     lost, again = statuses.index("lost"), statuses.index("relocalised", statuses.index("lost"))
     assert counts["frames"] == len(KEPT)
@@ -93,7 +94,7 @@ def test_map_counts_every_acknowledged_frame(kidnapped) -> None:
 
 
 def test_tum_text_has_every_frame(kidnapped) -> None:
-    rows = kidnapped["session"].trajectory("r1")["r1"]
+    rows = queries.trajectory(kidnapped["session"], "r1")["r1"]
     lines = [ln for ln in tum_text(rows).splitlines() if ln and not ln.startswith("#")]
     assert len(lines) == len(KEPT)
     stamps = [float(ln.split()[0]) for ln in lines]
@@ -111,9 +112,9 @@ def test_initialising_robot_in_pose_and_trajectory(tmp_path: Path) -> None:
         f = dataclasses.replace(f, odometry=None) if k == 0 else f
         result = json.loads(session.submit(frame_to_dict(f))["result_json"])
         statuses.append(result["localisation"]["status"])
-        poses.append(session.pose()["robots"].get("r2"))
+        poses.append(queries.pose(session)["robots"].get("r2"))
         if k == 0:
-            rows = session.trajectory("r2")["r2"]
+            rows = queries.trajectory(session, "r2")["r2"]
             assert [(r["seq"], r["source"]) for r in rows] == [(0, "filter")]
     first = statuses.index("relocalised")
     assert first > 0 and set(statuses[:first]) == {"initialising"}
@@ -125,7 +126,7 @@ def test_initialising_robot_in_pose_and_trajectory(tmp_path: Path) -> None:
             assert np.all(np.linalg.eigvalsh(np.array(doc["covariance"])) >= -1e-12)
     assert poses[first - 1]["pose"] is not None  # the filter weighed many frames by then
     assert poses[-1]["localisation"]["status"] == "tracking"
-    rows = session.trajectory("r2")["r2"]
+    rows = queries.trajectory(session, "r2")["r2"]
     assert [r["seq"] for r in rows] == list(range(30))
     assert {r.get("source") for r in rows[:first]} == {"odometry"}
     err = [

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angle
+from service import queries
 from service.errors import ServiceError
 from service.frames_io import frame_to_dict
 from service.session import MapSession
@@ -63,40 +64,40 @@ def test_robot_without_initial_pose_is_found_and_anchored(mapped) -> None:
         assert math.hypot(pose["x"] - truth[0], pose["y"] - truth[1]) < 0.3
         assert abs(wrap_angle(pose["theta"] - truth[2])) < math.radians(5)
     assert "r2" in session.slam.robots
-    poses = session.pose()["robots"]
+    poses = queries.pose(session)["robots"]
     assert poses["r2"]["localisation"]["status"] == "tracking"
 
 
 def test_places_learnt_listed_and_learn_now(mapped) -> None:
     session, _, _ = mapped
-    doc = session.places()
+    doc = queries.places(session)
     assert doc["places"], "places are learnt automatically while tracking"
     for place in doc["places"]:
         assert len(place["landmarks"]) >= 2
         assert all(lm["depth"] > 0 and lm["depth_variance"] >= 0 for lm in place["landmarks"])
     before = len(doc["places"])
-    learnt = session.learn_place("r1")
+    learnt = queries.learn_place(session, "r1")
     assert learnt["place"]["id"] == before and len(learnt["places"]) == before + 1
     p = learnt["place"]["pose"]
     assert math.hypot(p["x"] - TRUTH[START - 1][0], p["y"] - TRUTH[START - 1][1]) < 0.3
     with pytest.raises(ServiceError) as err:
-        session.learn_place("nobody")
+        queries.learn_place(session, "nobody")
     assert err.value.status == 404
-    assert len(session.places()["places"]) == before + 1
+    assert len(queries.places(session)["places"]) == before + 1
 
 
 def test_localiser_state_survives_a_restart(mapped) -> None:
     session, _, path = mapped
-    places = session.places()
+    places = queries.places(session)
     session.snapshot()
     session.submit(_r2(30))  # one frame in the log's tail after the snapshot
-    expected = session.pose()["robots"]["r2"]
+    expected = queries.pose(session)["robots"]["r2"]
     session.close()
     reopened = MapSession(path, StoreSettings(snapshot_every=1000))
-    assert reopened.places()["places"] == places["places"] or len(
-        reopened.places()["places"]
+    assert queries.places(reopened)["places"] == places["places"] or len(
+        queries.places(reopened)["places"]
     ) >= len(places["places"])
-    got = reopened.pose()["robots"]["r2"]
+    got = queries.pose(reopened)["robots"]["r2"]
     assert got["localisation"]["status"] == expected["localisation"]["status"] == "tracking"
     np.testing.assert_allclose(
         [got["pose"]["x"], got["pose"]["y"]],
@@ -122,6 +123,6 @@ def test_first_frame_without_pose_and_bad_input_leave_the_map_unchanged(tmp_path
         session.submit(_r2(0) | {"seq": 0, "stamp": 99.0})  # a different frame, same seq
     assert session.store.frame_count() == 1
     with pytest.raises(ServiceError) as err:
-        session.learn_place("r2")  # initialising: no pose to learn at
+        queries.learn_place(session, "r2")  # initialising: no pose to learn at
     assert err.value.status == 409
     session.close()

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.cli import main as cli_main
+from api.cli import main as cli_main
 from service.settings import OpenBindError, Settings, get_settings, is_loopback
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from graph.localiser import LOST
-from service.datasets.camera_runs import render_turn_run, run_turns, turn_path
+from service.offline.datasets.camera_runs import render_turn_run, run_turns, turn_path
 
 
 def test_turn_path_turns_on_the_spot_by_quarter_turns() -> None:

@@ -71,10 +71,10 @@ def test_a_failed_import_leaves_nothing_behind(
     exported = worker.call("export", "src", {})
     assert exported["ok"], exported
 
-    def fail(self: MapSession, frames: object, frontend: object) -> None:
+    def fail(session: MapSession, frames: object, frontend: object) -> None:
         raise RuntimeError("replay failed")
 
-    monkeypatch.setattr(MapSession, "import_frames", fail)
+    monkeypatch.setattr(worker, "import_frames", fail)
     payload = {"id": "dst", "created": time.time(), "body": exported["value"], "default_cap": 8}
     reply = worker.call("import", "dst", payload)
     assert reply["ok"] is False and reply["error"]["status"] == 500

@@ -1,7 +1,8 @@
-"""Feed frames through one map's estimator in-process and record what it cost.
+"""Feed frames through one map's pipeline in-process and record what it cost.
 
-This is the offline twin of ``POST /v1/maps/{id}/frames``: the same frames,
-the same pipeline, no HTTP.
+This is the offline twin of ``POST /v1/maps/{id}/frames``: the same frames through
+the same `MapPipeline` (service.pipeline), no HTTP, no store -- and no place
+localiser: every frame goes to the estimator, as from a robot that always tracks.
 """
 
 from __future__ import annotations
@@ -26,9 +27,10 @@ from graph.config import SlamConfig
 from graph.slam import BearingSlam, RemovalRecord
 from graph.trajectory import PoseRow, with_final_rows
 from graph.types import FrameInput
-from service.evaluation import Trajectory
 from service.frames_io import FrameFileError, read_frame_lines
-from service.vision import ImagePipeline
+from service.offline.evaluation import Trajectory
+from service.pipeline import ImageFeatures, MapPipeline
+from service.pipeline.images import ImageFrontEnd
 
 log = logging.getLogger(__name__)
 
@@ -219,24 +221,28 @@ def replay(
     """Process `frames` in order through a fresh map.
 
     `progress`: None shows a bar only when stderr is a terminal. An ImageFrame
-    goes through `front_end` (required then) and the map's ImagePipeline.
+    goes through `front_end` (required then) before the estimator.
     """
     result = spooled_map(config, seed)
     slam = result.slam
-    pipeline = ImagePipeline(slam, front_end) if front_end is not None else None
+    images = None if front_end is None else ImageFrontEnd(slam, front_end)
+    pipeline = MapPipeline(slam, localiser=None, images=images, pose_covariance=with_covariance)
     bar = tqdm(
         frames, total=total, unit="frame", disable=None if progress is None else not progress
     )
     for item in bar:
         t0 = time.perf_counter()
         if isinstance(item, ImageFrame):
-            if pipeline is None:
+            if front_end is None:
                 raise ValueError("an image frame needs a front end (a camera config)")
-            out = pipeline.submit(item.frame, item.image_path.read_bytes()).outcome
+            features = front_end.features(item.image_path.read_bytes())
+            out = pipeline.step(item.frame, image=ImageFeatures(features)).outcome
+            assert out is not None
             result.image_frames += 1
             result.image_observations += len(out.observed)
         else:
-            out = slam.process(item, with_covariance=with_covariance)
+            out = pipeline.step(item).outcome
+        assert out is not None
         result.frame_ms.append(1e3 * (time.perf_counter() - t0))
         result.live_landmarks.append(out.live)
         if slam.frame_count % rss_every == 0:

@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 
 from frontend.cameras import CameraModel, OmniCamera, PanoramaCamera
-from service.datasets.indoor_sim import make_world, simulate
-from service.datasets.render import make_textured_world, render_omni, render_panorama
-from service.evaluation import write_tum
 from service.frames_io import frame_to_dict
+from service.offline.datasets.indoor_sim import make_world, simulate
+from service.offline.datasets.render import make_textured_world, render_omni, render_panorama
+from service.offline.evaluation import write_tum
 
 __all__ = ["RenderedRun", "write_rendered_run"]
 

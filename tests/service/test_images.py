@@ -1,4 +1,4 @@
-"""ImagePipeline: an image frame through front end and estimator; bad images change nothing."""
+"""ImageFrontEnd: an image frame through front end and estimator; bad images change nothing."""
 
 from __future__ import annotations
 
@@ -15,15 +15,16 @@ from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
 from graph.types import FrameInput, Odometry, Pose2D
-from service.datasets.indoor_sim import make_world
-from service.datasets.render import make_textured_world, render_panorama
-from service.vision import ImagePipeline
+from service.offline.datasets.indoor_sim import make_world
+from service.offline.datasets.render import make_textured_world, render_panorama
+from service.pipeline.images import ImageFrontEnd
+from service.pipeline.robots import RobotState
 
 CAM = PanoramaCamera(1024, 256)
 
 
-def _pipeline() -> ImagePipeline:
-    return ImagePipeline(
+def _pipeline() -> ImageFrontEnd:
+    return ImageFrontEnd(
         BearingSlam(SlamConfig(landmark_cap=None), rng=np.random.default_rng(0)), FrontEnd(CAM)
     )
 
@@ -33,7 +34,7 @@ def test_prediction_composes_odometry_and_grows_the_covariance() -> None:
     first = FrameInput("r1", 0, 0.0, initial_pose=Pose2D(1.0, 2.0, math.pi / 2))
     pose, cov = p.predict(first)
     assert np.allclose(pose, (1.0, 2.0, math.pi / 2))
-    p._last["r1"] = (pose, cov)
+    p.robots["r1"] = RobotState(pose=(pose, cov))
     nxt = FrameInput("r1", 1, 0.1, odometry=Odometry(0.5, 0.0, 0.1))
     pose2, cov2 = p.predict(nxt)
     # Forward is +y in the map when theta = pi/2.
@@ -77,5 +78,5 @@ def test_a_restored_snapshot_takes_the_services_association_settings() -> None:
     source = _pipeline()
     source.front_end.associator.config = old_config
     restored = _pipeline()
-    restored.set_state(source.state())
+    restored.set_associator(source.front_end.associator)
     assert restored.front_end.associator.config == current

@@ -6,7 +6,7 @@ the panorama's signature at the robot's graph pose -- whenever the robot is
 of them (yaw-invariant: a rotation is a column shift). The frame result reports the best
 place whose score reaches `min_score`, and the score as its confidence; the best places
 (`hints`) are where a camera robot's particle filter injects its proposals
-(service.camera_localisation).
+(service.pipeline.map_pipeline).
 """
 
 from __future__ import annotations

@@ -27,11 +27,12 @@ from frontend.cameras import PanoramaCamera
 from graph.angles import wrap_angle
 from graph.localiser import LOST, Localiser
 from graph.types import FrameInput, Odometry, Pose2D
-from service.datasets.indoor_sim import make_world
-from service.datasets.mrclam import relative_motion
-from service.datasets.render import TexturedWorld, make_textured_world, render_panorama
 from service.frames_io import frame_to_dict
-from service.localisation import MapLocalisation, map_localiser_config, to_map_frame
+from service.offline.datasets.indoor_sim import make_world
+from service.offline.datasets.mrclam import relative_motion
+from service.offline.datasets.render import TexturedWorld, make_textured_world, render_panorama
+from service.pipeline.covariance import to_map_frame
+from service.pipeline.localiser import landmark_map, map_localiser_config
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -132,7 +133,7 @@ def render_turn_run(
 
 def run_turns(run: TurnRun, *, seed: int = 0, compass: bool = True) -> dict[str, Any]:
     """Every frame through a MapSession with a camera map, and a watch filter beside it.
-    `compass` False: the front end predicts from the odometry alone (service.vision)."""
+    `compass` False: the front end predicts from the odometry alone (service.pipeline.images)."""
     watch = Localiser(map_localiser_config())
     watch_rng = np.random.default_rng([seed, 5])
     rows: list[dict[str, Any]] = []
@@ -141,8 +142,8 @@ def run_turns(run: TurnRun, *, seed: int = 0, compass: bool = True) -> dict[str,
         session = MapSession.create(
             Path(tmp) / "turns.sqlite", record, StoreSettings(snapshot_every=10**6)
         )
-        assert session.vision is not None
-        session.vision.pipeline.compass = compass
+        assert session.pipeline.images is not None
+        session.pipeline.images.compass = compass
         for k, (frame, image) in enumerate(zip(run.frames, run.images, strict=True)):
             meta = frame_to_dict(frame)
             del meta["observations"]
@@ -158,7 +159,7 @@ def run_turns(run: TurnRun, *, seed: int = 0, compass: bool = True) -> dict[str,
                 labels=[o["label"] for o in obs],
                 bearings_rad=[o["bearing"] for o in obs],
                 sigmas_rad=[o.get("sigma") for o in obs],
-                landmarks=MapLocalisation.landmark_map(session.slam),
+                landmarks=landmark_map(session.slam),
                 graph_pose=(
                     np.array([pose["x"], pose["y"], pose["theta"]]),
                     to_map_frame(cov, pose["theta"]),

@@ -62,22 +62,22 @@ class AnchoredRun:
 
 
 @dataclass
-class OffGraphLog:
-    """Per robot: frames of the current gap, anchored gaps, and the dead-reckoned pose."""
+class OffGraphTrack:
+    """One robot's frames off the graph: the current gap, anchored gaps, settled frames,
+    and the pose dead-reckoned from its last graph pose."""
 
-    pending: dict[str, list[OffGraphFrame]] = field(default_factory=dict)
-    anchored: dict[str, list[AnchoredRun]] = field(default_factory=dict)
-    reckoned: dict[str, Pose] = field(default_factory=dict)
-    settled: dict[str, list[OffGraphFrame]] = field(default_factory=dict)
+    pending: list[OffGraphFrame] = field(default_factory=list)
+    anchored: list[AnchoredRun] = field(default_factory=list)
+    reckoned: Pose | None = None
+    settled: list[OffGraphFrame] = field(default_factory=list)
     """Gap frames that could not be chained to an anchor: kept with the poses they had."""
 
-    def on_graph(self, robot: str, pose: Pose) -> None:
+    def on_graph(self, pose: Pose) -> None:
         """A frame the graph took: dead-reckoning restarts from its pose."""
-        self.reckoned[robot] = pose
+        self.reckoned = pose
 
     def off_graph(
         self,
-        robot: str,
         *,
         seq: int,
         stamp: float,
@@ -86,29 +86,26 @@ class OffGraphLog:
         converged: bool,
     ) -> OffGraphFrame:
         """Keep a frame the graph did not take; returns it with its best pose."""
-        last = self.reckoned.get(robot)
+        last = self.reckoned
         reckoned = None if last is None or odometry is None else compose(last, odometry)
         if converged or reckoned is None:
             pose, source = filter_pose, FILTER
         else:
             pose, source = reckoned, ODOMETRY
         # Reckon on from a graph pose only: once the filter had to stand in, go on with it.
-        if reckoned is not None:
-            self.reckoned[robot] = reckoned
-        else:
-            self.reckoned.pop(robot, None)
+        self.reckoned = reckoned
         frame = OffGraphFrame(seq, stamp, odometry, pose, source)
-        self.pending.setdefault(robot, []).append(frame)
+        self.pending.append(frame)
         return frame
 
-    def anchor(self, robot: str, *, seq: int, odometry: Pose | None) -> None:
+    def anchor(self, *, seq: int, odometry: Pose | None) -> None:
         """The frame `seq` (with `odometry` from the gap's last frame) anchors the chain:
         the gap's frames become poses relative to it, dead-reckoned backwards."""
-        gap = self.pending.pop(robot, [])
+        gap, self.pending = self.pending, []
         if not gap:
             return
         if odometry is None:  # a robot's first frame: nothing to chain back through
-            self.settled.setdefault(robot, []).extend(gap)
+            self.settled.extend(gap)
             return
         rel = inverse(odometry)
         rows: list[tuple[int, float, Pose]] = []
@@ -120,24 +117,17 @@ class OffGraphLog:
                 break
             rel = compose(rel, inverse(step))
         rows.reverse()
-        self.anchored.setdefault(robot, []).append(AnchoredRun(seq, tuple(rows)))
+        self.anchored.append(AnchoredRun(seq, tuple(rows)))
 
     def count(self) -> int:
-        """Frames kept off the graph, all robots."""
-        return (
-            sum(len(run.frames) for runs in self.anchored.values() for run in runs)
-            + sum(len(frames) for frames in self.settled.values())
-            + sum(len(frames) for frames in self.pending.values())
-        )
+        """Frames kept off the graph."""
+        return sum(len(run.frames) for run in self.anchored) + len(self.settled) + len(self.pending)
 
-    def robots(self) -> list[str]:
-        return sorted(set(self.pending) | set(self.anchored) | set(self.settled))
-
-    def rows(self, robot: str, graph_poses: Mapping[int, Pose]) -> list[dict[str, Any]]:
-        """Trajectory rows of `robot`'s off-graph frames; `graph_poses` maps the robot's
-        graph frames' seq to their current pose (for the anchored runs)."""
+    def rows(self, graph_poses: Mapping[int, Pose]) -> list[dict[str, Any]]:
+        """Trajectory rows of the off-graph frames; `graph_poses` maps the robot's graph
+        frames' seq to their current pose (for the anchored runs)."""
         out: list[dict[str, Any]] = []
-        for run in self.anchored.get(robot, []):
+        for run in self.anchored:
             base = graph_poses.get(run.anchor_seq)
             if base is None:
                 continue
@@ -146,13 +136,12 @@ class OffGraphLog:
                 out.append(
                     {"seq": seq, "stamp": stamp, "x": x, "y": y, "theta": theta, "source": ODOMETRY}
                 )
-        for f in [*self.settled.get(robot, []), *self.pending.get(robot, [])]:
+        for f in [*self.settled, *self.pending]:
             x, y, theta = f.pose
             out.append(
                 {"seq": f.seq, "stamp": f.stamp, "x": x, "y": y, "theta": theta, "source": f.source}
             )
         return out
 
-    def latest(self, robot: str) -> OffGraphFrame | None:
-        gap = self.pending.get(robot)
-        return gap[-1] if gap else None
+    def latest(self) -> OffGraphFrame | None:
+        return self.pending[-1] if self.pending else None

@@ -19,10 +19,6 @@ from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
 from graph.types import FrameInput
-from service.datasets.indoor_sim import make_world, simulate, write_run
-from service.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
-from service.datasets.render_run import write_rendered_run
-from service.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
 from service.mapconfig import (
     CAMERA_LANDMARK_CAP,
     CAMERA_NOISE_DEFAULTS,
@@ -32,7 +28,11 @@ from service.mapconfig import (
     slam_config,
     window_settings,
 )
-from service.replay import ImageFrame, read_replay_frames, replay
+from service.offline.datasets.indoor_sim import make_world, simulate, write_run
+from service.offline.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
+from service.offline.datasets.render_run import write_rendered_run
+from service.offline.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
+from service.offline.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
 _DEFAULTS = SlamConfig()
@@ -298,7 +298,7 @@ def _replay_http(
     robot: str,
     camera: dict[str, Any] | None,
 ) -> int:
-    from service.http_client import fetch_tum, replay_http
+    from service.offline.http_client import fetch_tum, replay_http
 
     config = _map_config_doc(args, camera)
     name = Path(str(args.directory or args.source)).name

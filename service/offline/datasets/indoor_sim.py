@@ -28,11 +28,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.angles import wrap_angle, wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
-from service.evaluation import Trajectory, write_tum
 from service.frames_io import write_frames
+from service.offline.evaluation import Trajectory, write_tum
 
 if TYPE_CHECKING:
-    from service.datasets.outdoor_sim import OutdoorWorld
+    from service.offline.datasets.outdoor_sim import OutdoorWorld
 
 __all__ = [
     "DENSE_OBSERVATIONS",
@@ -260,7 +260,7 @@ class SimRun:
         landmarks: (M, 2) true landmark positions, metres.
         landmark_ids: (M,) their ids (observation labels are ``str(id)``).
         world: the world the run took place in (this module's, or the outdoor one of
-            service.datasets.outdoor_sim).
+            service.offline.datasets.outdoor_sim).
     """
 
     frames: list[FrameInput]

@@ -10,7 +10,7 @@ position-sigma threshold than a room's (see docs/configuration.md).
 Convention: map frame x, y in metres, yaw theta in radians CCW from +x. The road is
 a rounded rectangle `length_m` x `width_m` with its lower-left corner at the origin,
 driven counter-clockwise from ``(corner_radius_m, 0)`` heading +x. A bearing is CCW
-from the robot's forward axis, wrapped to (-pi, pi] (as service.datasets.indoor_sim).
+from the robot's forward axis, wrapped to (-pi, pi] (as service.offline.datasets.indoor_sim).
 
 Everything random is drawn from the `rng` passed in: a seed gives the same world and
 the same run.
@@ -26,8 +26,8 @@ from numpy.typing import ArrayLike
 
 from graph.angles import wrap_angle, wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
-from service.datasets.indoor_sim import FloatArray, IntArray, SimRun, noisy_observations
-from service.evaluation import Trajectory
+from service.offline.datasets.indoor_sim import FloatArray, IntArray, SimRun, noisy_observations
+from service.offline.evaluation import Trajectory
 
 __all__ = ["OutdoorWorld", "make_outdoor_world", "simulate_outdoor"]
 

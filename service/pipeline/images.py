@@ -1,7 +1,7 @@
 """Image frames through one map: the front end and the estimator wired together.
 
-`ImagePipeline.submit(frame, image)` is the one call a map's session (or the
-replay) makes for a frame that carries an image instead of observations:
+`ImageFrontEnd.submit(frame, image)` takes a frame that carries an image instead of
+observations (the map pipeline's graph step for such a frame):
 
 1. predict the robot's pose from its last estimate and the frame's odometry,
    with the covariance grown by the odometry noise (map frame);
@@ -33,14 +33,16 @@ from frontend.pipeline import FrontEnd
 from graph.factors import odometry_sigmas
 from graph.slam import BearingSlam, FrameOutcome
 from graph.types import FrameInput, Pose2D
+from service.pipeline.covariance import to_map_frame
+from service.pipeline.robots import RobotState
 
-__all__ = ["ImageFrameResult", "ImagePipeline", "parse_state_doc"]
+__all__ = ["ImageFrameResult", "ImageFrontEnd", "parse_state_doc"]
 
 FloatArray = NDArray[np.float64]
 
 COMPASS_GATE = 3.0
 """Odometry heading sigmas beyond which the visual compass's turn replaces the odometry's
-in the prediction (see ImagePipeline.predict)."""
+in the prediction (see ImageFrontEnd.predict)."""
 COMPASS_MIN_SCORE = 0.6
 """Correlation two consecutive panoramas' signatures need for the compass to count."""
 
@@ -54,17 +56,10 @@ class ImageFrameResult:
     timing_ms: dict[str, float]
 
 
-def _rotate_cov(cov: FloatArray, theta: float) -> FloatArray:
-    """A pose covariance with x, y in the robot frame -> x, y in the map frame."""
-    c, s = math.cos(theta), math.sin(theta)
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r @ cov @ r.T
-
-
 def parse_state_doc(
     doc: Any, config: AssociationConfig
 ) -> tuple[Associator, dict[str, tuple[FloatArray, FloatArray]]]:
-    """(associator, last pose and covariance per robot) of `ImagePipeline.state_doc`'s
+    """(associator, last pose and covariance per robot) of `ImageFrontEnd.state_doc`'s
     document; ValueError naming the first bad field."""
     if not isinstance(doc, dict):
         raise ValueError("frontend: must be an object with associator and last")
@@ -88,7 +83,7 @@ def parse_state_doc(
     return associator, last
 
 
-class ImagePipeline:
+class ImageFrontEnd:
     """One map's front end next to its estimator."""
 
     def __init__(
@@ -96,55 +91,47 @@ class ImagePipeline:
         slam: BearingSlam,
         front_end: FrontEnd,
         *,
+        robots: dict[str, RobotState] | None = None,
         landmark_covariances: bool = False,
         compass: bool = True,
     ) -> None:
-        """`landmark_covariances`: gate with the graph's landmark marginals (one joint
+        """`robots`: the map's per-robot state (each robot's last pose and panorama
+        signature live there; default: a dict of its own).
+        `landmark_covariances`: gate with the graph's landmark marginals (one joint
         marginal per frame; costly with many landmarks) instead of a default sigma.
         `compass`: let the panoramas' rotation overrule a wrong odometry turn in the
         prediction (see `predict`; False: the odometry alone, e.g. to compare)."""
         self.slam = slam
         self.front_end = front_end
+        self.robots: dict[str, RobotState] = {} if robots is None else robots
         self.landmark_covariances = landmark_covariances
         self.compass = compass
-        self._last: dict[str, tuple[FloatArray, FloatArray]] = {}
-        self._signature: dict[str, NDArray[np.float32]] = {}
-        """Each robot's last panorama signature (the visual compass, see `predict`)."""
 
-    @property
-    def robots(self) -> frozenset[str]:
-        """Robots whose last pose the pipeline knows (they sent an image frame)."""
-        return frozenset(self._last)
+    def _robot(self, name: str) -> RobotState:
+        return self.robots.setdefault(name, RobotState())
 
-    def state(self) -> dict[str, Any]:
-        """What the pipeline carries from frame to frame besides the estimator: the
-        associator (landmark views, candidate tracks), each robot's last pose and
-        covariance, and its last panorama signature. Picklable; `set_state` puts it back
-        (a snapshot of a camera map)."""
-        return {
-            "associator": self.front_end.associator,
-            "last": self._last,
-            "signature": self._signature,
-        }
+    def last_pose(self, robot: str) -> tuple[FloatArray, FloatArray] | None:
+        """The robot's last pose (3,) and (3, 3) map-frame covariance, if the front end
+        knows it."""
+        state = self.robots.get(robot)
+        return None if state is None else state.pose
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        associator = state["associator"]
+    def set_associator(self, associator: Associator) -> None:
         # The service's association settings, not the snapshot's: they are not part of a
         # map's config, and an older snapshot's pickled config lacks the newer fields.
         associator.config = self.front_end.associator.config
         self.front_end.associator = associator
-        self._last = dict(state["last"])
-        self._signature = dict(state.get("signature", {}))  # older snapshots: none
 
     def state_doc(self) -> dict[str, Any]:
-        """The same state as JSON-ready data (a map export): the associator's landmark
-        views and tracks, and each robot's last pose (x, y, theta) with its (3, 3)
-        covariance (x, y in the map frame)."""
+        """The front end's state as JSON-ready data (a map export): the associator's
+        landmark views and tracks, and each robot's last pose (x, y, theta) with its
+        (3, 3) covariance (x, y in the map frame)."""
         return {
             "associator": associator_to_doc(self.front_end.associator),
             "last": {
-                robot: {"pose": pose.tolist(), "covariance": cov.tolist()}
-                for robot, (pose, cov) in self._last.items()
+                name: {"pose": robot.pose[0].tolist(), "covariance": robot.pose[1].tolist()}
+                for name, robot in self.robots.items()
+                if robot.pose is not None
             },
         }
 
@@ -152,18 +139,22 @@ class ImagePipeline:
         """Put back `state_doc`'s document (checked first: ValueError naming the field;
         nothing changes then). Landmarks the estimator no longer has are dropped at the
         next frame."""
-        self.front_end.associator, self._last = parse_state_doc(
-            doc, self.front_end.associator.config
-        )
+        associator, last = parse_state_doc(doc, self.front_end.associator.config)
+        self.front_end.associator = associator
+        for robot in self.robots.values():
+            robot.pose = None
+        for name, pose in last.items():
+            self._robot(name).pose = pose
 
     def note_pose(self, robot: str, pose: Pose2D, covariance_robot: ArrayLike) -> None:
         """The robot's frame went through the estimator by another route (a JSON frame
         with bearing observations): its next image frame is predicted from here.
         `covariance_robot`: (3, 3), x, y in the robot frame (as the estimator reports)."""
+        state = self._robot(robot)
         xy_theta = np.array([pose.x, pose.y, pose.theta])
-        self._last[robot] = (xy_theta, _rotate_cov(np.asarray(covariance_robot), pose.theta))
+        state.pose = (xy_theta, to_map_frame(np.asarray(covariance_robot), pose.theta))
         # The next image's odometry starts here, not at the last image: no compass for it.
-        self._signature.pop(robot, None)
+        state.signature = None
 
     def predict(
         self, frame: FrameInput, *, compass_rad: float | None = None
@@ -177,7 +168,7 @@ class ImagePipeline:
         and a prediction that far off would leave the association matching nothing.
         The estimator still gets the frame's odometry as it is."""
         cfg = self.slam.config
-        last = self._last.get(frame.robot)
+        last = self.last_pose(frame.robot)
         if last is None or frame.odometry is None:
             if frame.initial_pose is None:
                 raise ValueError(f"robot {frame.robot!r}: first frame needs initial_pose")
@@ -196,7 +187,7 @@ class ImagePipeline:
         new = np.array([pose[0] + dxw, pose[1] + dyw, pose[2] + turn])
         new[2] = math.atan2(math.sin(new[2]), math.cos(new[2]))
         jac = np.array([[1.0, 0.0, -dyw], [0.0, 1.0, dxw], [0.0, 0.0, 1.0]])
-        q = _rotate_cov(np.diag(np.square(sigmas)), pose[2])
+        q = to_map_frame(np.diag(np.square(sigmas)), pose[2])
         return new, jac @ cov @ jac.T + q
 
     def submit(
@@ -222,7 +213,8 @@ class ImagePipeline:
         feats = image if isinstance(image, Features) else self.front_end.features(image)
         t1 = time.perf_counter()
         compass = None
-        previous = self._signature.get(frame.robot)
+        state = self._robot(frame.robot)
+        previous = state.signature
         if (
             self.compass
             and signature is not None
@@ -260,11 +252,11 @@ class ImagePipeline:
         t3 = time.perf_counter()
         pose = np.array([outcome.pose.x, outcome.pose.y, outcome.pose.theta])
         pose_cov = (
-            _rotate_cov(np.asarray(outcome.covariance), pose[2])
+            to_map_frame(np.asarray(outcome.covariance), pose[2])
             if outcome.covariance is not None
             else cov
         )
-        self._last[frame.robot] = (pose, pose_cov)
+        state.pose = (pose, pose_cov)
         live = {rec.label: rec.id for rec in slam.landmarks.values()}
         touched = set(association.landmark_matches) | set(association.track_matches)
         near = [(lb, i) for lb, i in live.items() if lb in touched]
@@ -272,7 +264,7 @@ class ImagePipeline:
         positions = {lb: p for (lb, _), p in zip(near, xy_near, strict=True)}
         self.front_end.commit(association, pose=pose, live_labels=live, landmark_xy=positions)
         if signature is not None:
-            self._signature[frame.robot] = signature
+            state.signature = signature
         t4 = time.perf_counter()
         return ImageFrameResult(
             outcome=outcome,

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.angles import wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
-from service.evaluation import Trajectory, dead_reckoning, interpolate
+from service.offline.evaluation import Trajectory, dead_reckoning, interpolate
 
 __all__ = [
     "ROBOT_SUBJECTS",
@@ -62,7 +62,7 @@ def default_data_dir() -> Path:
     env = os.environ.get("COVSLAM_DATA")
     if env:
         return Path(env)
-    repo = Path(__file__).resolve().parents[2]
+    repo = Path(__file__).resolve().parents[3]
     return repo.parent / "shared" / "data"
 
 

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from frontend.cameras import OmniCamera, PanoramaCamera
 from graph.angles import wrap_angles
-from service.datasets.indoor_sim import IndoorWorld
+from service.offline.datasets.indoor_sim import IndoorWorld
 
 __all__ = [
     "ColumnTruth",

@@ -4,7 +4,7 @@ Retries on 503 (honouring Retry-After) and on connection errors, so a replay
 survives a worker restart or a service restart: `(robot, seq)` makes every retry
 safe. Used by ``covslam replay ... --url URL``; with ``COVSLAM_API_KEY`` set, every
 request carries it (``Authorization: Bearer``). A frame with an image
-(`service.replay.ImageFrame`) is posted as multipart/form-data: ``meta`` (the
+(`service.offline.replay.ImageFrame`) is posted as multipart/form-data: ``meta`` (the
 frame JSON without observations) and ``image`` (the file's bytes).
 """
 
@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from graph.types import FrameInput
 from service.frames_io import frame_to_dict
-from service.replay import ImageFrame
+from service.offline.replay import ImageFrame
 
 log = logging.getLogger(__name__)
 

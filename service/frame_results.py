@@ -1,0 +1,155 @@
+"""A frame's result document and its events, from the map pipeline's `FrameStep`.
+
+The result is stored as JSON text with the frame in the log, and an idempotent retry
+returns those bytes: the document's members and their order are part of the REST
+contract. `FrameResult` describes them (the API's response model); every result is
+checked against it before it is stored.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from graph.slam import BearingSlam, RemovalRecord
+from service.pipeline import FrameStep
+from service.views import restored_events
+
+__all__ = [
+    "COV3",
+    "FrameResult",
+    "LandmarkChanges",
+    "Localisation",
+    "PoseXYTheta",
+    "frame_events",
+    "result_doc",
+]
+
+COV3 = (
+    "3x3 covariance of (x [m], y [m], theta [rad]) of the pose, x/y in the map frame, "
+    "row-major, units m², m·rad, rad²"
+)
+
+
+class PoseXYTheta(BaseModel):
+    """A pose in the map frame."""
+
+    x: float = Field(description="metres, map frame")
+    y: float = Field(description="metres, map frame")
+    theta: float = Field(
+        description="yaw, radians, counter-clockwise from the map's +x axis, in (-pi, pi]"
+    )
+
+
+class Localisation(BaseModel):
+    status: Literal["initialising", "tracking", "lost", "relocalised"] = Field(
+        description="initialising (no pose yet: the filter searches), tracking (the graph "
+        "tracks the robot), lost (graph and filter disagree: the filter re-localises), "
+        "relocalised (this frame anchored the robot's pose chain at the filter's estimate)"
+    )
+    place: int | None = Field(None, description="id of the current place, if any")
+    confidence: float | None = Field(None, description="confidence in [0, 1], if known")
+
+
+class LandmarkChanges(BaseModel):
+    observed: list[int] = Field(description="ids of live landmarks observed in this frame")
+    added: list[int] = Field(description="ids of landmarks this frame initialised")
+    marginalised: list[int] = Field(description="ids the landmark budget removed after it")
+    live: int = Field(description="live landmarks after the frame")
+
+
+class FrameResult(BaseModel):
+    """What one frame did to the map."""
+
+    frame_id: int = Field(description="position of the frame in the map's log (1-based)")
+    robot: str = Field(description="robot name, as posted")
+    seq: int = Field(description="seq, as posted")
+    stamp: float = Field(description="seconds, as posted")
+    pose: PoseXYTheta = Field(description="the robot's estimated pose at this frame")
+    covariance: list[list[float]] | None = Field(description=COV3)
+    localisation: Localisation = Field(description="localisation status of the robot")
+    landmarks: LandmarkChanges = Field(description="what the frame did to the landmarks")
+    timing_ms: dict[str, float] = Field(
+        description="worker time per stage, milliseconds (prepare, update, budget, "
+        "covariance, total; log = parse, checks and the committed append to the durable log; "
+        "image frames also: decode = PNG/JPEG decoding + validation (+ omni unwrap) and "
+        "features = feature extraction, both in the helper thread, "
+        "features_wait = how long the frame waited for them after logging, association)"
+    )
+
+
+def result_doc(
+    slam: BearingSlam, step: FrameStep, log_id: int, timing: dict[str, float]
+) -> dict[str, Any]:
+    """The frame result (checked against `FrameResult`: a ValueError names a member
+    that does not fit); `timing` the runtime's own timings (ms) besides the pipeline's."""
+    doc = _result_doc(slam, step, log_id, timing)
+    FrameResult.model_validate(doc)
+    return doc
+
+
+def _result_doc(
+    slam: BearingSlam, step: FrameStep, log_id: int, timing: dict[str, float]
+) -> dict[str, Any]:
+    outcome = step.outcome
+    pose = step.pose
+    return {
+        "frame_id": log_id,
+        "robot": step.robot,
+        "seq": step.seq,
+        "stamp": step.stamp,
+        "pose": {"x": pose.x, "y": pose.y, "theta": pose.theta},
+        "covariance": np.asarray(step.covariance).tolist(),
+        "localisation": {
+            "status": step.status,
+            "place": step.place,
+            "confidence": step.confidence,
+        },
+        "landmarks": {
+            "observed": [] if outcome is None else list(outcome.observed),
+            "added": [] if outcome is None else list(outcome.added),
+            "marginalised": [] if outcome is None else list(outcome.marginalised),
+            "live": len(slam.landmarks),
+        },
+        "timing_ms": {
+            **({} if outcome is None else outcome.timing_ms),
+            "localise": step.timing_ms["localise"],
+            **timing,
+            **{k: v for k, v in step.timing_ms.items() if k != "localise"},
+        },
+    }
+
+
+def frame_events(
+    slam: BearingSlam,
+    step: FrameStep,
+    result_json: str,
+    removals: list[RemovalRecord],
+    log_id: int,
+) -> tuple[list[tuple[str, str]], list[tuple[int, int, str]], list[tuple[int, int, str]]]:
+    """(events as (type, JSON data), removal rows, archived landmark rows) of a frame."""
+    events: list[tuple[str, str]] = [("frame", result_json)]
+    added = () if step.outcome is None else step.outcome.added
+    if step.learnt is not None:
+        doc = {"id": step.learnt.id, "robot": step.learnt.robot}
+        events.append(("place_learnt", json.dumps({**doc, "frame_id": log_id})))
+    for lid in added:
+        if lid in slam.landmarks:
+            x, y = (float(v) for v in slam.landmark_position(lid))
+            doc = {"id": lid, "label": slam.landmarks[lid].label, "x": x, "y": y}
+            events.append(("landmark_added", json.dumps({**doc, "frame_id": log_id})))
+    restored = () if step.outcome is None else step.outcome.restored
+    events.extend(restored_events(slam, restored, log_id))
+    rows = []
+    archived = []
+    for r in removals:
+        doc = {**r.as_dict(), "frame_id": log_id}
+        events.append(("landmark_marginalised", json.dumps(doc)))
+        rows.append((r.landmark_id, r.frame, json.dumps(doc)))
+        entry = slam.archive.get(r.landmark_id)
+        if entry is not None:
+            archived.append((r.landmark_id, r.frame, json.dumps(entry.as_dict())))
+    return events, rows, archived
