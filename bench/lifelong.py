@@ -201,6 +201,7 @@ def run_worker(
     frame_ms: array[float] = array("d")
     cpu_ms: array[float] = array("d")
     live: array[int] = array("i")
+    added = restored = 0
     step = checkpoint_step(frames)
     peak_reset_frame: int | None = None
     peak_before_reset: float | None = None
@@ -224,6 +225,8 @@ def run_worker(
         frame_ms.append(1e3 * (time.perf_counter() - t0))
         cpu_ms.append(1e3 * (time.process_time() - c0))
         live.append(outcome.live)
+        added += len(outcome.added)
+        restored += len(outcome.restored)
         for key in STAGES:
             stages[key].append(outcome.timing_ms[key])
         done = slam.frame_count
@@ -272,6 +275,8 @@ def run_worker(
         "speed_probe_ms": probes,
         "rss_mb": result.rss_mb,
         "removals": slam.removal_count,
+        "landmarks_added": added,
+        "landmarks_restored": restored,
         "first_removal_frame": result.removal_log.first_frame,
         "held_trajectory_rows": held,
         # Every frame has one row: held by the estimator, or spooled.
@@ -460,6 +465,8 @@ def run_summary(record: dict[str, Any], n: int, gt: Trajectory) -> dict[str, Any
         "peak_rss_before_reset_mb": _r(record.get("peak_rss_before_reset_mb"), 1),
         "release_heap": record.get("release_heap"),  # None: a record from before the option
         "removals": record["removals"],
+        "landmarks_added": record.get("landmarks_added"),
+        "landmarks_restored": record.get("landmarks_restored"),
         "first_removal_frame": record["first_removal_frame"],
         "live_landmarks": live_stats(
             record["live_landmarks"], record["config"]["landmark_cap"], n // 20
@@ -804,6 +811,7 @@ def print_summary(report: dict[str, Any]) -> None:
     print(
         f"{'':10s} live landmarks (from frame {live['from_frame']}): min {live['min']}"
         f" median {live['median']} max {live['max']}   removals {b['removals']}"
+        f" (new {b.get('landmarks_added')}, restored {b.get('landmarks_restored')})"
         f"   ATE {fmt(b['accuracy']['ate_rmse_m'], ' m')}"
         f" (aligned {fmt(b['accuracy']['ate_rmse_aligned_m'], ' m')})"
         f"   wall {b['wall_s']} s"
