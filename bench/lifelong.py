@@ -102,7 +102,7 @@ TIME_RATIO_GOAL = 1.1
 TAIL_BLOCK = 1000
 TAIL_P99_GOAL = 4.0
 TAIL_MAX_GOAL = 20.0
-WORLDS: dict[str, dict[str, float]] = {"standard": {}, "dense": DENSE_OBSERVATIONS}
+WORLDS: dict[str, dict[str, Any]] = {"standard": {}, "dense": DENSE_OBSERVATIONS}
 RSS_GROWTH_GOAL_PCT = 5.0
 BASELINE_SLOWDOWN_GOAL = 10.0
 REPO = Path(__file__).resolve().parent.parent
@@ -115,15 +115,7 @@ def make_run(frames: int, seed: int, world: str = "standard") -> SimRun:
     """The simulated run: one rng, world first, then the drive (`world`: see WORLDS)."""
     rng = np.random.default_rng(seed)
     rooms = make_world(rooms=ROOMS, landmarks=LANDMARKS, rng=rng)
-    view = WORLDS[world]
-    return simulate(
-        rooms,
-        frames=frames,
-        rng=rng,
-        robot=ROBOT,
-        max_observations=int(view.get("max_observations", 10)),
-        max_range_m=float(view.get("max_range_m", 5.0)),
-    )
+    return simulate(rooms, frames=frames, rng=rng, robot=ROBOT, **WORLDS[world])
 
 
 def run_digest(run: SimRun) -> str:

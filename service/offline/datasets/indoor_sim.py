@@ -21,7 +21,7 @@ import math
 import os
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -50,7 +50,7 @@ IntArray = NDArray[np.int64]
 
 _WALL_OFFSET_M = 0.05
 
-DENSE_OBSERVATIONS: dict[str, float] = {"max_observations": 30, "max_range_m": 6.0}
+DENSE_OBSERVATIONS: dict[str, Any] = {"max_observations": 30, "max_range_m": 6.0}
 """`simulate` arguments of the dense world: every landmark of the robot's room within
 6 m, up to 30. In the default 3x3 rooms with 225 landmarks (25 a room) a frame holds
 ~25 labelled bearings (the default `simulate`: ~10), as a camera front end gives."""
