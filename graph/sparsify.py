@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -137,7 +138,7 @@ def mutual_information(information: FloatArray, dims: Sequence[int]) -> FloatArr
     h = 0.5 * (information + information.T)
     scale = float(np.mean(np.diag(h))) if h.size else 1.0
     cov = np.linalg.inv(h + _PSEUDO_PRIOR * max(scale, 1e-12) * np.eye(h.shape[0]))
-    return _pairwise_mutual_information(cov, dims)
+    return _pairwise_mutual_information(np.asarray(cov, dtype=np.float64), dims)
 
 
 def _padded_index(dims: Sequence[int]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
@@ -167,7 +168,7 @@ def _pairwise_mutual_information(cov: FloatArray, dims: Sequence[int]) -> FloatA
     blocks = np.where(pad, np.where(eye, 1.0, 0.0), blocks)
     single = np.linalg.slogdet(blocks)[1]
 
-    def both(a: NDArray[np.generic]) -> NDArray[np.generic]:
+    def both(a: NDArray[Any]) -> NDArray[Any]:
         """(n, n, 6): variable i's three columns, then variable j's."""
         return np.concatenate(
             [np.broadcast_to(a[:, None, :], (n, n, 3)), np.broadcast_to(a[None, :, :], (n, n, 3))],
