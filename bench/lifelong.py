@@ -53,6 +53,7 @@ summary.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import hashlib
 import importlib.metadata
@@ -174,15 +175,17 @@ def run_worker(
     release_heap: bool = True,
     world: str = "standard",
     blas_threads: int = 1,
+    settings: dict[str, Any] | None = None,
 ) -> None:
-    """Process the run through one configuration; write per-frame data to `out` (JSON)."""
+    """Process the run through one configuration (with `settings` changed: SlamConfig
+    fields); write per-frame data to `out` (JSON)."""
     if blas_threads:
         threadpool_limits(limits=blas_threads, user_api="blas")
     run = make_run(frames, seed, world)
     digest = run_digest(run)
     todo = run.frames[:max_frames]
     del run
-    config = RUNS[name]
+    config = dataclasses.replace(RUNS[name], **(settings or {}))
     load_start = os.getloadavg()
     rss_before = current_rss_mb()
     result = spooled_map(config, seed, release_heap=release_heap)
@@ -290,6 +293,7 @@ def spawn(
     budget_s: float | None,
     world: str = "standard",
     blas_threads: int = 1,
+    settings: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Run one configuration in a fresh child process and read its JSON back."""
     with tempfile.TemporaryDirectory(prefix="lifelong-") as tmp:
@@ -312,6 +316,8 @@ def spawn(
             world,
             "--blas-threads",
             str(blas_threads),
+            "--bounded-config",
+            json.dumps(settings or {}),
         ]
         if budget_s is not None:
             cmd += ["--worker-budget-s", str(budget_s)]
@@ -872,6 +878,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="numpy BLAS threads in the children (as the service's workers.blas_threads; 0 = "
         "the library's default)",
     )
+    parser.add_argument(
+        "--bounded-config",
+        type=json.loads,
+        default={},
+        help="estimator settings of the bounded run changed, as JSON (SlamConfig fields, "
+        "e.g. '{\"spare_observed\": true}')",
+    )
+    parser.add_argument("--name", default=None, help="results file stem (default by world)")
     parser.add_argument("--seed", type=int, default=SEED, help=argparse.SUPPRESS)
     parser.add_argument("--worker", choices=sorted(RUNS), default=None, help=argparse.SUPPRESS)
     parser.add_argument("--worker-max-frames", type=int, default=None, help=argparse.SUPPRESS)
@@ -909,6 +923,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             release_heap=not args.worker_keep_heap,
             world=args.world,
             blas_threads=args.blas_threads,
+            settings=args.bounded_config if args.worker == "bounded" else None,
         )
         return
 
@@ -930,7 +945,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         if "baseline" in records:
             base_frames = records["baseline"]["frames_done"]
     else:
-        records["bounded"] = spawn("bounded", n, args.seed, n, None, args.world, args.blas_threads)
+        records["bounded"] = spawn(
+            "bounded", n, args.seed, n, None, args.world, args.blas_threads, args.bounded_config
+        )
         if base_frames > 0:
             records["baseline"] = spawn(
                 "baseline",
@@ -961,6 +978,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             "simulate_arguments": WORLDS[args.world],
         },
         "blas_threads": args.blas_threads,
+        "bounded_config_changes": args.bounded_config,
         "run_digest": digest,
         "method": {
             "isolation": "each configuration in its own fresh child process (subprocess)"
@@ -994,6 +1012,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "lifelong" if args.world == "standard" else f"lifelong_{args.world}"
+    stem = args.name or stem
     json_path = args.out / f"{stem}.json"
     png_path = args.out / f"{stem}.png"
     json_path.write_text(json.dumps(report, indent=2) + "\n")

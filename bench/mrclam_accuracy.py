@@ -125,12 +125,18 @@ def run_uncapped(
 
 
 def run_capped(
-    robot: int, policy: str, seed: int, noise: str, directory: Path, limit: int | None = None
+    robot: int,
+    policy: str,
+    seed: int,
+    noise: str,
+    directory: Path,
+    limit: int | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     frames, gt = _frames(directory, robot, limit)
     surveyed = surveyed_landmarks(directory)
     t = time.perf_counter()
-    cfg = SlamConfig(landmark_cap=CAP, policy=policy, **_noise(noise))
+    cfg = SlamConfig(landmark_cap=CAP, policy=policy, **_noise(noise), **(extra or {}))
     res = replay(frames, config=cfg, seed=seed, progress=False)
     live = {rec.label: res.slam.landmark_position(i) for i, rec in res.slam.landmarks.items()}
     row = _judge(res.trajectory(f"r{robot}"), gt, map_landmarks(res), surveyed, live)
@@ -243,6 +249,12 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="replays run in parallel")
     parser.add_argument("--frames", type=int, default=None, help="first N frames only (smoke)")
     parser.add_argument(
+        "--capped-config",
+        type=json.loads,
+        default={},
+        help="estimator settings for the capped maps, as JSON (e.g. '{\"spare_observed\": true}')",
+    )
+    parser.add_argument(
         "--uncapped-from",
         type=Path,
         default=None,
@@ -273,7 +285,10 @@ def main() -> None:
         for r in robots:
             for p in policies:
                 for seed in range(args.seeds if p in STOCHASTIC else 1):
-                    job = pool.submit(run_capped, r, p, seed, args.noise, args.data, args.frames)
+                    extra = args.capped_config
+                    job = pool.submit(
+                        run_capped, r, p, seed, args.noise, args.data, args.frames, extra
+                    )
                     futures[job] = (f"r{r}", p)
         for future in as_completed(futures):
             robot, policy = futures[future]
@@ -298,6 +313,7 @@ def main() -> None:
             "robots": robots,
             "seeds": args.seeds,
             "policies": policies,
+            "capped_config": args.capped_config,
             "noise": args.noise,
             "cap": CAP,
             "jobs": args.jobs,

@@ -1060,6 +1060,12 @@ class BearingSlam:
     def _set_traj_pose(self, frame: int, pose: gtsam.Pose2) -> None:
         self._trajectory.set_pose(frame, pose)
 
+    def _in_view(self, frame: FrameInput) -> set[int]:
+        """Ids of the live landmarks `frame` observed (after its update)."""
+        return {
+            self._label_to_id[o.label] for o in frame.observations if o.label in self._label_to_id
+        }
+
     def _enforce_budget(self, frame: FrameInput) -> tuple[int, ...]:
         """Once the live count exceeds the cap, marginalise the policy's choices until it
         is removal_margin below it."""
@@ -1079,19 +1085,15 @@ class BearingSlam:
             information=information,
         )
         chosen: list[Removal] = []
+        spared = self._in_view(frame) if self.config.spare_observed else set()
         # Marginalising a landmark leaves the others' marginals unchanged, so one
         # covariance computation serves every removal of this frame.
         while len(table.ids) > cap - self.config.removal_margin:
-            removal = self._policy.select(table, rng=self._rng)
+            candidates = np.array([int(i) not in spared for i in table.ids], dtype=bool)
+            pool = table if not candidates.any() else _rows(table, candidates)
+            removal = self._policy.select(pool, rng=self._rng)
             chosen.append(removal)
-            keep = table.ids != removal.landmark_id
-            table = LandmarkTable(
-                ids=table.ids[keep],
-                observed_from=table.observed_from[keep],
-                counts=table.counts[keep],
-                first_seen=table.first_seen[keep],
-                information=None if table.information is None else table.information[keep],
-            )
+            table = _rows(table, table.ids != removal.landmark_id)
         positions = {r.landmark_id: self.landmark_position(r.landmark_id) for r in chosen}
         covariances = self.landmark_covariances([r.landmark_id for r in chosen])
         self._marginalise_with_thinning([landmark_key(r.landmark_id) for r in chosen])
@@ -1124,3 +1126,14 @@ class BearingSlam:
             if self._removal_sink is not None:
                 self._removal_sink(entry)
         return tuple(r.landmark_id for r in chosen)
+
+
+def _rows(table: LandmarkTable, keep: NDArray[np.bool_]) -> LandmarkTable:
+    """The rows of `table` where `keep` is true."""
+    return LandmarkTable(
+        ids=table.ids[keep],
+        observed_from=table.observed_from[keep],
+        counts=table.counts[keep],
+        first_seen=table.first_seen[keep],
+        information=None if table.information is None else table.information[keep],
+    )

@@ -224,73 +224,18 @@ def _factor(
     return TreeFactor(variables, blocks, b)
 
 
-class _Marginals:
-    """Marginals of one Gaussian (augmented information, see the module docstring) on
-    any few of its variables, each in O(its size^3) after one eigen-decomposition.
-
-    With H = V diag(w) V^T, N the null space of H (eigenvalues below _RANK_TOL of the
-    largest), S = H^+ and mu = S g the (minimum-norm) mean: under a prior eps I on every
-    variable the covariance is S + N N^T / eps + O(eps), so a set a of columns has the
-    covariance S_aa + N_a N_a^T / eps, whose inverse tends, as eps -> 0, to
-    ``Q (Q^T S_aa Q)^-1 Q^T`` with Q an orthonormal basis of the complement of N_a's
-    columns: the limit of the proper marginals, which is the generalised Schur
-    complement `marginal_information` computes with one pseudo-inverse per set. A
-    direction of a that the Gaussian does not observe (its gauge) is in N_a and gets no
-    information. The augmented marginal centres it at the mean: linear term M_a mu_a,
-    constant mu_a^T M_a mu_a, plus the Gaussian's error at its mean `residual` for the
-    root's factor (which then holds all of the constant, as marginalising keeps it)."""
-
-    def __init__(self, augmented: FloatArray, dims: Sequence[int]) -> None:
-        h = augmented[:-1, :-1]
-        w, v = np.linalg.eigh(h)
-        keep = w > _RANK_TOL * max(float(w[-1]), 1e-300) if len(w) else np.zeros(0, bool)
-        self.offsets = _offsets(dims)
-        self.pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
-        self.null = v[:, ~keep]
-        self.mean = self.pinv @ augmented[:-1, -1]
-        self.residual = max(float(augmented[-1, -1] - augmented[:-1, -1] @ self.mean), 0.0)
-        """The error at the mean, which every marginal keeps (the root's factor holds it)."""
-        scale = float(np.mean(np.diag(h))) if h.size else 1.0
-        eps = _PSEUDO_PRIOR * max(scale, 1e-12)
-        self.covariance = (v / (w + eps)) @ v.T
-        """Under the pseudo-prior (mutual information, for the tree's structure only)."""
-
-    def augmented(self, variables: Sequence[int]) -> FloatArray:
-        """Augmented information of the marginal on `variables` (blanket indices)."""
-        cols = _columns(self.offsets, variables)
-        s_aa = self.pinv[np.ix_(cols, cols)]
-        q = np.eye(len(cols))
-        if self.null.shape[1]:
-            u, sv, _ = np.linalg.svd(self.null[cols], full_matrices=True)
-            q = u[:, int(np.sum(sv > 1e-8)) :]
-        info = np.zeros((len(cols), len(cols)))
-        if q.shape[1]:
-            info = q @ _psd_pinv(q.T @ s_aa @ q) @ q.T
-        mu = self.mean[cols]
-        eta = info @ mu
-        out = np.empty((len(cols) + 1, len(cols) + 1))
-        out[:-1, :-1] = 0.5 * (info + info.T)
-        out[:-1, -1] = out[-1, :-1] = eta
-        out[-1, -1] = float(mu @ eta)
-        return out
-
-
 def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) -> ChowLiuTree:
     """The Chow-Liu tree of the Gaussian with `augmented` information ((n + 1, n + 1),
     see the module docstring) over variables of `dims`, rooted at `root`.
 
     Per edge (child c, parent p) the conditional's augmented information is the pair's
     marginal less the parent's: ``M_{cp} - [0, 0; 0, M_p]``, positive semi-definite, and
-    the root's factor is its marginal ``M_root``; their sum is the tree's joint. One
-    eigen-decomposition of the blanket's information gives every marginal (`_Marginals`)
-    and the mutual information, so a blanket of n variables costs O(n^3), not one
-    elimination of the whole blanket per edge."""
+    the root's factor is its marginal ``M_root``; their sum is the tree's joint."""
     dims = tuple(int(d) for d in dims)
     o = _offsets(dims)
     augmented = 0.5 * (augmented + augmented.T)
     scale = math.sqrt(max(float(np.max(np.diag(augmented)[:-1], initial=0.0)), 1e-300))
-    marginals = _Marginals(augmented, dims)
-    mi = _pairwise_mutual_information(marginals.covariance, dims)
+    mi = mutual_information(augmented[:-1, :-1], dims)
     edges = maximum_spanning_tree(mi, root)
     size = int(o[-1])
     joint = np.zeros((size + 1, size + 1))
@@ -304,17 +249,16 @@ def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) 
 
     def marginal_of(v: int) -> FloatArray:
         if v not in unary:
-            unary[v] = marginals.augmented((v,))
+            unary[v] = marginal_information(augmented, _columns(o, (v,)))
         return unary[v]
 
-    root_info = marginal_of(root).copy()
-    root_info[-1, -1] += marginals.residual
+    root_info = marginal_of(root)
     add((root,), root_info)
     factor = _factor(root_info, (root,), dims, scale)
     if factor is not None:
         factors.append(factor)
     for child, parent in edges:
-        pair = marginals.augmented((child, parent))
+        pair = marginal_information(augmented, _columns(o, (child, parent)))
         conditional = pair.copy()
         rows = [*range(dims[child], dims[child] + dims[parent]), dims[child] + dims[parent]]
         conditional[np.ix_(rows, rows)] -= marginal_of(parent)

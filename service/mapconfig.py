@@ -523,6 +523,12 @@ class MapConfig(BaseModel):
         "to landmark_cap - removal_margin in one marginalisation (fewer removal updates "
         "for maps that meet new landmarks every frame); 0 = down to the cap",
     )
+    spare_observed: bool = Field(
+        _DEFAULTS.spare_observed,
+        description="the policy chooses among the live landmarks the frame did not observe "
+        "(all of them only if it must remove more): no landmark is removed while in view, "
+        "which stops churn through the archive when frames see many landmarks",
+    )
     drop_window_observations: bool = Field(
         False,
         description="a pose leaving the window without becoming a keyframe loses its "
@@ -627,6 +633,7 @@ _TOP_LEVEL_FIELDS = (
     "optimizer",
     "max_landmark_factors",
     "removal_margin",
+    "spare_observed",
     "drop_window_observations",
     "graph_frame_distance_m",
     "graph_frame_angle_rad",

@@ -542,6 +542,34 @@ def test_a_removal_margin_removes_below_the_cap_in_one_update(margin: int) -> No
         assert steps < len({r.frame for r in plain.removals})
 
 
+@pytest.mark.parametrize("policy", ["coverage", "information", "oldest"])
+def test_spare_observed_never_removes_a_landmark_the_frame_saw(policy: str) -> None:
+    """With spare_observed, no frame removes a landmark it observed while one it did not
+    observe stays; without it, some frames do (the rule changes the policy's choice)."""
+    frames, _, _ = circle_frames(240, seed=5, n_landmarks=30)
+    cap = 8
+    removed_in_view = {}
+    for spare in (False, True):
+        slam = BearingSlam(
+            SlamConfig(landmark_cap=cap, pose_window=20, policy=policy, spare_observed=spare),
+            rng=np.random.default_rng(0),
+        )
+        count = 0
+        for f in frames:
+            out = slam.process(f, with_covariance=False)
+            assert out.live <= cap
+            seen = {o.label for o in f.observations}
+            removed = list(slam.removals)[len(slam.removals) - len(out.marginalised) :]
+            in_view = [r for r in removed if r.label in seen]
+            out_of_view_kept = [r for r in slam.landmarks.values() if r.label not in seen]
+            if in_view and out_of_view_kept:
+                count += 1  # a landmark in view went while one out of view stayed
+        removed_in_view[spare] = count
+        assert slam.removal_count > 0
+    assert removed_in_view[False] > 0
+    assert removed_in_view[True] == 0
+
+
 def test_a_removal_margin_must_leave_landmarks() -> None:
     with pytest.raises(ValueError, match="removal_margin"):
         SlamConfig(landmark_cap=8, removal_margin=8)
