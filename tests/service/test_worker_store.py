@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from bench.clusters import PrivatePostgres
 from service import worker
 from service.frames_io import frame_to_dict
 from service.session import MapSession
 from service.settings import Settings
 from service.store import MapRecord, Store
 from tests.graph._world import circle_frames
+from tests.support.clusters import PrivatePostgres
 
 FRAMES = [frame_to_dict(f) for f in circle_frames(5, seed=2)[0]]
 
