@@ -222,7 +222,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     session_ms.append(1e3 * (t2 - t1))
                     http_ms.append(1e3 * (t3 - t2))
                     pipe_stages.append({**res.timing_ms, **res.outcome.timing_ms})
-                    session_stages.append(reply["timing_ms"])
+                    session_stages.append(reply.timing_ms)
                     http_stages.append(result["timing_ms"])
                     if (k + 1) % 50 == 0:
                         server_cpu.append(_tree_cpu_s(proc.pid))

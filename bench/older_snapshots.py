@@ -104,7 +104,10 @@ def _phase(work: Path, phase: str, tag: str) -> dict[str, Any]:
         assert session.loaded_from_snapshot > 0, "the older snapshot was not used"
         results = []
         for body, image in frames[split:]:
-            doc = json.loads(session.submit(body, image)["result_json"])
+            reply = session.submit(body, image)
+            # this layout: a FrameReply; the older one: a dict
+            text = reply["result_json"] if isinstance(reply, dict) else reply.result_json
+            doc = json.loads(text)
             doc.pop("timing_ms")
             results.append(doc)
         session.snapshot()

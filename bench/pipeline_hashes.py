@@ -93,7 +93,7 @@ def _session_run(
             session.close()
             session = MapSession(where, settings)
         reply = session.submit(body, image)
-        doc = json.loads(reply["result_json"])
+        doc = json.loads(reply.result_json)
         doc.pop("timing_ms")
         results.append(doc)
         if session.snapshot_due:

@@ -35,13 +35,16 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
+from service.requests import OpenMap, Ping, Request
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 _HEADER = struct.Struct("!i")  # multiprocessing.Connection's framing (messages < 2 GiB)
 
@@ -63,15 +66,9 @@ class Engine(Protocol):
     def worker_of(self, map_id: str) -> int | None: ...
     def track(self, map_id: str) -> None: ...
     def untrack(self, map_id: str) -> None: ...
-    async def call(
-        self,
-        map_id: str,
-        op: str,
-        payload: dict[str, Any] | None = None,
-        *,
-        timeout_s: float | None = None,
-    ) -> Any:
-        """Run `op` on the map; its value, or raise ServiceError / WorkerUnavailable."""
+    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
+        """Carry out `request` on the map; its answer, or raise ServiceError /
+        WorkerUnavailable."""
         ...
 
 
@@ -168,9 +165,9 @@ class WorkerPool:
 
         async def load() -> None:
             try:
-                await self._request(slot, "ping", "", {})
+                await self._request(slot, "", Ping())
                 slot.up = True
-                opens = [self._request(slot, "open", m, {}) for m in mine]
+                opens = [self._request(slot, m, OpenMap()) for m in mine]
                 for map_id, coro in zip(mine, opens, strict=True):
                     try:
                         reply = await coro
@@ -307,30 +304,22 @@ class WorkerPool:
             self._on_restart(slot.index)
         self._spawn_load(fresh)
 
-    def _request(
-        self, slot: _Slot, op: str, map_id: str, payload: dict[str, Any]
-    ) -> asyncio.Future[Any]:
+    def _request(self, slot: _Slot, map_id: str, request: Request[Any]) -> asyncio.Future[Any]:
         assert self._loop is not None
         request_id = next(self._ids)
         future: asyncio.Future[Any] = self._loop.create_future()
         slot.pending[request_id] = future
-        self._send(slot, pickle.dumps((request_id, op, map_id, payload), protocol=5))
+        self._send(slot, pickle.dumps((request_id, map_id, request), protocol=5))
         return future
 
     # ------------------------------------------------------------ calls
-    async def call(
-        self,
-        map_id: str,
-        op: str,
-        payload: dict[str, Any] | None = None,
-        *,
-        timeout_s: float | None = None,
-    ) -> Any:
-        """Run `op` on the map's worker; its value, or raise ServiceError / WorkerUnavailable."""
+    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
+        """Carry out `request` on the map's worker; its answer, or raise ServiceError /
+        WorkerUnavailable."""
         slot = self._slots[self.worker_of(map_id)]
         retry_after = self._settings.workers.retry_after_s
         timeout = timeout_s if timeout_s is not None else self._settings.workers.request_timeout_s
-        future = self._request(slot, op, map_id, payload or {})
+        future = self._request(slot, map_id, request)
         try:
             reply = await asyncio.wait_for(future, timeout)
         except _WorkerDied as exc:

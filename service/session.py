@@ -27,7 +27,7 @@ from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
-from service.frame_results import frame_events, result_doc
+from service.frame_results import FrameReply, frame_events, result_doc
 from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
 from service.mapconfig import MapConfig, slam_config
@@ -349,16 +349,15 @@ class MapSession:
     # ------------------------------------------------------------ the frame use case
     def submit(
         self, body: dict[str, Any], image: bytes | None = None, *, imported: bool = False
-    ) -> dict[str, Any]:
+    ) -> FrameReply:
         """Take one frame object (with `image`: the meta of an image frame and its bytes).
 
         `imported`: `body` is an image frame of an export document: the image's digest
         (``"image"``) and the observations the front end made of it, which go to the
         estimator as they are.
 
-        Returns {"result_json" (the frame result as JSON text, exactly as stored),
-        "replayed" (True for an idempotent retry answered from the log), "timing_ms",
-        "store_ms", "event_ids", "live", "marginalised"}.
+        Returns the frame result as stored (an idempotent retry: as stored before) with
+        what the runtime reports of it (service.frame_results.FrameReply).
         """
         t0 = time.perf_counter()
         prefetched = None if self.vision is None or image is None else self.vision.take(image)
@@ -371,7 +370,7 @@ class MapSession:
         stored = self.store.find_frame(frame.robot, frame.seq)
         if stored is not None:
             if stored.body == text and stored.result is not None:
-                return {"result_json": stored.result, "replayed": True, "event_ids": []}
+                return FrameReply(stored.result, replayed=True)
             raise ServiceError(
                 409,
                 "duplicate-seq",
@@ -442,15 +441,14 @@ class MapSession:
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
         self._count_frame()
-        return {
-            "result_json": text,
-            "timing_ms": result["timing_ms"],
-            "replayed": False,
-            "event_ids": event_ids,
-            "live": len(self.slam.landmarks),
-            "marginalised": 0 if final is None else len(final.marginalised),
-            "store_ms": store_ms,
-        }
+        return FrameReply(
+            text,
+            event_ids=event_ids,
+            timing_ms=result["timing_ms"],
+            store_ms=store_ms,
+            live=len(self.slam.landmarks),
+            marginalised=0 if final is None else len(final.marginalised),
+        )
 
     def _forget_frame(self, log_id: int) -> None:
         """Undo a frame the estimator failed on half way: the in-memory map may be half

@@ -67,7 +67,7 @@ def _post(session: MapSession, leg: Leg, frames: range | None = None) -> list[di
     out = []
     for k in frames if frames is not None else range(len(leg.frames)):
         meta, image = leg.frames[k]
-        out.append(json.loads(session.submit(dict(meta), image)["result_json"]))
+        out.append(json.loads(session.submit(dict(meta), image).result_json))
     return out
 
 

@@ -35,7 +35,7 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(place: PlaceFactory) ->
     session = _new(path)
     results = []
     for f in FRAMES[:70]:
-        results.append(json.loads(session.submit(f)["result_json"]))
+        results.append(json.loads(session.submit(f).result_json))
         if session.snapshot_due:  # what the worker does between requests
             session.snapshot()
     before = queries.trajectory(session)["r1"]
@@ -52,8 +52,8 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(place: PlaceFactory) ->
     ]
     assert max(moved) < 5e-3
     replay = reopened.submit(FRAMES[40])
-    assert replay["replayed"] and json.loads(replay["result_json"]) == results[40]
-    assert not reopened.submit(FRAMES[70])["replayed"]
+    assert replay.replayed and json.loads(replay.result_json) == results[40]
+    assert not reopened.submit(FRAMES[70]).replayed
 
 
 def test_frame_logged_before_a_crash_is_processed_on_reload(place: PlaceFactory) -> None:
@@ -104,7 +104,7 @@ def test_a_frame_that_keeps_killing_the_worker_is_dropped(place: PlaceFactory) -
     assert reopened.slam.frame_count == 5
     assert reopened.store.find_frame("r1", FRAMES[5]["seq"]) is None
     assert reopened.replay_errors == 1
-    assert not reopened.submit(FRAMES[5])["replayed"]  # the robot can send it again
+    assert not reopened.submit(FRAMES[5]).replayed  # the robot can send it again
 
 
 def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> None:
@@ -120,7 +120,7 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> No
 
 def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> None:
     session = _new(place("m1"))
-    results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:60]]
+    results = [json.loads(session.submit(f).result_json) for f in FRAMES[:60]]
     plain = queries.trajectory(session)["r1"]
     rows = queries.trajectory(session, stats_every=7)["r1"]
     assert [{k: p[k] for k in ("seq", "x", "y")} for p in rows] == [
@@ -170,7 +170,7 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
     from graph.slam import BearingSlam
 
     clean = _new(place("clean"))
-    expected = [json.loads(clean.submit(f)["result_json"]) for f in FRAMES[:14]]
+    expected = [json.loads(clean.submit(f).result_json) for f in FRAMES[:14]]
 
     session = _new(place("m1"))
     for f in FRAMES[:12]:
@@ -202,7 +202,7 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
     assert session.store.find_frame("r1", FRAMES[12]["seq"]) is None
     assert session.slam.frame_count == 12
     assert queries.trajectory(session)["r1"] == before
-    got = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[12:14]]
+    got = [json.loads(session.submit(f).result_json) for f in FRAMES[12:14]]
     for a, b in zip(got, expected[12:14], strict=True):
         assert a["seq"] == b["seq"] and a["localisation"] == b["localisation"]
         assert abs(a["pose"]["x"] - b["pose"]["x"]) + abs(a["pose"]["y"] - b["pose"]["y"]) < 5e-3

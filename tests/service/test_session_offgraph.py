@@ -38,7 +38,7 @@ def kidnapped(tmp_path_factory: pytest.TempPathFactory) -> dict:
     statuses, while_lost = [], None
     for seq, k in enumerate(KEPT):
         frame = frame_to_dict(dataclasses.replace(FRAMES[k], seq=seq))
-        result = json.loads(session.submit(frame)["result_json"])
+        result = json.loads(session.submit(frame).result_json)
         statuses.append(result["localisation"]["status"])
         if while_lost is None and statuses[-3:] == ["lost"] * 3:
             while_lost = {
@@ -110,7 +110,7 @@ def test_initialising_robot_in_pose_and_trajectory(tmp_path: Path) -> None:
     for k in range(30):
         f = dataclasses.replace(FRAMES[60 + k], robot="r2", seq=k, initial_pose=None)
         f = dataclasses.replace(f, odometry=None) if k == 0 else f
-        result = json.loads(session.submit(frame_to_dict(f))["result_json"])
+        result = json.loads(session.submit(frame_to_dict(f)).result_json)
         statuses.append(result["localisation"]["status"])
         poses.append(queries.pose(session)["robots"].get("r2"))
         if k == 0:

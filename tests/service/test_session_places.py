@@ -42,9 +42,9 @@ def mapped(tmp_path_factory: pytest.TempPathFactory) -> tuple[MapSession, list[d
     path = tmp_path_factory.mktemp("places") / "m1.sqlite"
     session = _new(path)
     for f in FRAMES[:START]:
-        result = json.loads(session.submit(frame_to_dict(f))["result_json"])
+        result = json.loads(session.submit(frame_to_dict(f)).result_json)
         assert result["localisation"]["status"] == "tracking"
-    r2 = [json.loads(session.submit(_r2(k))["result_json"]) for k in range(30)]
+    r2 = [json.loads(session.submit(_r2(k)).result_json) for k in range(30)]
     return session, r2, path
 
 
@@ -104,14 +104,14 @@ def test_localiser_state_survives_a_restart(mapped) -> None:
         [expected["pose"]["x"], expected["pose"]["y"]],
         atol=5e-3,
     )
-    nxt = json.loads(reopened.submit(_r2(31))["result_json"])
+    nxt = json.loads(reopened.submit(_r2(31)).result_json)
     assert nxt["localisation"]["status"] == "tracking"
     reopened.close()
 
 
 def test_first_frame_without_pose_and_bad_input_leave_the_map_unchanged(tmp_path: Path) -> None:
     session = _new(tmp_path / "m2.sqlite")
-    result = json.loads(session.submit(_r2(0))["result_json"])
+    result = json.loads(session.submit(_r2(0)).result_json)
     assert result["localisation"]["status"] == "initialising"
     assert session.slam.robots == []
     bad = _r2(1)
