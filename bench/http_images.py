@@ -53,8 +53,9 @@ from frontend.cameras import PanoramaCamera
 from frontend.pipeline import FrontEnd
 from graph.slam import BearingSlam
 from service.frames_io import frame_from_dict
-from service.mapconfig import CAMERA_NOISE_DEFAULTS, MapConfig, slam_config
 from service.offline.datasets.render_run import write_rendered_run
+from service.pipeline.camera_config import CAMERA_NOISE_DEFAULTS
+from service.pipeline.config import MapConfig, slam_config
 from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings

@@ -24,7 +24,7 @@ from typing import Any
 from service import queries
 from service.errors import ServiceError
 from service.jsonio import loads_object
-from service.mapconfig import MapConfig, Mode, slam_config_dict
+from service.pipeline.config import MapConfig, Mode, slam_config_dict
 from service.pipeline.images import parse_state_doc
 from service.session import IMPORTED_FRONTEND, MapSession
 

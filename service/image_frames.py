@@ -39,7 +39,7 @@ from frontend.pipeline import FrontEnd
 from graph.errors import InvalidFrame
 from graph.types import FrameInput
 from service.errors import ServiceError
-from service.mapconfig import camera_model
+from service.pipeline.config import camera_model
 
 __all__ = ["MapVision", "image_digest", "image_refused"]
 

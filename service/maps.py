@@ -19,7 +19,7 @@ from typing import Any, TypeVar
 from service.errors import ServiceError, unknown_map
 from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
-from service.mapconfig import MapConfig, Mode, slam_config
+from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
 from service.requests import (
     CreateMap,

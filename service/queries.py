@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from service.errors import ServiceError
-from service.mapconfig import slam_config_dict
+from service.pipeline.config import slam_config_dict
 from service.pipeline.localiser import PlaceLocaliser
 from service.session import MapSession
 from service.views import attach_frame_stats, coverage_doc, landmarks_doc, pose_doc, trajectory_doc

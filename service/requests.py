@@ -20,7 +20,7 @@ from typing import Any, Generic, TypeVar
 from service import queries
 from service.exchange import export_map
 from service.frame_results import FrameReply
-from service.mapconfig import Mode
+from service.pipeline.config import Mode
 from service.session import MapSession
 
 T = TypeVar("T", covariant=True)

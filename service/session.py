@@ -30,8 +30,8 @@ from service.errors import ServiceError, invalid_frame, out_of_order
 from service.frame_results import FrameReply, frame_events, result_doc
 from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
-from service.mapconfig import MapConfig, slam_config
 from service.pipeline import FrameStep, ImageFeatures, MapPipeline
+from service.pipeline.config import MapConfig, slam_config
 from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place

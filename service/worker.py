@@ -25,7 +25,7 @@ from frontend.pipeline import FrontEnd
 from service import queries
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import import_frames, parse_export
-from service.mapconfig import camera_model, slam_config
+from service.pipeline.config import camera_model, slam_config
 from service.requests import (
     CreateMap,
     DeleteMap,

@@ -213,7 +213,7 @@ def test_final_trajectory_rows_are_stored_and_leave_the_estimator(place: PlaceFa
     the frame that finalised it, and neither the estimator nor its snapshots hold it."""
     from graph.slam import BearingSlam
     from graph.snapshot import restore
-    from service.mapconfig import slam_config
+    from service.pipeline.config import slam_config
 
     path = place("m1")
     session = _new(path, config=RETIRING)
