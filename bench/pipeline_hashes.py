@@ -98,7 +98,7 @@ def _session_run(
         results.append(doc)
         if session.snapshot_due:
             session.snapshot()
-    trajectory = queries.trajectory(session)
+    trajectory = queries.Trajectory().answer(session)
     session.close()
     return {
         "results": _sha(json.dumps(results, sort_keys=True)),

@@ -17,20 +17,13 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from service.errors import ServiceError, unknown_map
+from service.exchange import Export
 from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
-from service.requests import (
-    CreateMap,
-    DeleteMap,
-    Export,
-    ImportMap,
-    MapRequest,
-    SetMode,
-    SubmitFrame,
-    Summary,
-)
+from service.queries import SetMode, Summary
+from service.requests import CreateMap, DeleteMap, ImportMap, MapRequest, SubmitFrame
 from service.settings import Settings
 from service.store import KeyRecord, MapRecord
 
@@ -210,7 +203,7 @@ class MapService:
         return reply
 
     async def query(self, map_id: str, request: MapRequest[T]) -> T:
-        """A query of service.requests on a map; its answer."""
+        """A query (service.queries) on a map; its answer."""
         self.record(map_id)
         return await self.pool.call(map_id, request)
 

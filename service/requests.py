@@ -7,20 +7,16 @@ end to end. A `MapRequest` answers from the map's open session (`answer`); a
 maps and is carried out by service.worker. Requests cross the process boundary
 pickled (a local worker's pipe, or a Ray actor call).
 
-Adding a query: a `MapRequest` here whose `answer` calls the query (service.queries),
-and the route that asks it.
+The queries are in service.queries, the export in service.exchange: adding a query is a
+`MapRequest` there and the route that asks it.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
-from service import queries
-from service.exchange import export_map
 from service.frame_results import FrameReply
-from service.pipeline.config import Mode
 from service.session import MapSession
 
 T = TypeVar("T", covariant=True)
@@ -86,91 +82,3 @@ class SubmitFrame(MapRequest[FrameReply]):
 
     def answer(self, session: MapSession) -> FrameReply:
         return session.submit(self.frame, self.image)
-
-
-@dataclass(frozen=True)
-class Summary(MapRequest[Doc]):
-    """The map's record, estimator parameters, counts, robots and frame timings."""
-
-    def answer(self, session: MapSession) -> Doc:
-        return queries.summary(session)
-
-
-@dataclass(frozen=True)
-class SetMode(MapRequest[Doc]):
-    """Switch between mapping and localisation; the map's summary."""
-
-    mode: Mode
-
-    def answer(self, session: MapSession) -> Doc:
-        session.set_mode(self.mode)
-        return queries.summary(session)
-
-
-@dataclass(frozen=True)
-class Pose(MapRequest[Doc]):
-    """The latest pose of each robot (service.queries.pose)."""
-
-    def answer(self, session: MapSession) -> Doc:
-        return queries.pose(session)
-
-
-@dataclass(frozen=True)
-class Trajectory(MapRequest[dict[str, list[Doc]]]):
-    """Poses per robot (service.queries.trajectory)."""
-
-    robot: str | None = None
-    stats_every: int = 0
-
-    def answer(self, session: MapSession) -> dict[str, list[Doc]]:
-        return queries.trajectory(session, self.robot, stats_every=self.stats_every)
-
-
-@dataclass(frozen=True)
-class Landmarks(MapRequest[list[Doc]]):
-    """The live landmarks, or (`state` "archived") those in the archive."""
-
-    state: str = "live"
-
-    def answer(self, session: MapSession) -> list[Doc]:
-        return queries.landmarks(session, self.state)
-
-
-@dataclass(frozen=True)
-class Coverage(MapRequest[Doc]):
-    """The coverage grid (service.queries.coverage)."""
-
-    cell_m: float
-    radius_m: float
-    removals: int
-
-    def answer(self, session: MapSession) -> Doc:
-        return queries.coverage(
-            session, cell_m=self.cell_m, radius_m=self.radius_m, removals=self.removals
-        )
-
-
-@dataclass(frozen=True)
-class Places(MapRequest[Doc]):
-    """Learnt places and the transitions between them."""
-
-    def answer(self, session: MapSession) -> Doc:
-        return queries.places(session)
-
-
-@dataclass(frozen=True)
-class LearnPlace(MapRequest[Doc]):
-    """Learn a place at a robot's current pose (default: the last robot seen)."""
-
-    robot: str | None = None
-
-    def answer(self, session: MapSession) -> Doc:
-        return queries.learn_place(session, self.robot)
-
-
-@dataclass(frozen=True)
-class Export(MapRequest[bytes]):
-    """The map's export document as compact JSON bytes (serialised in the worker)."""
-
-    def answer(self, session: MapSession) -> bytes:
-        return json.dumps(export_map(session), separators=(",", ":")).encode()

@@ -22,10 +22,10 @@ from typing import Any
 from threadpoolctl import threadpool_limits
 
 from frontend.pipeline import FrontEnd
-from service import queries
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import import_frames, parse_export
 from service.pipeline.config import camera_model, slam_config
+from service.queries import Summary
 from service.requests import (
     CreateMap,
     DeleteMap,
@@ -110,7 +110,7 @@ def _create(map_id: str, request: CreateMap) -> dict[str, Any]:
     if old is not None:
         old.close()
     _sessions[map_id] = MapSession.create(_place(map_id), record, _cfg().store)
-    return queries.summary(_sessions[map_id])
+    return Summary().answer(_sessions[map_id])
 
 
 def _delete(map_id: str) -> None:
@@ -140,7 +140,7 @@ def _import(map_id: str, request: ImportMap) -> dict[str, Any]:
     except BaseException:
         _delete(map_id)
         raise
-    return {"record": session.record.as_dict(), "summary": queries.summary(session)}
+    return {"record": session.record.as_dict(), "summary": Summary().answer(session)}
 
 
 def carry_out(map_id: str, request: Request[Any]) -> Any:

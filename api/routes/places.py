@@ -9,7 +9,7 @@ from fastapi import APIRouter
 from api.auth import AUTH_ERRORS, MapRead, MapWrite
 from api.deps import JsonOnly, MapId, ServiceDep
 from api.models import PlaceLearnIn, PlaceLearnt, PlacesOut, Problem
-from service.requests import LearnPlace, Places
+from service.queries import LearnPlace, Places
 
 router = APIRouter(prefix="/v1/maps/{map_id}/places", tags=["places"])
 

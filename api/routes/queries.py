@@ -17,7 +17,7 @@ from api.models import (
     TrajectoryOut,
 )
 from service.errors import ServiceError
-from service.requests import Coverage, Landmarks, Pose, Trajectory
+from service.queries import Coverage, Landmarks, Pose, Trajectory
 from service.views import tum_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"], dependencies=[MapRead])

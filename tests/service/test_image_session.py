@@ -85,14 +85,14 @@ def test_image_frames_are_logged_with_their_image_and_reload_identically(
     assert session.store.frame_image(stored[0].id) is None
     assert session.store.frame_image(stored[-1].id) == run[29][1]
     assert json.loads(stored[0].body)["image"]["bytes"] == len(run[0][1])
-    before = queries.trajectory(session)["r1"]
+    before = queries.Trajectory().answer(session)["r1"]
     live_before = sorted(session.slam.landmarks)
     session.close()
 
     # Reopen: snapshot at frame 20 (with the front end's state) + 10 image frames replayed.
     reopened = MapSession(path, StoreSettings(snapshot_every=20))
     assert reopened.loaded_from_snapshot == 20
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     assert _worst_move(after, before) < 0.02
     assert sorted(reopened.slam.landmarks) == live_before
@@ -109,13 +109,13 @@ def test_whole_log_replay_without_snapshot_reproduces_the_map(
     session = _new(path, every=10**6)
     for meta, image in run[:15]:
         session.submit(meta, image)
-    before = queries.trajectory(session)["r1"]
+    before = queries.Trajectory().answer(session)["r1"]
     landmarks = sorted(session.slam.landmarks)
     session.close()
     reopened = MapSession(path, StoreSettings(snapshot_every=10**6))
     assert reopened.loaded_from_snapshot == 0
     assert sorted(reopened.slam.landmarks) == landmarks
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert max(abs(a["x"] - b["x"]) for a, b in zip(after, before, strict=True)) < 1e-6
     reopened.close()
 
@@ -130,7 +130,7 @@ def _images_and_trajectory(
         session.submit(meta, image)
         if session.snapshot_due:
             session.snapshot()
-    count, trajectory = session.store.image_count(), queries.trajectory(session)["r1"]
+    count, trajectory = session.store.image_count(), queries.Trajectory().answer(session)["r1"]
     session.close()
     return count, trajectory
 
@@ -151,7 +151,7 @@ def test_images_are_pruned_once_every_kept_snapshot_covers_them(
     # Snapshot + tail: the tail's images are all there; the map is as it was.
     reopened = MapSession(path, settings)
     assert reopened.loaded_from_snapshot == 30
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     assert _worst_move(after, before) < 0.02
     reopened.close()
@@ -166,7 +166,7 @@ def test_images_are_pruned_once_every_kept_snapshot_covers_them(
     conn.close()
     rebuilt = MapSession(path, settings)
     assert rebuilt.loaded_from_snapshot == 0 and rebuilt.replay_errors == 0
-    again = queries.trajectory(rebuilt)["r1"]
+    again = queries.Trajectory().answer(rebuilt)["r1"]
     assert [p["seq"] for p in again] == [p["seq"] for p in before]
     drift = _worst_move(again, before)
     assert drift < 0.3, drift
@@ -281,7 +281,7 @@ def test_export_import_of_an_image_map_goes_on_associating_as_the_original(
         assert _labels(a, source) == _labels(b, target)
         observed += len(_labels(a, source))
     assert observed > 50
-    ta, tb = queries.trajectory(source)["r1"], queries.trajectory(target)["r1"]
+    ta, tb = queries.Trajectory().answer(source)["r1"], queries.Trajectory().answer(target)["r1"]
     assert len(ta) == len(tb) == len(run)
     for pa, pb in zip(ta, tb, strict=True):
         assert abs(pa["x"] - pb["x"]) < 1e-6 and abs(pa["y"] - pb["y"]) < 1e-6
@@ -301,7 +301,7 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
 
     session = _new(tmp_path / "cam.sqlite")
     results = [json.loads(session.submit(m, i).result_json) for m, i in run[:30]]
-    places = queries.places(session)["appearance_places"]
+    places = queries.Places().answer(session)["appearance_places"]
     assert len(places) >= 2, "the run crosses more than one place spacing"
     assert places[0]["robot"] == "r1" and places[0]["frame"] == 0
     assert results[0]["localisation"]["place"] == 0
@@ -330,7 +330,8 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
     result = json.loads(session.submit(meta, png.tobytes()).result_json)
     assert result["localisation"]["place"] == 0
     assert result["localisation"]["confidence"] > 0.95
-    assert len(queries.places(session)["appearance_places"]) == len(places)  # nothing new learnt
+    # nothing new learnt
+    assert len(queries.Places().answer(session)["appearance_places"]) == len(places)
 
 
 def test_imported_image_map_reloads_from_its_log_alone(

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from service import worker
+from service.exchange import Export
 from service.frames_io import frame_to_dict
-from service.requests import CreateMap, DeleteMap, Export, ImportMap, SubmitFrame
+from service.requests import CreateMap, DeleteMap, ImportMap, SubmitFrame
 from service.session import MapSession
 from service.settings import Settings
 from service.store import MapRecord, Store
