@@ -65,7 +65,7 @@ def test_replay_of_rendered_images_builds_a_map(rendered: Path, capsys) -> None:
 
 
 def test_image_frame_with_a_bad_image_field_is_refused(tmp_path: Path) -> None:
-    from service.frames_io import FrameFileError
+    from service.offline.frame_files import FrameFileError
 
     path = tmp_path / "f.jsonl"
     path.write_text(

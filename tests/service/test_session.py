@@ -12,8 +12,8 @@ import pytest
 from service import queries
 from service.errors import ServiceError
 from service.exchange import export_map
-from service.frames_io import frame_to_dict
-from service.session import MapSession, canonical_frame
+from service.frames_io import canonical_frame, frame_to_dict
+from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord
 from tests.graph._world import circle_frames
