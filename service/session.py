@@ -40,7 +40,8 @@ from service.pipeline import FrameStep, ImageFeatures, MapPipeline
 from service.pipeline.config import MapConfig, slam_config
 from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
 from service.settings import StoreSettings
-from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place
+from service.store import MapPlace, MapRecord, StoredFrame, as_place
+from service.store_sql import MapStore
 
 log = logging.getLogger(__name__)
 

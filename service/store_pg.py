@@ -23,7 +23,7 @@ from contextlib import AbstractContextManager
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
-from service.store_sql import Args, SqlCatalog, SqlMapStore, event_rows, pyformat
+from service.store_sql import Args, Catalog, MapStore, event_rows, pyformat
 
 try:
     import psycopg
@@ -203,7 +203,7 @@ class _Shared:
 # --------------------------------------------------------------------------- catalogue
 
 
-class PgCatalog(SqlCatalog):
+class PgCatalog(Catalog):
     """The list of maps, table ``maps``, and their API keys, table ``keys``."""
 
     def __init__(self, shared: _Shared) -> None:
@@ -230,8 +230,8 @@ class PgCatalog(SqlCatalog):
 # --------------------------------------------------------------------------- one map
 
 
-class PgMapStore(SqlMapStore):
-    """One map's rows (service.store.MapStore), on a connection of its own."""
+class PgMapStore(MapStore):
+    """One map's rows (service.store_sql.MapStore), on a connection of its own."""
 
     META = "map_meta"
     NO_LIMIT = None

@@ -1,4 +1,4 @@
-"""The SQL both stores run, written once: the catalogue and a map's store over a dialect.
+"""The catalogue and a map's store, with the SQL both backends run written once.
 
 The SQLite store keeps one database file per map; the PostgreSQL store keeps every map
 in one database, each table with a leading ``map_id`` column. A statement is written
@@ -60,9 +60,10 @@ def _record(row: Sequence[Any]) -> MapRecord:
     return MapRecord(row[0], row[1], row[2], json.loads(row[3]), row[4])
 
 
-class SqlCatalog:
-    """The list of maps, table ``maps``, and their API keys, table ``keys`` (service.store.
-    Catalog); a backend gives `_rows` and `_write` (and `remove`, atomic its own way)."""
+class Catalog:
+    """The list of maps, table ``maps``, and their API keys, table ``keys`` (written by the
+    API processes); a backend gives `_rows`, `_write`, `remove` (atomic its own way) and
+    `close`."""
 
     def _rows(self, sql: str, args: Args) -> list[Any]:
         raise NotImplementedError
@@ -77,10 +78,18 @@ class SqlCatalog:
             {**record.as_dict(), "config": json.dumps(record.config)},
         )
 
+    def remove(self, map_id: str) -> None:
+        """Delete a map's record and its keys (one transaction)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
     def set_mode(self, map_id: str, mode: str) -> None:
         self._write("UPDATE maps SET mode = :mode WHERE id = :id", {"mode": mode, "id": map_id})
 
     def all(self) -> list[MapRecord]:
+        """Every map, oldest first."""
         return [_record(r) for r in self._rows(f"{_RECORD} ORDER BY created, id", {})]
 
     def get(self, map_id: str) -> MapRecord | None:
@@ -98,6 +107,7 @@ class SqlCatalog:
         self._write("DELETE FROM keys WHERE id = :id", {"id": key_id})
 
     def keys(self) -> list[KeyRecord]:
+        """Every API key (hashed), oldest first."""
         return [KeyRecord(*r) for r in self._rows(f"{_KEY} ORDER BY created, id", {})]
 
 
@@ -124,8 +134,8 @@ def pyformat(sql: str) -> str:
     return _NAMED.sub(r"%(\1)s", sql)
 
 
-class SqlMapStore:
-    """One map's store (service.store.MapStore), written once for both backends."""
+class MapStore:
+    """One map's store (written only by the process that owns the map)."""
 
     SCOPED = True
     """Rows carry a ``map_id`` (PostgreSQL); False: the database is the map's (SQLite)."""
@@ -161,6 +171,10 @@ class SqlMapStore:
         raise NotImplementedError
 
     def close(self) -> None:
+        raise NotImplementedError
+
+    def checkpoint(self) -> None:
+        """Make the store's size on disk say what it holds (SQLite: fold the WAL)."""
         raise NotImplementedError
 
     # ------------------------------------------------------------ writing the SQL
@@ -283,6 +297,11 @@ class SqlMapStore:
         archived: Sequence[tuple[int, int, str]] = (),
         restored: Sequence[int] = (),
     ) -> list[int]:
+        """Store a frame's result, its events and removals (landmark id, frame, record
+        JSON), the trajectory rows it made final (and, for an image frame, the observations
+        its image gave, JSON text) in one transaction; event ids. `restored`: landmark ids
+        that left the archive in the frame; `archived`: (landmark id, frame, record JSON)
+        of those that entered it (after `restored`: a landmark may do both)."""
         now = time.time()
         with self._transaction():
             self._do(
@@ -331,6 +350,7 @@ class SqlMapStore:
             return self._insert_event(kind, data, time.time())
 
     def frames_after(self, frame_id: int) -> list[StoredFrame]:
+        """Logged frames with id > `frame_id`, in log order."""
         rows = self._get(f"{_FRAME} WHERE {{m}}id > :id ORDER BY id", id=frame_id)
         return [StoredFrame(*r) for r in rows]
 
@@ -415,6 +435,7 @@ class SqlMapStore:
         return self._count("images")
 
     def latest_snapshot(self) -> tuple[int, bytes] | None:
+        """(log id it covers, state) of the newest snapshot."""
         rows = self._get("SELECT upto, state FROM snapshots{only} ORDER BY id DESC LIMIT 1")
         return (int(rows[0][0]), bytes(rows[0][1])) if rows else None
 
@@ -441,13 +462,16 @@ class SqlMapStore:
         return {int(i): str(label) for i, label in self._get(self.REMOVED_LABELS)}
 
     def removal_count(self) -> int:
+        """Removals in the log (a landmark removed twice counts twice)."""
         return self._count("removal_log")
 
     def archived(self) -> list[dict[str, Any]]:
+        """The archived landmarks (graph.archive documents), by landmark id."""
         rows = self._get("SELECT record FROM archive{only} ORDER BY landmark_id")
         return [json.loads(r[0]) for r in rows]
 
     def prune_events(self, keep: int) -> None:
+        """Delete all but the newest `keep` events."""
         self._commit(
             "DELETE FROM events WHERE {m}id <= (SELECT max(id) FROM events{only}) - :keep",
             keep=keep,

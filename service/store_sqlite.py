@@ -44,7 +44,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-from service.store_sql import Args, SqlCatalog, SqlMapStore, event_rows
+from service.store_sql import Args, Catalog, MapStore, event_rows
 
 _CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
@@ -161,7 +161,7 @@ def map_db_path(data_dir: Path, map_id: str) -> Path:
 # --------------------------------------------------------------------------- catalogue
 
 
-class SqliteCatalog(SqlCatalog):
+class SqliteCatalog(Catalog):
     """The list of maps and their API keys (API process): ``catalog.sqlite`` in the data
     directory."""
 
@@ -190,7 +190,7 @@ class SqliteCatalog(SqlCatalog):
 # --------------------------------------------------------------------------- one map
 
 
-class SqliteMapStore(SqlMapStore):
+class SqliteMapStore(MapStore):
     """One map's database file (owned by its worker process)."""
 
     SCOPED = False

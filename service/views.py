@@ -21,7 +21,8 @@ from graph.snapshot import last_accepted
 from graph.trajectory import with_final_rows
 from service.errors import ServiceError
 from service.pipeline.coverage import coverage_grid
-from service.store import FrameFigures, MapStore
+from service.store import FrameFigures
+from service.store_sql import MapStore
 from service.tum import Trajectory, write_tum
 
 
