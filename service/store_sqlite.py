@@ -158,17 +158,10 @@ def map_db_path(data_dir: Path, map_id: str) -> Path:
     return data_dir / "maps" / f"{map_id}.sqlite"
 
 
-# --------------------------------------------------------------------------- catalogue
+class _Connection:
+    """Reads and single committed writes on a database file's connection `_conn`."""
 
-
-class SqliteCatalog(Catalog):
-    """The list of maps and their API keys (API process): ``catalog.sqlite`` in the data
-    directory."""
-
-    def __init__(self, data_dir: Path, *, synchronous: str) -> None:
-        data_dir.mkdir(parents=True, exist_ok=True)
-        self._conn = connect(data_dir / "catalog.sqlite", synchronous=synchronous)
-        self._conn.executescript(_CATALOG_SCHEMA)
+    _conn: sqlite3.Connection
 
     def close(self) -> None:
         self._conn.close()
@@ -180,6 +173,19 @@ class SqliteCatalog(Catalog):
         with transaction(self._conn):
             self._conn.execute(sql, args)
 
+
+# --------------------------------------------------------------------------- catalogue
+
+
+class SqliteCatalog(_Connection, Catalog):
+    """The list of maps and their API keys (API process): ``catalog.sqlite`` in the data
+    directory."""
+
+    def __init__(self, data_dir: Path, *, synchronous: str) -> None:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        self._conn = connect(data_dir / "catalog.sqlite", synchronous=synchronous)
+        self._conn.executescript(_CATALOG_SCHEMA)
+
     def remove(self, map_id: str) -> None:
         """Delete a map's record and its keys."""
         with transaction(self._conn):
@@ -190,7 +196,7 @@ class SqliteCatalog(Catalog):
 # --------------------------------------------------------------------------- one map
 
 
-class SqliteMapStore(MapStore):
+class SqliteMapStore(_Connection, MapStore):
     """One map's database file (owned by its worker process)."""
 
     SCOPED = False
@@ -214,16 +220,6 @@ class SqliteMapStore(MapStore):
                     "SELECT frame, landmark_id, record FROM removals"
                 )
                 self._conn.execute("DELETE FROM removals")
-
-    def close(self) -> None:
-        self._conn.close()
-
-    def _rows(self, sql: str, args: Args) -> list[Any]:
-        return self._conn.execute(sql, args).fetchall()
-
-    def _write(self, sql: str, args: Args) -> None:
-        with transaction(self._conn):
-            self._conn.execute(sql, args)
 
     def _insert(self, sql: str, args: Args) -> int:
         row_id = self._conn.execute(sql, args).lastrowid
