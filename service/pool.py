@@ -31,7 +31,7 @@ import pickle
 import struct
 import time
 import zlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -113,9 +113,9 @@ class _Slot:
     """The worker answered its first ping (its imports are done)."""
 
 
-class WorkerPool:
-    """Routes calls to the worker owning a map; restarts crashed workers (the `local`
-    engine)."""
+class EngineBase:
+    """What both engines keep: the maps they run, their background tasks, the restarts
+    they saw, and the time limits of a call."""
 
     shared = False
 
@@ -123,14 +123,46 @@ class WorkerPool:
         self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
     ) -> None:
         self._settings = settings
-        self._ctx = multiprocessing.get_context("spawn")
-        self._slots: list[_Slot] = []
         self._maps: set[str] = set()
         self._on_restart = on_restart
         self._tasks: set[asyncio.Task[None]] = set()
+        self.restarts = 0
+
+    def track(self, map_id: str) -> None:
+        self._maps.add(map_id)
+
+    def untrack(self, map_id: str) -> None:
+        self._maps.discard(map_id)
+
+    def _background(self, work: Coroutine[Any, Any, None]) -> None:
+        """Run `work` on the event loop, cancelled by `_cancel_background`."""
+        task = asyncio.get_running_loop().create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _cancel_background(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+
+    def _limits(self, timeout_s: float | None) -> tuple[float, int]:
+        """(a call's time limit, s; the Retry-After of a 503, s)."""
+        workers = self._settings.workers
+        timeout = timeout_s if timeout_s is not None else workers.request_timeout_s
+        return timeout, workers.retry_after_s
+
+
+class WorkerPool(EngineBase):
+    """Routes calls to the worker owning a map; restarts crashed workers (the `local`
+    engine)."""
+
+    def __init__(
+        self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
+    ) -> None:
+        super().__init__(settings, on_restart=on_restart)
+        self._ctx = multiprocessing.get_context("spawn")
+        self._slots: list[_Slot] = []
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
-        self.restarts = 0
         self._stopping = False
 
     # ------------------------------------------------------------ lifecycle
@@ -180,14 +212,11 @@ class WorkerPool:
             except _WorkerDied:
                 log.warning("worker %d died while loading its maps", slot.index)
 
-        task = asyncio.get_running_loop().create_task(load())
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._background(load())
 
     async def stop(self) -> None:
         self._stopping = True
-        for task in self._tasks:
-            task.cancel()
+        self._cancel_background()
         for slot in self._slots:
             self._close(slot)
         for slot in self._slots:
@@ -224,12 +253,6 @@ class WorkerPool:
 
     def worker_of(self, map_id: str) -> int:
         return zlib.crc32(map_id.encode()) % self._settings.workers.count
-
-    def track(self, map_id: str) -> None:
-        self._maps.add(map_id)
-
-    def untrack(self, map_id: str) -> None:
-        self._maps.discard(map_id)
 
     # ------------------------------------------------------------ transport
     def _send(self, slot: _Slot, message: bytes) -> None:
@@ -317,8 +340,7 @@ class WorkerPool:
         """Carry out `request` on the map's worker; its answer, or raise ServiceError /
         WorkerUnavailable."""
         slot = self._slots[self.worker_of(map_id)]
-        retry_after = self._settings.workers.retry_after_s
-        timeout = timeout_s if timeout_s is not None else self._settings.workers.request_timeout_s
+        timeout, retry_after = self._limits(timeout_s)
         future = self._request(slot, map_id, request)
         try:
             reply = await asyncio.wait_for(future, timeout)
