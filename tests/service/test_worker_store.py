@@ -3,8 +3,10 @@ clean: what the API's failed-create cleanup relies on."""
 
 from __future__ import annotations
 
+import pickle
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,8 @@ import pytest
 from service import worker
 from service.exchange import Export
 from service.frames_io import frame_to_dict
-from service.requests import CreateMap, DeleteMap, ImportMap, SubmitFrame
+from service.queries import Summary
+from service.requests import CreateMap, DeleteMap, ImportMap, MapRequest, SubmitFrame
 from service.session import MapSession
 from service.settings import Settings
 from service.store import MapRecord, Store
@@ -81,3 +84,24 @@ def test_a_failed_import_leaves_nothing_behind(
     assert reply["ok"] is False and reply["error"]["status"] == 500
     assert not in_process_worker.place("dst").exists()
     assert in_process_worker.place("src").exists()
+
+
+def test_a_query_is_a_class_the_worker_answers_without_a_routing_table(
+    in_process_worker: Store,
+) -> None:
+    """A new query is a MapRequest with its `answer`: the worker carries it out as it is,
+    and it crosses the process boundary pickled."""
+
+    assert worker.call("q", CreateMap(_record("q").as_dict()))["ok"]
+    for frame in FRAMES:
+        assert worker.call("q", SubmitFrame(frame))["ok"]
+    request = pickle.loads(pickle.dumps(_RobotsSeen()))
+    assert worker.call("q", request) == {"ok": True, "value": ["r1"]}
+    summary = worker.call("q", pickle.loads(pickle.dumps(Summary())))["value"]
+    assert summary["counts"]["frames"] == len(FRAMES) and summary["robots"] == ["r1"]
+
+
+@dataclass(frozen=True)
+class _RobotsSeen(MapRequest[list[str]]):
+    def answer(self, session: MapSession) -> list[str]:
+        return sorted(session.pipeline.last_accepted())
