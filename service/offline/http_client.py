@@ -6,6 +6,9 @@ safe. Used by ``covslam replay ... --url URL``; with ``COVSLAM_API_KEY`` set, ev
 request carries it (``Authorization: Bearer``). A frame with an image
 (`service.offline.replay.ImageFrame`) is posted as multipart/form-data: ``meta`` (the
 frame JSON without observations) and ``image`` (the file's bytes).
+
+`post_until_answered` posts one frame until the service answers it (a client riding out a
+failover); `check_log` re-posts a map's frames and counts what its log lost or duplicated.
 """
 
 from __future__ import annotations
