@@ -19,20 +19,19 @@ from frontend.pipeline import FrontEnd
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
 from graph.types import FrameInput
-from service.mapconfig import (
-    CAMERA_LANDMARK_CAP,
-    CAMERA_NOISE_DEFAULTS,
+from service.offline.datasets.indoor_sim import make_world, simulate, write_run
+from service.offline.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
+from service.offline.datasets.render_run import write_rendered_run
+from service.offline.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
+from service.offline.replay import ImageFrame, read_replay_frames, replay
+from service.pipeline.camera_config import CAMERA_LANDMARK_CAP, CAMERA_NOISE_DEFAULTS
+from service.pipeline.config import (
     DEFAULT_LANDMARK_CAP,
     WINDOW_FIELDS,
     MapConfig,
     slam_config,
     window_settings,
 )
-from service.offline.datasets.indoor_sim import make_world, simulate, write_run
-from service.offline.datasets.mrclam import load_mrclam, mrclam_frames, mrclam_noise
-from service.offline.datasets.render_run import write_rendered_run
-from service.offline.evaluation import Trajectory, ate_rmse, dead_reckoning, read_tum, write_tum
-from service.offline.replay import ImageFrame, read_replay_frames, replay
 
 log = logging.getLogger("covslam")
 _DEFAULTS = SlamConfig()

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import contextlib
-from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from service.frame_results import FrameReply
 
 _BUCKETS_MS = (0.5, 1, 2, 3, 5, 7.5, 10, 15, 25, 50, 100, 250, 500, 1000, 2500, 10000)
 
@@ -55,17 +56,17 @@ class Metrics:
             registry=self.registry,
         )
 
-    def record_frame(self, map_id: str, reply: dict[str, Any], http_ms: float) -> None:
-        if reply.get("replayed"):
+    def record_frame(self, map_id: str, reply: FrameReply, http_ms: float) -> None:
+        if reply.replayed:
             self.replayed.labels(map_id).inc()
             return
         self.frames.labels(map_id).inc()
-        for stage, ms in reply["timing_ms"].items():
+        for stage, ms in reply.timing_ms.items():
             self.stage.labels(stage).observe(ms)
-        self.stage.labels("store").observe(reply.get("store_ms", 0.0))
+        self.stage.labels("store").observe(reply.store_ms)
         self.stage.labels("http").observe(http_ms)
-        self.live.labels(map_id).set(reply.get("live", 0))
-        self.marginalisations.labels(map_id).inc(reply.get("marginalised", 0))
+        self.live.labels(map_id).set(reply.live)
+        self.marginalisations.labels(map_id).inc(reply.marginalised)
 
     def forget(self, map_id: str) -> None:
         """Drop a deleted map's series."""

@@ -16,7 +16,7 @@ from service.exchange import MAP_NAME_MAX_CHARS
 from service.frame_results import COV3, Localisation, PoseXYTheta
 from service.frame_results import FrameResult as FrameResult  # the frames route's model
 from service.keys import Scope
-from service.mapconfig import MapConfig, Mode
+from service.pipeline.config import MapConfig, Mode
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 

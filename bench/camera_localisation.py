@@ -63,7 +63,7 @@ def post(session: MapSession, leg: Leg) -> list[dict[str, Any]]:
     rows = []
     for (meta, image), truth in zip(leg.frames, leg.truth, strict=True):
         c0 = time.process_time()
-        result = json.loads(session.submit(dict(meta), image)["result_json"])
+        result = json.loads(session.submit(dict(meta), image).result_json)
         cpu_ms = 1e3 * (time.process_time() - c0)
         err_m, err_deg = pose_error(result["pose"], truth)
         rows.append(

@@ -32,10 +32,11 @@ from typing import Any
 
 import httpx
 
-from bench.clusters import free_port, until_ready
-from bench.scale_out import MAP_CONFIG, check_log, post_until_answered
+from bench.scale_out import MAP_CONFIG
 from service.frames_io import frame_to_dict
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.offline.http_client import check_log, post_until_answered
+from tests.support.clusters import free_port, until_ready
 
 REPO = Path(__file__).resolve().parent.parent
 NODE_ID = "import ray; ray.init(address='auto', logging_level='ERROR'); "

@@ -53,8 +53,9 @@ from frontend.cameras import PanoramaCamera
 from frontend.pipeline import FrontEnd
 from graph.slam import BearingSlam
 from service.frames_io import frame_from_dict
-from service.mapconfig import CAMERA_NOISE_DEFAULTS, MapConfig, slam_config
 from service.offline.datasets.render_run import write_rendered_run
+from service.pipeline.camera_config import CAMERA_NOISE_DEFAULTS
+from service.pipeline.config import MapConfig, slam_config
 from service.pipeline.images import ImageFrontEnd
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
@@ -222,7 +223,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     session_ms.append(1e3 * (t2 - t1))
                     http_ms.append(1e3 * (t3 - t2))
                     pipe_stages.append({**res.timing_ms, **res.outcome.timing_ms})
-                    session_stages.append(reply["timing_ms"])
+                    session_stages.append(reply.timing_ms)
                     http_stages.append(result["timing_ms"])
                     if (k + 1) % 50 == 0:
                         server_cpu.append(_tree_cpu_s(proc.pid))

@@ -54,9 +54,9 @@ import numpy as np
 
 from graph.types import FrameInput
 from service.frames_io import frame_to_dict
-from service.mapconfig import slam_config
 from service.offline.datasets.indoor_sim import make_world, simulate
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.pipeline.config import slam_config
 from service.session import MapSession
 from service.settings import StoreSettings, WorkerSettings
 from service.store import MapRecord

@@ -479,7 +479,7 @@ def _run_session(name: str, stream: list[FrameInput], seed: int) -> tuple[list[d
         session = MapSession.create(
             Path(tmp) / "k.sqlite", record, StoreSettings(snapshot_every=10_000)
         )
-        results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+        results = [json.loads(session.submit(frame_to_dict(f)).result_json) for f in stream]
         live = len(session.slam.landmarks)
         session.close()
     return results, live

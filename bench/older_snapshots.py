@@ -70,12 +70,14 @@ def _phase(work: Path, phase: str, tag: str) -> dict[str, Any]:
     from service.settings import StoreSettings
     from service.store import MapRecord
 
-    try:  # this layout: queries and export beside the session
+    try:  # this layout: queries as requests, export beside the session
         from service import queries
         from service.exchange import export_map
 
         def query(session: Any, op: str) -> Any:
-            return getattr(queries, op)(session)
+            if hasattr(queries, "MapRequest"):
+                return getattr(queries, op.title())().answer(session)
+            return getattr(queries, op)(session)  # queries as functions
 
         def export(session: Any) -> Any:
             return export_map(session)
@@ -104,7 +106,10 @@ def _phase(work: Path, phase: str, tag: str) -> dict[str, Any]:
         assert session.loaded_from_snapshot > 0, "the older snapshot was not used"
         results = []
         for body, image in frames[split:]:
-            doc = json.loads(session.submit(body, image)["result_json"])
+            reply = session.submit(body, image)
+            # this layout: a FrameReply; the older one: a dict
+            text = reply["result_json"] if isinstance(reply, dict) else reply.result_json
+            doc = json.loads(text)
             doc.pop("timing_ms")
             results.append(doc)
         session.snapshot()

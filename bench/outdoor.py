@@ -8,7 +8,7 @@ else's benchmark)::
     python -m bench.outdoor --url http://127.0.0.1:8000 [--seed 0] [--out bench/results]
         [--name outdoor] [--odometry-scale 1.01] [--maps default,outdoor,...]
 
-World (service.offline.datasets.outdoor_sim, seed ``--seed``, the run ``--seed + 1``): a
+World (service.offline.datasets.outdoor_sim.outdoor_run, seed ``--seed``, the run ``--seed + 1``): a
 rounded-rectangle loop road 160 x 80 m (445 m a lap), 150 trees 5-80 m from it; 1.5
 laps at 0.75 m a frame (892 frames), up to 12 bearings a frame (sigma 1 deg) to trees
 within 100 m, wheel odometry with 2 % noise and a 1 % scale error. Four maps, the
@@ -42,87 +42,9 @@ from typing import Any
 import httpx
 import numpy as np
 
-from service.offline.datasets.indoor_sim import SimRun
-from service.offline.datasets.outdoor_sim import make_outdoor_world, simulate_outdoor
-from service.offline.evaluation import Trajectory, ate_rmse, dead_reckoning, landmark_errors
+from service.offline.datasets.outdoor_sim import CONFIGS, outdoor_run
+from service.offline.evaluation import ate_rmse, dead_reckoning, map_figures
 from service.offline.http_client import replay_http
-
-OUTDOOR_TRIANGULATION: dict[str, Any] = {
-    "max_depth_m": 100.0,
-    "max_position_sigma_m": 2.0,
-    "max_rays": 80,
-}
-"""The map config's triangulation group for an outdoor map: trees up to 100 m away, a
-far tree's depth known to 2 m, and 80 rays kept (a long baseline for far trees)."""
-
-CONFIGS: dict[str, dict[str, Any]] = {
-    "default": {"landmark_cap": None},
-    "outdoor": {"landmark_cap": None, "triangulation": OUTDOOR_TRIANGULATION},
-    "depth_only": {"landmark_cap": None, "triangulation": {"max_depth_m": 100.0}},
-    "outdoor_default_cap": {"triangulation": OUTDOOR_TRIANGULATION},
-}
-"""The maps the benchmark makes: the defaults, the outdoor triangulation, the depth range
-alone, and the outdoor triangulation under the service's default landmark cap."""
-
-
-def outdoor_run(seed: int, *, small: bool = False, odometry_scale: float = 1.01) -> SimRun:
-    """The benchmark's run; `small`: a 120 x 60 m loop, 60 trees, 1.1 laps at 1 m a frame
-    (369 frames, 8 bearings a frame) for tests."""
-    if small:
-        world = make_outdoor_world(
-            rng=np.random.default_rng(seed),
-            length_m=120.0,
-            width_m=60.0,
-            corner_radius_m=15.0,
-            trees=60,
-        )
-        return simulate_outdoor(
-            world,
-            rng=np.random.default_rng(seed + 1),
-            laps=1.1,
-            step_m=1.0,
-            max_observations=8,
-            odometry_scale=odometry_scale,
-        )
-    return simulate_outdoor(
-        make_outdoor_world(rng=np.random.default_rng(seed)),
-        rng=np.random.default_rng(seed + 1),
-        odometry_scale=odometry_scale,
-    )
-
-
-def map_figures(
-    client: httpx.Client, map_id: str, run: SimRun, results: list[dict[str, Any]]
-) -> dict[str, Any]:
-    """What a map made of `run` (whose frame results are `results`): trees initialised
-    (distinct labels) and landmark ids the frames added, ATE, live landmarks' errors."""
-    summary = client.get(f"/v1/maps/{map_id}").json()
-    counts = summary["counts"]
-    # stats_every beyond the run: the latest pose alone carries the frame's figures.
-    traj = client.get(f"/v1/maps/{map_id}/trajectory", params={"stats_every": 1_000_000})
-    rows = traj.json()["robots"]["r1"]
-    est = Trajectory.from_poses(
-        [p["stamp"] for p in rows], [[p["x"], p["y"], p["theta"]] for p in rows]
-    )
-    truth = {str(i): xy for i, xy in zip(run.landmark_ids.tolist(), run.landmarks, strict=True)}
-    landmarks = client.get(f"/v1/maps/{map_id}/landmarks").json()
-    errors = landmark_errors({m["label"]: (m["x"], m["y"]) for m in landmarks}, truth)
-    err = np.array(list(errors.values()))
-    observed = {o.label for f in run.frames for o in f.observations}
-    return {
-        "map_id": map_id,
-        "config": summary["config"],
-        "trees": len(truth),
-        "trees_observed": len(observed),
-        # A capped map re-initialises a removed tree seen again under a new id: count trees.
-        "trees_initialised": rows[-1]["uncapped"],
-        "landmark_initialisations": len({i for r in results for i in r["landmarks"]["added"]}),
-        "landmarks_live": counts["live_landmarks"],
-        "ate_rmse_m": ate_rmse(est, run.ground_truth),
-        "ate_rmse_aligned_m": ate_rmse(est, run.ground_truth, align=True),
-        "landmark_rmse_m": float(np.sqrt(np.mean(err**2))) if len(err) else None,
-        "landmark_max_error_m": float(err.max()) if len(err) else None,
-    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -93,12 +93,12 @@ def _session_run(
             session.close()
             session = MapSession(where, settings)
         reply = session.submit(body, image)
-        doc = json.loads(reply["result_json"])
+        doc = json.loads(reply.result_json)
         doc.pop("timing_ms")
         results.append(doc)
         if session.snapshot_due:
             session.snapshot()
-    trajectory = queries.trajectory(session)
+    trajectory = queries.Trajectory().answer(session)
     session.close()
     return {
         "results": _sha(json.dumps(results, sort_keys=True)),

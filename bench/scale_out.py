@@ -37,11 +37,11 @@ from typing import Any
 import httpx
 import numpy as np
 
-from bench.clusters import LocalRayCluster, PrivatePostgres, Service
 from graph.types import FrameInput
 from service.frames_io import frame_to_dict
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
-from service.offline.http_client import HttpReplay, replay_http
+from service.offline.http_client import HttpReplay, check_log, post_until_answered, replay_http
+from tests.support.clusters import LocalRayCluster, PrivatePostgres, Service
 
 MAP_CONFIG = {"landmark_cap": 8, "policy": "coverage"}
 
@@ -113,24 +113,6 @@ def _until_answers(url: str, map_id: str, since: float, gone: set[int]) -> float
             time.sleep(0.02)
 
 
-def post_until_answered(client: httpx.Client, map_id: str, frame: dict[str, Any]) -> dict:
-    """Post a frame, retrying on 503 (after Retry-After) and transport errors, until the
-    service answers; its result (any other status raises)."""
-    while True:
-        try:
-            r = client.post(f"/v1/maps/{map_id}/frames", json=frame)
-        except httpx.TransportError:
-            time.sleep(0.2)
-            continue
-        if r.status_code == 503:
-            time.sleep(float(r.headers.get("retry-after", "1")))
-            continue
-        if r.status_code != 200:
-            raise RuntimeError(f"map {map_id} seq {frame['seq']}: {r.status_code} {r.text}")
-        result: dict[str, Any] = r.json()
-        return result
-
-
 def scale(url: str, data: Path, *, maps: int, clients: int, frames: int) -> dict[str, Any]:
     """`maps` maps (MRCLAM robots 1-5 in turn, the first `frames` frames each), `clients`
     threads each posting to its share of the maps, frame by frame in turn; throughput and
@@ -174,34 +156,6 @@ def scale(url: str, data: Path, *, maps: int, clients: int, frames: int) -> dict
         "latency_ms_p50": round(float(np.percentile(ms, 50)), 1),
         "latency_ms_p99": round(float(np.percentile(ms, 99)), 1),
         "nodes_used": len(nodes - {None}),
-    }
-
-
-def check_log(
-    url: str,
-    map_id: str,
-    frames: list[dict[str, Any]],
-    acked: list[dict],
-    headers: dict[str, str] | None = None,
-) -> dict:
-    """Lost and duplicated frames of a map: re-post every frame (each must be answered
-    from the log with its acknowledged result) and count the log's frames."""
-    lost = changed = 0
-    with httpx.Client(base_url=url, timeout=120, headers=headers) as c:
-        for frame, result in zip(frames, acked, strict=True):
-            r = c.post(f"/v1/maps/{map_id}/frames", json=frame)
-            if r.headers.get("idempotent-replayed") != "true":
-                lost += 1
-            elif r.json() != result:
-                changed += 1
-        logged = c.get(f"/v1/maps/{map_id}").json()["counts"]["frames"]
-    return {
-        "posted": len(frames),
-        "acknowledged": len(acked),
-        "logged": logged,
-        "lost": lost,
-        "duplicated": logged - len(frames),
-        "answer_changed_on_retry": changed,
     }
 
 

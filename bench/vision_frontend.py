@@ -46,11 +46,6 @@ from graph.angles import wrap_angles
 from graph.config import SlamConfig
 from graph.slam import BearingSlam
 from graph.types import BearingObservation
-from service.mapconfig import (
-    CAMERA_GRAPH_FRAME_DISTANCE_M,
-    CAMERA_LANDMARK_FACTORS,
-    CAMERA_NOISE_DEFAULTS,
-)
 from service.offline.datasets.indoor_sim import SimRun, make_world, simulate
 from service.offline.datasets.render import (
     TexturedWorld,
@@ -59,6 +54,11 @@ from service.offline.datasets.render import (
     visible_corners,
 )
 from service.offline.evaluation import Trajectory, ate_rmse
+from service.pipeline.camera_config import (
+    CAMERA_GRAPH_FRAME_DISTANCE_M,
+    CAMERA_LANDMARK_FACTORS,
+    CAMERA_NOISE_DEFAULTS,
+)
 from service.pipeline.images import ImageFrontEnd
 
 log = logging.getLogger("bench.vision_frontend")

@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from typing import Any
 
-from service import queries
 from service.errors import ServiceError
 from service.jsonio import loads_object
-from service.mapconfig import MapConfig, Mode, slam_config_dict
+from service.pipeline.config import MapConfig, Mode, slam_config_dict
 from service.pipeline.images import parse_state_doc
+from service.queries import Landmarks, Trajectory
+from service.requests import MapRequest
 from service.session import IMPORTED_FRONTEND, MapSession
 
 EXPORT_FORMAT = "covslam.map"
@@ -116,12 +118,21 @@ def export_map(session: MapSession) -> dict[str, Any]:
         "exported": time.time(),
         "map": session.record.as_dict(),
         "estimator": slam_config_dict(session.slam.config),
-        "landmarks": queries.landmarks(session),
-        "trajectories": queries.trajectory(session),
+        "landmarks": Landmarks().answer(session),
+        "trajectories": Trajectory().answer(session),
         "removals": session.store.removals(),
         "frames": frames,
         **front,
     }
+
+
+@dataclass(frozen=True)
+class Export(MapRequest[bytes]):
+    """The map's export document as compact JSON bytes (serialised in the worker, so a
+    large map never holds the API's GIL)."""
+
+    def answer(self, session: MapSession) -> bytes:
+        return json.dumps(export_map(session), separators=(",", ":")).encode()
 
 
 def import_frames(session: MapSession, frames: list[dict[str, Any]], frontend: Any = None) -> None:

@@ -9,6 +9,7 @@ checked against it before it is stored.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -20,6 +21,7 @@ from service.views import restored_events
 
 __all__ = [
     "COV3",
+    "FrameReply",
     "FrameResult",
     "LandmarkChanges",
     "Localisation",
@@ -79,6 +81,31 @@ class FrameResult(BaseModel):
         "features = feature extraction, both in the helper thread, "
         "features_wait = how long the frame waited for them after logging, association)"
     )
+
+
+@dataclass(frozen=True)
+class FrameReply:
+    """A map session's answer to a frame (`MapSession.submit`)."""
+
+    result_json: str
+    """The frame result (a `FrameResult`, checked when it was made) as JSON text, exactly
+    as stored: an idempotent retry answers these bytes."""
+    replayed: bool = False
+    """An idempotent retry, answered from the log."""
+    event_ids: list[int] = field(default_factory=list)
+    """Ids of the events the frame stored (the event streams wake for them)."""
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    """The result's worker timings, ms (empty for a retry)."""
+    store_ms: float = 0.0
+    """Storing the result, events and removals, ms."""
+    live: int = 0
+    """Live landmarks after the frame."""
+    marginalised: int = 0
+    """Landmarks the budget removed after the frame."""
+
+    def result(self) -> FrameResult:
+        """The frame result as its model."""
+        return FrameResult.model_validate_json(self.result_json)
 
 
 def result_doc(

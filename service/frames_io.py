@@ -1,23 +1,19 @@
-"""Frame documents as Python objects and JSON lines.
+"""Frame documents as Python objects.
 
 `frame_from_dict` parses a frame document through the frame model
 (`service.frame_model`: strict structure and types, the offending field named with a
 dotted path such as ``observations[2].bearing``); `frame_to_dict` is its inverse.
+Frame files (JSON lines) are the offline tools' (service.offline.frame_files).
 
 Units: metres, radians, seconds (stamps are seconds, any epoch).
-
-A frame file is JSON lines: one frame object per line, blank lines skipped.
-Paths ending in ``.gz`` are read and written gzip-compressed.
 """
 
 from __future__ import annotations
 
-import gzip
+import hashlib
 import json
-import os
-from collections.abc import Iterable, Iterator, Mapping
-from pathlib import Path
-from typing import IO, Any
+from collections.abc import Mapping
+from typing import Any
 
 from graph.errors import InvalidFrame
 from graph.types import FrameInput
@@ -25,29 +21,14 @@ from service.errors import invalid_frame
 from service.frame_model import FrameLimits, parse_frame
 
 __all__ = [
-    "FrameFileError",
     "admit_frame",
+    "canonical_frame",
     "frame_from_dict",
     "frame_to_dict",
-    "read_frames",
-    "write_frames",
+    "image_digest",
+    "image_record",
+    "observations_json",
 ]
-
-
-class FrameFileError(ValueError):
-    """A line of a frame file could not be read as a frame.
-
-    `path` and `line` (1-based) locate it; `field` is the offending field's
-    dotted path (``"line"`` when the line is not JSON at all); `detail` says
-    what was wrong.
-    """
-
-    def __init__(self, path: str, line: int, field: str, detail: str) -> None:
-        super().__init__(f"{path}:{line}: {field}: {detail}")
-        self.path = path
-        self.line = line
-        self.field = field
-        self.detail = detail
 
 
 # --------------------------------------------------------------------------- parsing
@@ -123,59 +104,49 @@ def frame_to_dict(frame: FrameInput) -> dict[str, Any]:
     return out
 
 
-# --------------------------------------------------------------------------- files
+def image_digest(image: bytes) -> dict[str, Any]:
+    """What a frame's log entry records of its image (idempotency compares it)."""
+    return {"sha256": hashlib.sha256(image).hexdigest(), "bytes": len(image)}
 
 
-def _open_text(path: Path, *, write: bool) -> IO[str]:
-    """Open a text file, gzip-compressed when the name ends in ``.gz``."""
-    if path.suffix == ".gz":
-        return gzip.open(path, "wt" if write else "rt", encoding="utf-8")
-    return path.open("w" if write else "r", encoding="utf-8")
+def canonical_frame(
+    body: dict[str, Any], image: bytes | None = None, digest: dict[str, Any] | None = None
+) -> tuple[Any, str]:
+    """Parse a frame object; (FrameInput, canonical JSON text used for idempotency).
+
+    An image frame's text records the image's digest (``"image"``; given as `digest`
+    for an imported frame, whose image is not at hand), so a retry must repeat the
+    image too. The text of an image frame has no observations (they come from the
+    image)."""
+    try:
+        frame = frame_from_dict(body)
+    except InvalidFrame as exc:
+        raise invalid_frame(exc.field, exc.detail) from exc
+    doc = frame_to_dict(frame)
+    if image is not None or digest is not None:
+        doc["image"] = image_digest(image) if image is not None else digest
+        doc["observations"] = []
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
+    return frame, text
 
 
-def read_frame_lines(
-    path: str | os.PathLike[str],
-) -> Iterator[tuple[int, dict[str, Any], FrameInput]]:
-    """Yield (1-based line number, JSON object, frame) for each frame of a JSON-lines file.
-
-    Blank lines are skipped; the file (plain or ``.gz``) is read lazily, line by line.
-
-    Raises:
-        FrameFileError: naming the line number and the offending field.
-    """
-    p = Path(path)
-    with _open_text(p, write=False) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            if not line.strip():
-                continue
-            try:
-                d = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise FrameFileError(str(p), lineno, "line", f"not JSON: {exc.msg}") from exc
-            try:
-                frame = frame_from_dict(d)
-            except InvalidFrame as exc:
-                raise FrameFileError(str(p), lineno, exc.field, exc.detail) from exc
-            yield lineno, d, frame
+def observations_json(observations: Any) -> str:
+    """The JSON text of observations as the REST frame writes them."""
+    doc = frame_to_dict(FrameInput(robot="-", seq=0, stamp=0.0, observations=tuple(observations)))
+    return json.dumps(doc["observations"], separators=(",", ":"))
 
 
-def read_frames(path: str | os.PathLike[str]) -> Iterator[FrameInput]:
-    """Yield the frames of a JSON-lines file in file order (see read_frame_lines)."""
-    for _, _, frame in read_frame_lines(path):
-        yield frame
-
-
-def write_frames(path: str | os.PathLike[str], frames: Iterable[FrameInput]) -> int:
-    """Write frames as JSON lines (standard JSON: NaN/inf refused); return the count.
-
-    Floats are written with Python's shortest round-trip repr, so reading the
-    file back gives equal frames.
-    """
-    p = Path(path)
-    count = 0
-    with _open_text(p, write=True) as fh:
-        for frame in frames:
-            fh.write(json.dumps(frame_to_dict(frame), allow_nan=False, separators=(",", ":")))
-            fh.write("\n")
-            count += 1
-    return count
+def image_record(value: Any, field: str) -> dict[str, Any]:
+    """An export's record of an image (``{"sha256": hex, "bytes": n}``), checked."""
+    ok = (
+        isinstance(value, dict)
+        and isinstance(value.get("sha256"), str)
+        and len(value["sha256"]) == 64
+        and all(ch in "0123456789abcdef" for ch in value["sha256"])
+        and isinstance(value.get("bytes"), int)
+        and not isinstance(value.get("bytes"), bool)
+        and value["bytes"] > 0
+    )
+    if not ok:
+        raise invalid_frame(field, 'must be {"sha256": 64 lowercase hex digits, "bytes": n > 0}')
+    return {"sha256": value["sha256"], "bytes": value["bytes"]}

@@ -23,7 +23,6 @@ is the map pipeline's (service.pipeline), and travels with its snapshots.
 
 from __future__ import annotations
 
-import hashlib
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -39,9 +38,9 @@ from frontend.pipeline import FrontEnd
 from graph.errors import InvalidFrame
 from graph.types import FrameInput
 from service.errors import ServiceError
-from service.mapconfig import camera_model
+from service.pipeline.config import camera_model
 
-__all__ = ["MapVision", "image_digest", "image_refused"]
+__all__ = ["MapVision", "image_refused"]
 
 PREFETCH_LIMIT = 8
 """Most images whose features are extracted ahead of their frame."""
@@ -49,11 +48,6 @@ PREFETCH_LIMIT = 8
 Pending = Future[tuple[Features, NDArray[np.float32], float, float]]
 """Features of one image being extracted, with its appearance signature and the
 decoding's and the extraction's milliseconds."""
-
-
-def image_digest(image: bytes) -> dict[str, Any]:
-    """What a frame's log entry records of its image (idempotency compares it)."""
-    return {"sha256": hashlib.sha256(image).hexdigest(), "bytes": len(image)}
 
 
 def image_refused(exc: ImageError) -> ServiceError:

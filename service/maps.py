@@ -14,16 +14,22 @@ import logging
 import secrets
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from service.errors import ServiceError, unknown_map
+from service.exchange import Export
+from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
-from service.mapconfig import MapConfig, Mode, slam_config
+from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
+from service.queries import SetMode, Summary
+from service.requests import CreateMap, DeleteMap, ImportMap, MapRequest, SubmitFrame
 from service.settings import Settings
 from service.store import KeyRecord, MapRecord
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 EventRows = list[tuple[int, str, str]]
 """Stored events: (id, kind, data JSON), oldest first."""
@@ -76,6 +82,11 @@ class MapService:
     def ready(self) -> bool:
         return self.started and self.pool.ready
 
+    @property
+    def _long_timeout_s(self) -> float:
+        """An export's or import's time limit (a large map takes a while)."""
+        return max(self.settings.workers.request_timeout_s, 600.0)
+
     # ------------------------------------------------------------ maps
     def record(self, map_id: str) -> MapRecord:
         record = self._records.get(map_id)
@@ -123,7 +134,7 @@ class MapService:
             )
 
     async def _new_map(
-        self, map_id: str, op: str, payload: dict[str, Any], record_of: Callable[[Any], MapRecord]
+        self, map_id: str, request: CreateMap | ImportMap, record_of: Callable[[Any], MapRecord]
     ) -> Any:
         """The worker's reply to a create or import, the map in the catalogue. On any
         failure (the worker's, or the catalogue's: a full disk) the worker is told to
@@ -132,15 +143,13 @@ class MapService:
         self._check_room()
         self._creating += 1
         try:
-            timeout = (
-                None if op == "create" else max(self.settings.workers.request_timeout_s, 600.0)
-            )
-            reply = await self.pool.call(map_id, op, payload, timeout_s=timeout)
+            timeout = None if isinstance(request, CreateMap) else self._long_timeout_s
+            reply = await self.pool.call(map_id, request, timeout_s=timeout)
             record: MapRecord = record_of(reply)
             self._catalog.add(record)
         except Exception:
             try:
-                await self.pool.call(map_id, "delete")
+                await self.pool.call(map_id, DeleteMap())
             except Exception:
                 log.exception("could not remove the files of the failed new map %s", map_id)
             raise
@@ -152,13 +161,13 @@ class MapService:
 
     async def create(self, *, name: str, config: MapConfig, mode: Mode) -> dict[str, Any]:
         record = self._new_record(name, config, mode)
-        payload = {"record": record.as_dict()}
-        summary = await self._new_map(record.id, "create", payload, lambda _: record)
+        request = CreateMap(record.as_dict())
+        summary = await self._new_map(record.id, request, lambda _: record)
         return {**summary, "worker": self.pool.worker_of(record.id)}
 
     async def summary(self, map_id: str) -> dict[str, Any]:
         self.record(map_id)
-        summary = await self.pool.call(map_id, "summary")
+        summary = await self.pool.call(map_id, Summary())
         return {**summary, "worker": self.pool.worker_of(map_id)}
 
     async def delete(self, map_id: str) -> None:
@@ -168,11 +177,11 @@ class MapService:
         self._keys = {h: k for h, k in self._keys.items() if k.map_id != map_id}
         self.pool.untrack(map_id)
         self.notifier.notify(map_id)
-        await self.pool.call(map_id, "delete")
+        await self.pool.call(map_id, DeleteMap())
 
     async def set_mode(self, map_id: str, mode: Mode) -> dict[str, Any]:
         record = self.record(map_id)
-        summary = await self.pool.call(map_id, "set_mode", {"mode": mode})
+        summary = await self.pool.call(map_id, SetMode(mode))
         self._catalog.set_mode(map_id, mode)
         self._records[map_id] = MapRecord(
             record.id, record.name, mode, record.config, record.created
@@ -182,23 +191,21 @@ class MapService:
     # ------------------------------------------------------------ frames and queries
     async def submit(
         self, map_id: str, frame: dict[str, Any], image: bytes | None = None
-    ) -> dict[str, Any]:
+    ) -> FrameReply:
         """One frame to its map; the worker's reply (result, replayed, event ids, ...).
 
         With `image`, `frame` is the meta of an image frame (PNG/JPEG bytes, decoded by
         the map's worker)."""
         self.record(map_id)
-        payload: dict[str, Any] = {"frame": frame}
-        if image is not None:
-            payload["image"] = image
-        reply: dict[str, Any] = await self.pool.call(map_id, "frame", payload)
-        if reply.get("event_ids"):
+        reply = await self.pool.call(map_id, SubmitFrame(frame, image))
+        if reply.event_ids:
             self.notifier.notify(map_id)
         return reply
 
-    async def query(self, map_id: str, op: str, **params: Any) -> Any:
+    async def query(self, map_id: str, request: MapRequest[T]) -> T:
+        """A query (service.queries) on a map; its answer."""
         self.record(map_id)
-        return await self.pool.call(map_id, op, params)
+        return await self.pool.call(map_id, request)
 
     def read_events(self, map_id: str, after: int) -> EventRows:
         """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""
@@ -213,21 +220,14 @@ class MapService:
     async def export(self, map_id: str) -> bytes:
         """The map's export document as JSON bytes (serialised in the worker)."""
         self.record(map_id)
-        timeout = max(self.settings.workers.request_timeout_s, 600.0)
-        text: bytes = await self.pool.call(map_id, "export", timeout_s=timeout)
-        return text
+        return await self.pool.call(map_id, Export(), timeout_s=self._long_timeout_s)
 
     async def import_map(self, body: bytes) -> dict[str, Any]:
         """A new map from an export document (bytes; parsed, checked and replayed by the
         worker that will own the new map, so a large document never blocks the API)."""
         map_id = self._new_id()
-        payload = {
-            "id": map_id,
-            "created": time.time(),
-            "body": body,
-            "default_cap": self.settings.default_landmark_cap,
-        }
-        reply = await self._new_map(map_id, "import", payload, _imported_record)
+        request = ImportMap(body, time.time(), self.settings.default_landmark_cap)
+        reply = await self._new_map(map_id, request, _imported_record)
         return {**reply["summary"], "worker": self.pool.worker_of(map_id)}
 
     # ------------------------------------------------------------ API keys

@@ -31,17 +31,20 @@ import pickle
 import struct
 import time
 import zlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
+from service.requests import OpenMap, Ping, Request
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 _HEADER = struct.Struct("!i")  # multiprocessing.Connection's framing (messages < 2 GiB)
 
@@ -63,15 +66,9 @@ class Engine(Protocol):
     def worker_of(self, map_id: str) -> int | None: ...
     def track(self, map_id: str) -> None: ...
     def untrack(self, map_id: str) -> None: ...
-    async def call(
-        self,
-        map_id: str,
-        op: str,
-        payload: dict[str, Any] | None = None,
-        *,
-        timeout_s: float | None = None,
-    ) -> Any:
-        """Run `op` on the map; its value, or raise ServiceError / WorkerUnavailable."""
+    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
+        """Carry out `request` on the map; its answer, or raise ServiceError /
+        WorkerUnavailable."""
         ...
 
 
@@ -116,9 +113,9 @@ class _Slot:
     """The worker answered its first ping (its imports are done)."""
 
 
-class WorkerPool:
-    """Routes calls to the worker owning a map; restarts crashed workers (the `local`
-    engine)."""
+class EngineBase:
+    """What both engines keep: the maps they run, their background tasks, the restarts
+    they saw, and the time limits of a call."""
 
     shared = False
 
@@ -126,14 +123,46 @@ class WorkerPool:
         self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
     ) -> None:
         self._settings = settings
-        self._ctx = multiprocessing.get_context("spawn")
-        self._slots: list[_Slot] = []
         self._maps: set[str] = set()
         self._on_restart = on_restart
         self._tasks: set[asyncio.Task[None]] = set()
+        self.restarts = 0
+
+    def track(self, map_id: str) -> None:
+        self._maps.add(map_id)
+
+    def untrack(self, map_id: str) -> None:
+        self._maps.discard(map_id)
+
+    def _background(self, work: Coroutine[Any, Any, None]) -> None:
+        """Run `work` on the event loop, cancelled by `_cancel_background`."""
+        task = asyncio.get_running_loop().create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _cancel_background(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+
+    def _limits(self, timeout_s: float | None) -> tuple[float, int]:
+        """(a call's time limit, s; the Retry-After of a 503, s)."""
+        workers = self._settings.workers
+        timeout = timeout_s if timeout_s is not None else workers.request_timeout_s
+        return timeout, workers.retry_after_s
+
+
+class WorkerPool(EngineBase):
+    """Routes calls to the worker owning a map; restarts crashed workers (the `local`
+    engine)."""
+
+    def __init__(
+        self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
+    ) -> None:
+        super().__init__(settings, on_restart=on_restart)
+        self._ctx = multiprocessing.get_context("spawn")
+        self._slots: list[_Slot] = []
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
-        self.restarts = 0
         self._stopping = False
 
     # ------------------------------------------------------------ lifecycle
@@ -168,9 +197,9 @@ class WorkerPool:
 
         async def load() -> None:
             try:
-                await self._request(slot, "ping", "", {})
+                await self._request(slot, "", Ping())
                 slot.up = True
-                opens = [self._request(slot, "open", m, {}) for m in mine]
+                opens = [self._request(slot, m, OpenMap()) for m in mine]
                 for map_id, coro in zip(mine, opens, strict=True):
                     try:
                         reply = await coro
@@ -183,14 +212,11 @@ class WorkerPool:
             except _WorkerDied:
                 log.warning("worker %d died while loading its maps", slot.index)
 
-        task = asyncio.get_running_loop().create_task(load())
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._background(load())
 
     async def stop(self) -> None:
         self._stopping = True
-        for task in self._tasks:
-            task.cancel()
+        self._cancel_background()
         for slot in self._slots:
             self._close(slot)
         for slot in self._slots:
@@ -227,12 +253,6 @@ class WorkerPool:
 
     def worker_of(self, map_id: str) -> int:
         return zlib.crc32(map_id.encode()) % self._settings.workers.count
-
-    def track(self, map_id: str) -> None:
-        self._maps.add(map_id)
-
-    def untrack(self, map_id: str) -> None:
-        self._maps.discard(map_id)
 
     # ------------------------------------------------------------ transport
     def _send(self, slot: _Slot, message: bytes) -> None:
@@ -307,30 +327,21 @@ class WorkerPool:
             self._on_restart(slot.index)
         self._spawn_load(fresh)
 
-    def _request(
-        self, slot: _Slot, op: str, map_id: str, payload: dict[str, Any]
-    ) -> asyncio.Future[Any]:
+    def _request(self, slot: _Slot, map_id: str, request: Request[Any]) -> asyncio.Future[Any]:
         assert self._loop is not None
         request_id = next(self._ids)
         future: asyncio.Future[Any] = self._loop.create_future()
         slot.pending[request_id] = future
-        self._send(slot, pickle.dumps((request_id, op, map_id, payload), protocol=5))
+        self._send(slot, pickle.dumps((request_id, map_id, request), protocol=5))
         return future
 
     # ------------------------------------------------------------ calls
-    async def call(
-        self,
-        map_id: str,
-        op: str,
-        payload: dict[str, Any] | None = None,
-        *,
-        timeout_s: float | None = None,
-    ) -> Any:
-        """Run `op` on the map's worker; its value, or raise ServiceError / WorkerUnavailable."""
+    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
+        """Carry out `request` on the map's worker; its answer, or raise ServiceError /
+        WorkerUnavailable."""
         slot = self._slots[self.worker_of(map_id)]
-        retry_after = self._settings.workers.retry_after_s
-        timeout = timeout_s if timeout_s is not None else self._settings.workers.request_timeout_s
-        future = self._request(slot, op, map_id, payload or {})
+        timeout, retry_after = self._limits(timeout_s)
+        future = self._request(slot, map_id, request)
         try:
             reply = await asyncio.wait_for(future, timeout)
         except _WorkerDied as exc:

@@ -1,15 +1,25 @@
-"""What a map answers besides frames: summary, poses, places, trajectories,
-landmarks and coverage, from its session (service.session.MapSession)."""
+"""What a map answers besides frames, as typed requests (service.requests.MapRequest):
+its summary, poses, trajectories, landmarks, coverage and places, and the two changes a
+client makes besides frames (the mode, learning a place).
+
+A query is one frozen dataclass: its fields are the query's parameters, `answer(session)`
+computes the reply from the map's session (service.session.MapSession) in the worker
+process that owns the map, and its type parameter is the reply's type. The API asks
+``await service.query(map_id, Pose())``; code in process calls ``Pose().answer(session)``.
+Adding a query: a class here and the route that asks it.
+"""
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from service.errors import ServiceError
-from service.mapconfig import slam_config_dict
+from service.pipeline.config import Mode, slam_config_dict
 from service.pipeline.localiser import PlaceLocaliser
+from service.requests import Doc, MapRequest
 from service.session import MapSession
 from service.views import attach_frame_stats, coverage_doc, landmarks_doc, pose_doc, trajectory_doc
 
@@ -20,137 +30,180 @@ def _localiser(session: MapSession) -> PlaceLocaliser:
     return localiser
 
 
-def summary(session: MapSession) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Summary(MapRequest[Doc]):
     """The map's record, estimator parameters, counts, robots and frame timings."""
-    frame_ms = session.frame_ms()
-    ms = np.asarray(frame_ms) if frame_ms else None
-    off_graph = session.pipeline.off_graph_count()
-    robots = session.slam.robots
-    robots += [r for r in session.pipeline.off_graph_robots() if r not in robots]
-    return {
-        **session.record.as_dict(),
-        "estimator": slam_config_dict(session.slam.config),
-        "counts": {
-            "frames": session.slam.frame_count + off_graph,
-            "off_graph_frames": off_graph,
-            "graph_frames": session.slam.graph_frame_count,
-            "robots": len(robots),
-            "live_landmarks": len(session.slam.landmarks),
-            "candidates": session.slam.candidate_count,
-            "removals": session.store.removal_count(),
-            "graph_variables": session.slam.graph.num_variables,
-            "graph_factors": session.slam.graph.num_factors,
-            "replay_errors": session.replay_errors,
-        },
-        "robots": robots,
-        "timing_ms": None
-        if ms is None
-        else {
-            "frames": len(ms),
-            "mean": float(ms.mean()),
-            "p50": float(np.percentile(ms, 50)),
-            "p99": float(np.percentile(ms, 99)),
-        },
-    }
+
+    def answer(self, session: MapSession) -> Doc:
+        frame_ms = session.frame_ms()
+        ms = np.asarray(frame_ms) if frame_ms else None
+        off_graph = session.pipeline.off_graph_count()
+        robots = session.slam.robots
+        robots += [r for r in session.pipeline.off_graph_robots() if r not in robots]
+        return {
+            **session.record.as_dict(),
+            "estimator": slam_config_dict(session.slam.config),
+            "counts": {
+                "frames": session.slam.frame_count + off_graph,
+                "off_graph_frames": off_graph,
+                "graph_frames": session.slam.graph_frame_count,
+                "robots": len(robots),
+                "live_landmarks": len(session.slam.landmarks),
+                "candidates": session.slam.candidate_count,
+                "removals": session.store.removal_count(),
+                "graph_variables": session.slam.graph.num_variables,
+                "graph_factors": session.slam.graph.num_factors,
+                "replay_errors": session.replay_errors,
+            },
+            "robots": robots,
+            "timing_ms": None
+            if ms is None
+            else {
+                "frames": len(ms),
+                "mean": float(ms.mean()),
+                "p50": float(np.percentile(ms, 50)),
+                "p99": float(np.percentile(ms, 99)),
+            },
+        }
 
 
-def pose(session: MapSession) -> dict[str, Any]:
+@dataclass(frozen=True)
+class SetMode(MapRequest[Doc]):
+    """Switch between mapping and localisation (a frozen map: no new landmarks); the
+    map's summary."""
+
+    mode: Mode
+
+    def answer(self, session: MapSession) -> Doc:
+        session.set_mode(self.mode)
+        return Summary().answer(session)
+
+
+@dataclass(frozen=True)
+class Pose(MapRequest[Doc]):
     """Latest pose per robot, the graph's or (initialising, lost) the best off-graph
     one: see PlaceLocaliser.robot_poses."""
-    localiser, robots = _localiser(session), session.pipeline.robots
-    doc = pose_doc(session.slam, session.record.id)
-    for name, robot in doc["robots"].items():
-        robot["localisation"] = localiser.localisation(name, robots.get(name))
-    for name, off in localiser.robot_poses(robots).items():
-        if off["pose"] is None and name in doc["robots"]:
-            continue
-        doc["robots"][name] = off
-    return doc
+
+    def answer(self, session: MapSession) -> Doc:
+        localiser, robots = _localiser(session), session.pipeline.robots
+        doc = pose_doc(session.slam, session.record.id)
+        for name, robot in doc["robots"].items():
+            robot["localisation"] = localiser.localisation(name, robots.get(name))
+        for name, off in localiser.robot_poses(robots).items():
+            if off["pose"] is None and name in doc["robots"]:
+                continue
+            doc["robots"][name] = off
+        return doc
 
 
-def places(session: MapSession) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Places(MapRequest[Doc]):
     """Learnt places and the transitions between them."""
-    return {"map_id": session.record.id, **_localiser(session).places_doc()}
+
+    def answer(self, session: MapSession) -> Doc:
+        return {"map_id": session.record.id, **_localiser(session).places_doc()}
 
 
-def learn_place(session: MapSession, robot: str | None) -> dict[str, Any]:
+@dataclass(frozen=True)
+class LearnPlace(MapRequest[Doc]):
     """Learn a place at a robot's current pose now (default: the last robot that sent a
     frame); the snapshot taken after it keeps it across restarts."""
-    known = session.pipeline.last_accepted()
-    if robot is None:
-        if not known:
+
+    robot: str | None = None
+
+    def answer(self, session: MapSession) -> Doc:
+        known = session.pipeline.last_accepted()
+        robot = self.robot
+        if robot is None:
+            if not known:
+                raise ServiceError(
+                    409, "no-robot", "No robot yet", "robot: the map has no robot to learn at"
+                )
+            robot = max(known, key=lambda r: known[r][1])
+        if robot not in known:
             raise ServiceError(
-                409, "no-robot", "No robot yet", "robot: the map has no robot to learn at"
+                404,
+                "unknown-robot",
+                "Unknown robot",
+                f"robot: map {session.record.id!r} has no robot {robot!r}",
+                field="robot",
             )
-        robot = max(known, key=lambda r: known[r][1])
-    if robot not in known:
-        raise ServiceError(
-            404,
-            "unknown-robot",
-            "Unknown robot",
-            f"robot: map {session.record.id!r} has no robot {robot!r}",
-            field="robot",
-        )
-    if _localiser(session).status(robot) != "tracking":
-        raise ServiceError(
-            409,
-            "not-localised",
-            "Robot not localised",
-            f"robot: {robot!r} is {_localiser(session).status(robot)}; a place is learnt at a "
-            "tracked pose",
-            field="robot",
-        )
-    place = _localiser(session).learn(session.slam, robot, stamp=known[robot][1])
-    if place is None:
-        raise ServiceError(
-            409,
-            "too-few-landmarks",
-            "Too few landmarks",
-            f"robot: fewer than {_localiser(session).localiser.config.places.min_landmarks} mapped "
-            f"landmarks lie within {_localiser(session).localiser.config.places.max_depth_m} m of "
-            f"{robot!r}",
-            field="robot",
-        )
-    session.snapshot()
-    doc = _localiser(session).places_doc()
-    return {"map_id": session.record.id, "place": doc["places"][place.id], **doc}
+        localiser = _localiser(session)
+        if localiser.status(robot) != "tracking":
+            raise ServiceError(
+                409,
+                "not-localised",
+                "Robot not localised",
+                f"robot: {robot!r} is {localiser.status(robot)}; a place is learnt at a "
+                "tracked pose",
+                field="robot",
+            )
+        place = localiser.learn(session.slam, robot, stamp=known[robot][1])
+        if place is None:
+            places = localiser.localiser.config.places
+            raise ServiceError(
+                409,
+                "too-few-landmarks",
+                "Too few landmarks",
+                f"robot: fewer than {places.min_landmarks} mapped landmarks lie within "
+                f"{places.max_depth_m} m of {robot!r}",
+                field="robot",
+            )
+        session.snapshot()
+        doc = localiser.places_doc()
+        return {"map_id": session.record.id, "place": doc["places"][place.id], **doc}
 
 
-def trajectory(
-    session: MapSession, robot: str | None = None, *, stats_every: int = 0
-) -> dict[str, list[dict[str, Any]]]:
+@dataclass(frozen=True)
+class Trajectory(MapRequest[dict[str, list[Doc]]]):
     """Poses per robot, graph and off-graph frames by seq (`robot`: that robot only);
     `stats_every` > 0: every that many rows carry the frame's statistics."""
-    state = None if robot is None else session.pipeline.robots.get(robot)
-    if robot not in session.slam.robots and state is not None and state.last is not None:
-        rows: dict[str, list[dict[str, Any]]] = {}  # known only to the localiser
-    else:
-        rows = dict(trajectory_doc(session.slam, session.store, session.record.id, robot))
-    session.pipeline.with_off_graph(rows, robot)
-    if stats_every > 0:
-        labels = session.store.removed_labels()
-        labels.update((lid, rec.label) for lid, rec in session.slam.landmarks.items())
-        attach_frame_stats(rows, session.store.frame_stats(), labels, every=stats_every)
-    return rows
+
+    robot: str | None = None
+    stats_every: int = 0
+
+    def answer(self, session: MapSession) -> dict[str, list[Doc]]:
+        robot = self.robot
+        state = None if robot is None else session.pipeline.robots.get(robot)
+        if robot not in session.slam.robots and state is not None and state.last is not None:
+            rows: dict[str, list[Doc]] = {}  # known only to the localiser
+        else:
+            rows = dict(trajectory_doc(session.slam, session.store, session.record.id, robot))
+        session.pipeline.with_off_graph(rows, robot)
+        if self.stats_every > 0:
+            labels = session.store.removed_labels()
+            labels.update((lid, rec.label) for lid, rec in session.slam.landmarks.items())
+            attach_frame_stats(rows, session.store.frame_stats(), labels, every=self.stats_every)
+        return rows
 
 
-def landmarks(session: MapSession, state: str = "live") -> list[dict[str, Any]]:
+@dataclass(frozen=True)
+class Landmarks(MapRequest[list[Doc]]):
     """The live landmarks, or (`state` "archived") those in the archive."""
-    if state == "archived":
-        return session.store.archived()
-    return landmarks_doc(session.slam, session.seed())
+
+    state: Literal["live", "archived"] = "live"
+
+    def answer(self, session: MapSession) -> list[Doc]:
+        if self.state == "archived":
+            return session.store.archived()
+        return landmarks_doc(session.slam, session.seed())
 
 
-def coverage(
-    session: MapSession, *, cell_m: float, radius_m: float, removals: int
-) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Coverage(MapRequest[Doc]):
     """Coverage grid of the map (see service.views.coverage_doc)."""
-    return coverage_doc(
-        session.slam,
-        session.store,
-        session.record.id,
-        session.seed(),
-        cell_m=cell_m,
-        radius_m=radius_m,
-        removals=removals,
-    )
+
+    cell_m: float = 1.0
+    radius_m: float = 2.0
+    removals: int = 200
+
+    def answer(self, session: MapSession) -> Doc:
+        return coverage_doc(
+            session.slam,
+            session.store,
+            session.record.id,
+            session.seed(),
+            cell_m=self.cell_m,
+            radius_m=self.radius_m,
+            removals=self.removals,
+        )

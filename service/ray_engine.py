@@ -27,11 +27,12 @@ import logging
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from service import worker
 from service.errors import WorkerUnavailable
-from service.pool import reply_value
+from service.pool import EngineBase, reply_value
+from service.requests import CreateMap, DeleteMap, ImportMap, OpenMap, Request
 from service.settings import Settings
 from service.store import is_postgres_url
 
@@ -41,6 +42,8 @@ except ImportError:
     ray = None  # type: ignore[assignment,unused-ignore]  # Ray installed or not
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 RAY_MISSING = "--engine ray needs Ray, which is not installed: pip install 'covslam[ray]'"
 
@@ -58,15 +61,15 @@ class MapActor:
         self.opened: dict[str, Any] | None = None
         try:
             if worker.has_map(map_id):  # a restart: reload from the store now
-                self.opened = worker.call("open", map_id, {})
+                self.opened = worker.call(map_id, OpenMap())
         except Exception:  # e.g. the store is unreachable: the first call opens the map
             log.exception("map %s: not reloaded at the actor's start", map_id)
         if self.opened is not None and not self.opened["ok"]:
             log.error("map %s did not open: %s", map_id, self.opened)
 
-    def call(self, op: str, payload: dict[str, Any]) -> dict[str, Any]:
-        """`op` on this actor's map, as a local worker answers it."""
-        reply = worker.call(op, self.map_id, payload)
+    def call(self, request: Request[Any]) -> dict[str, Any]:
+        """`request` on this actor's map, as a local worker answers it."""
+        reply = worker.call(self.map_id, request)
         worker.snapshot_if_due(self.map_id)
         return reply
 
@@ -80,7 +83,7 @@ def _actor_errors() -> tuple[type[BaseException], ...]:
     return tuple(getattr(ray.exceptions, n) for n in names if hasattr(ray.exceptions, n))
 
 
-class RayEngine:
+class RayEngine(EngineBase):
     """Routes calls to the maps' actors (service.pool.Engine)."""
 
     shared = True
@@ -90,7 +93,7 @@ class RayEngine:
     ) -> None:
         if ray is None:
             raise RuntimeError(RAY_MISSING)
-        self._settings = settings
+        super().__init__(settings, on_restart=on_restart)
         # actors run in Ray's working directory: a relative store path would move
         self._settings_doc = settings.model_dump(mode="json")
         self._settings_doc["data_dir"] = str(settings.data_dir.resolve())
@@ -100,12 +103,8 @@ class RayEngine:
         self._cls = ray.remote(MapActor)
         self._actors: dict[str, Any] = {}
         self._where: dict[str, dict[str, Any]] = {}
-        self._maps: set[str] = set()
-        self._on_restart = on_restart
-        self._tasks: set[asyncio.Task[None]] = set()
         self._connected = False
         self._loading = 0
-        self.restarts = 0
 
     # ------------------------------------------------------------ lifecycle
     async def start(self, maps: Iterable[str]) -> None:
@@ -124,9 +123,7 @@ class RayEngine:
         self._connected = True
         self._maps = set(maps)
         self._loading = len(self._maps)
-        task = asyncio.get_running_loop().create_task(self._load(sorted(self._maps)))
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._background(self._load(sorted(self._maps)))
 
     async def _load(self, maps: list[str]) -> None:
         async def one(map_id: str) -> None:
@@ -141,8 +138,7 @@ class RayEngine:
 
     async def stop(self) -> None:
         """Leave the cluster; the actors (detached) keep serving other API processes."""
-        for task in self._tasks:
-            task.cancel()
+        self._cancel_background()
         if self._connected:
             await asyncio.to_thread(ray.shutdown)
             self._connected = False
@@ -166,12 +162,6 @@ class RayEngine:
 
     def worker_of(self, map_id: str) -> int | None:
         return None
-
-    def track(self, map_id: str) -> None:
-        self._maps.add(map_id)
-
-    def untrack(self, map_id: str) -> None:
-        self._maps.discard(map_id)
 
     # ------------------------------------------------------------ actors
     def _create(self, map_id: str) -> Any:
@@ -205,19 +195,12 @@ class RayEngine:
             ray.kill(actor, no_restart=True)
 
     # ------------------------------------------------------------ calls
-    async def call(
-        self,
-        map_id: str,
-        op: str,
-        payload: dict[str, Any] | None = None,
-        *,
-        timeout_s: float | None = None,
-    ) -> Any:
-        """Run `op` on the map's actor; its value, or raise ServiceError / WorkerUnavailable."""
-        retry_after = self._settings.workers.retry_after_s
-        timeout = timeout_s if timeout_s is not None else self._settings.workers.request_timeout_s
+    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
+        """Carry out `request` on the map's actor; its answer, or raise ServiceError /
+        WorkerUnavailable."""
+        timeout, retry_after = self._limits(timeout_s)
         actor = await self._actor(map_id)
-        ref = actor.call.remote(op, payload or {})
+        ref = actor.call.remote(request)
         try:
             reply = await asyncio.wait_for(asyncio.wrap_future(ref.future()), timeout)
         except _actor_errors() as exc:
@@ -236,10 +219,10 @@ class RayEngine:
                 f"the actor of map {map_id!r} did not answer within {timeout:g} s",
                 retry_after_s=retry_after,
             ) from exc
-        if op == "delete" or (op in ("create", "import") and not reply["ok"]):
+        created = isinstance(request, CreateMap | ImportMap)
+        if isinstance(request, DeleteMap) or (created and not reply["ok"]):
             await asyncio.to_thread(self._kill, map_id)
         elif map_id not in self._where:
-            task = asyncio.get_running_loop().create_task(self._locate(map_id))
-            self._tasks.add(task)
-            task.add_done_callback(self._tasks.discard)
-        return reply_value(reply, retry_after_s=retry_after)
+            self._background(self._locate(map_id))
+        value: T = reply_value(reply, retry_after_s=retry_after)
+        return value

@@ -27,14 +27,21 @@ from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
-from service.frame_results import frame_events, result_doc
-from service.frames_io import frame_from_dict, frame_to_dict
-from service.image_frames import MapVision, Pending, image_digest, image_refused, no_camera
-from service.mapconfig import MapConfig, slam_config
+from service.frame_results import FrameReply, frame_events, result_doc
+from service.frames_io import (
+    canonical_frame,
+    frame_from_dict,
+    frame_to_dict,
+    image_record,
+    observations_json,
+)
+from service.image_frames import MapVision, Pending, image_refused, no_camera
 from service.pipeline import FrameStep, ImageFeatures, MapPipeline
+from service.pipeline.config import MapConfig, slam_config
 from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
 from service.settings import StoreSettings
-from service.store import MapPlace, MapRecord, MapStore, StoredFrame, as_place
+from service.store import MapPlace, MapRecord, StoredFrame, as_place
+from service.store_sql import MapStore
 
 log = logging.getLogger(__name__)
 
@@ -44,49 +51,6 @@ IMPORTED_FRONTEND = "imported_frontend"
 """Meta key: an imported camera map's front-end state and the log frame it follows."""
 MAX_REPLAY_ATTEMPTS = 2
 """Reloads that may retry an unfinished log frame before it is dropped as a poison pill."""
-
-
-def canonical_frame(
-    body: dict[str, Any], image: bytes | None = None, digest: dict[str, Any] | None = None
-) -> tuple[Any, str]:
-    """Parse a frame object; (FrameInput, canonical JSON text used for idempotency).
-
-    An image frame's text records the image's digest (``"image"``; given as `digest`
-    for an imported frame, whose image is not at hand), so a retry must repeat the
-    image too. The text of an image frame has no observations (they come from the
-    image)."""
-    try:
-        frame = frame_from_dict(body)
-    except InvalidFrame as exc:
-        raise invalid_frame(exc.field, exc.detail) from exc
-    doc = frame_to_dict(frame)
-    if image is not None or digest is not None:
-        doc["image"] = image_digest(image) if image is not None else digest
-        doc["observations"] = []
-    text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
-    return frame, text
-
-
-def _observations_json(observations: Any) -> str:
-    """The JSON text of observations as the REST frame writes them."""
-    doc = frame_to_dict(FrameInput(robot="-", seq=0, stamp=0.0, observations=tuple(observations)))
-    return json.dumps(doc["observations"], separators=(",", ":"))
-
-
-def _digest(value: Any, field: str) -> dict[str, Any]:
-    """An export's record of an image (``{"sha256": hex, "bytes": n}``), checked."""
-    ok = (
-        isinstance(value, dict)
-        and isinstance(value.get("sha256"), str)
-        and len(value["sha256"]) == 64
-        and all(ch in "0123456789abcdef" for ch in value["sha256"])
-        and isinstance(value.get("bytes"), int)
-        and not isinstance(value.get("bytes"), bool)
-        and value["bytes"] > 0
-    )
-    if not ok:
-        raise invalid_frame(field, 'must be {"sha256": 64 lowercase hex digits, "bytes": n > 0}')
-    return {"sha256": value["sha256"], "bytes": value["bytes"]}
 
 
 _POSE_FLUSH = 4096
@@ -311,7 +275,7 @@ class MapSession:
             return pipeline.step(observed, landmark_covariances=False), None
         features, sig, _ = self.vision.features_of(image)
         step = pipeline.step(frame, image=ImageFeatures(features, sig))
-        return step, _observations_json(step.observations)
+        return step, observations_json(step.observations)
 
     @property
     def snapshot_due(self) -> bool:
@@ -349,20 +313,19 @@ class MapSession:
     # ------------------------------------------------------------ the frame use case
     def submit(
         self, body: dict[str, Any], image: bytes | None = None, *, imported: bool = False
-    ) -> dict[str, Any]:
+    ) -> FrameReply:
         """Take one frame object (with `image`: the meta of an image frame and its bytes).
 
         `imported`: `body` is an image frame of an export document: the image's digest
         (``"image"``) and the observations the front end made of it, which go to the
         estimator as they are.
 
-        Returns {"result_json" (the frame result as JSON text, exactly as stored),
-        "replayed" (True for an idempotent retry answered from the log), "timing_ms",
-        "store_ms", "event_ids", "live", "marginalised"}.
+        Returns the frame result as stored (an idempotent retry: as stored before) with
+        what the runtime reports of it (service.frame_results.FrameReply).
         """
         t0 = time.perf_counter()
         prefetched = None if self.vision is None or image is None else self.vision.take(image)
-        digest = _digest(body.get("image"), "image") if imported else None
+        digest = image_record(body.get("image"), "image") if imported else None
         frame, text = canonical_frame(body, image, digest)
         if image is not None:
             self._check_image_frame(frame)
@@ -371,7 +334,7 @@ class MapSession:
         stored = self.store.find_frame(frame.robot, frame.seq)
         if stored is not None:
             if stored.body == text and stored.result is not None:
-                return {"result_json": stored.result, "replayed": True, "event_ids": []}
+                return FrameReply(stored.result, replayed=True)
             raise ServiceError(
                 409,
                 "duplicate-seq",
@@ -395,7 +358,7 @@ class MapSession:
             raise out_of_order(exc.field, exc.detail) from exc
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
-        observations = _observations_json(frame.observations) if imported else None
+        observations = observations_json(frame.observations) if imported else None
         log_id = self.store.append_frame(frame.robot, frame.seq, text, image, observations)
         t1 = time.perf_counter()
         vision_ms: dict[str, float] = {}
@@ -442,15 +405,14 @@ class MapSession:
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
         self._count_frame()
-        return {
-            "result_json": text,
-            "timing_ms": result["timing_ms"],
-            "replayed": False,
-            "event_ids": event_ids,
-            "live": len(self.slam.landmarks),
-            "marginalised": 0 if final is None else len(final.marginalised),
-            "store_ms": store_ms,
-        }
+        return FrameReply(
+            text,
+            event_ids=event_ids,
+            timing_ms=result["timing_ms"],
+            store_ms=store_ms,
+            live=len(self.slam.landmarks),
+            marginalised=0 if final is None else len(final.marginalised),
+        )
 
     def _forget_frame(self, log_id: int) -> None:
         """Undo a frame the estimator failed on half way: the in-memory map may be half
@@ -479,7 +441,7 @@ class MapSession:
         assert self.vision is not None
         features, sig, timing = self.vision.features_of(pending)
         step = self.pipeline.step(frame, image=ImageFeatures(features, sig))
-        return step, _observations_json(step.observations), timing
+        return step, observations_json(step.observations), timing
 
     def _complete(
         self,

@@ -20,7 +20,8 @@ from pydantic import BaseModel, Field, SecretStr, ValidationInfo, field_serializ
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.frame_model import FrameLimits
-from service.mapconfig import CAMERA_LANDMARK_CAP, DEFAULT_LANDMARK_CAP
+from service.pipeline.camera_config import CAMERA_LANDMARK_CAP
+from service.pipeline.config import DEFAULT_LANDMARK_CAP
 from service.store import Store, is_postgres_url, open_store
 
 

@@ -1,6 +1,8 @@
 """The store: a catalogue of maps, and per map its durable frame log and derived state.
 
-One interface, two implementations with the same schema and the same semantics:
+The records of this module, the interface of a map's store and of the catalogue written
+once with their SQL (service.store_sql: `MapStore`, `Catalog`), and two backends with the
+same schema and the same semantics:
 
 - ``service.store_sqlite``: embedded SQLite, a catalogue file and one database file
   per map under a directory (the default; one machine);
@@ -28,15 +30,12 @@ directory for SQLite.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
-import numpy as np
-from numpy.typing import NDArray
-
-from graph.trajectory import PoseRow
+if TYPE_CHECKING:
+    from service.store_sql import Catalog, MapStore
 
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
 
@@ -130,165 +129,6 @@ class StoredFrame:
 
 
 # --------------------------------------------------------------------------- interfaces
-
-
-class Catalog(Protocol):
-    """The list of maps and their API keys (written by the API processes)."""
-
-    def add(self, record: MapRecord) -> None: ...
-    def remove(self, map_id: str) -> None:
-        """Delete a map's record and its keys (one transaction)."""
-        ...
-
-    def set_mode(self, map_id: str, mode: str) -> None: ...
-    def all(self) -> list[MapRecord]:
-        """Every map, oldest first."""
-        ...
-
-    def get(self, map_id: str) -> MapRecord | None: ...
-    def add_key(self, key: KeyRecord) -> None: ...
-    def remove_key(self, key_id: str) -> None: ...
-    def keys(self) -> list[KeyRecord]:
-        """Every API key (hashed), oldest first."""
-        ...
-
-    def close(self) -> None: ...
-
-
-class MapStore(Protocol):
-    """One map's store (written only by the process that owns the map)."""
-
-    def close(self) -> None: ...
-
-    # meta
-    def get_meta(self, key: str) -> Any | None: ...
-    def set_meta(self, key: str, value: Any) -> None: ...
-
-    # the frame log
-    def find_frame(self, robot: str, seq: int) -> StoredFrame | None: ...
-    def append_frame(
-        self,
-        robot: str,
-        seq: int,
-        body: str,
-        image: bytes | None = None,
-        observations: str | None = None,
-    ) -> int:
-        """Append an accepted frame (and its encoded image, or for an imported image frame
-        the observations its image gave) to the log and commit; its log id."""
-        ...
-
-    def frame_image(self, frame_id: int) -> bytes | None:
-        """The encoded image of a logged image frame (None for a frame without one)."""
-        ...
-
-    def image_observations(self, frame_id: int) -> list[Any] | None:
-        """The labelled observations a logged image frame's image gave (None: not stored)."""
-        ...
-
-    def count_attempt(self, frame_id: int) -> None:
-        """Note (durably) that an unfinished frame is about to be processed again."""
-        ...
-
-    def delete_frame(self, frame_id: int) -> None: ...
-    def complete_frame(
-        self,
-        frame_id: int,
-        result: str,
-        events: list[tuple[str, str]],
-        removals: list[tuple[int, int, str]],
-        observations: str | None = None,
-        poses: list[PoseRow] | None = None,
-        *,
-        archived: Sequence[tuple[int, int, str]] = (),
-        restored: Sequence[int] = (),
-    ) -> list[int]:
-        """Store a frame's result, its events and removals (landmark id, frame, record
-        JSON), the trajectory rows it made final (and, for an image frame, the observations
-        its image gave, JSON text) in one transaction; event ids. `restored`: landmark ids
-        that left the archive in the frame; `archived`: (landmark id, frame, record JSON)
-        of those that entered it (after `restored`: a landmark may do both)."""
-        ...
-
-    def add_event(self, kind: str, data: str) -> int: ...
-    def frames_after(self, frame_id: int) -> list[StoredFrame]:
-        """Logged frames with id > `frame_id`, in log order."""
-        ...
-
-    def frame_count(self) -> int: ...
-    def frame_stats(self) -> list[FrameFigures]:
-        """Figures of every processed frame from its stored result, in log order."""
-        ...
-
-    # final trajectory rows
-    def put_poses(self, rows: list[PoseRow]) -> None:
-        """Store final trajectory rows (replacing those of the same robot and seq)."""
-        ...
-
-    def poses(self, robot: str | None = None) -> dict[str, NDArray[np.float64]]:
-        """Stored final rows per robot (`robot`: that one only), each an (N, 5) array
-        seq, stamp, x, y, theta sorted by seq (as BearingSlam.trajectory)."""
-        ...
-
-    def pose_positions(self) -> NDArray[np.float64]:
-        """(N, 2) x, y of every stored final row, metres."""
-        ...
-
-    def pose_count(self) -> int: ...
-
-    # snapshots
-    def save_snapshot(
-        self,
-        upto: int,
-        state: bytes,
-        *,
-        keep: int,
-        frontend: bytes | None = None,
-        prune_images: bool = False,
-    ) -> None:
-        """Store a snapshot (and the front end's state with it); keep the newest `keep`.
-
-        `prune_images`: also delete the images of frames that every kept snapshot
-        covers and whose observations are stored (what a replay of such a frame, or
-        an export, uses instead of the image)."""
-        ...
-
-    def checkpoint(self) -> None:
-        """Make the store's size on disk say what it holds (SQLite: fold the WAL)."""
-        ...
-
-    def image_count(self) -> int:
-        """Images stored in the log."""
-        ...
-
-    def latest_snapshot(self) -> tuple[int, bytes] | None:
-        """(log id it covers, state) of the newest snapshot."""
-        ...
-
-    def latest_frontend_state(self) -> bytes | None:
-        """The front end's state stored with the latest snapshot (None if it has none)."""
-        ...
-
-    # removals and events
-    def removals(self, limit: int | None = None) -> list[dict[str, Any]]:
-        """The most recent `limit` removals (all if None), oldest first."""
-        ...
-
-    def removed_labels(self) -> dict[int, str]:
-        """Label of every landmark in the removal log, by landmark id."""
-        ...
-
-    def removal_count(self) -> int:
-        """Removals in the log (a landmark removed twice counts twice)."""
-        ...
-
-    def archived(self) -> list[dict[str, Any]]:
-        """The archived landmarks (graph.archive documents), by landmark id."""
-        ...
-
-    def prune_events(self, keep: int) -> None:
-        """Delete all but the newest `keep` events."""
-        ...
 
 
 class MapPlace(Protocol):

@@ -29,6 +29,7 @@ finalised them, and the estimator forgets them: its memory and its snapshots hol
 only the rows still in play. ``poses`` is keyed by (robot, seq), so a replay of the
 log that finalises a row again replaces it.
 
+The statements both stores run are written once (service.store_sql).
 ``removal_log`` and ``archive``: see service.store. ``removals`` is the older, one row
 per landmark, form of the removal log; a file that still has rows in it has them moved
 into ``removal_log`` when it is opened.
@@ -36,20 +37,14 @@ into ``removal_log`` when it is opened.
 
 from __future__ import annotations
 
-import json
 import shutil
 import sqlite3
-import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
-from graph.trajectory import PoseRow
-from service.store import FrameFigures, KeyRecord, MapRecord, StoredFrame
+from service.store_sql import Args, Catalog, MapStore, event_rows
 
 _CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
@@ -163,10 +158,26 @@ def map_db_path(data_dir: Path, map_id: str) -> Path:
     return data_dir / "maps" / f"{map_id}.sqlite"
 
 
+class _Connection:
+    """Reads and single committed writes on a database file's connection `_conn`."""
+
+    _conn: sqlite3.Connection
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def _rows(self, sql: str, args: Args) -> list[Any]:
+        return self._conn.execute(sql, args).fetchall()
+
+    def _write(self, sql: str, args: Args) -> None:
+        with transaction(self._conn):
+            self._conn.execute(sql, args)
+
+
 # --------------------------------------------------------------------------- catalogue
 
 
-class SqliteCatalog:
+class SqliteCatalog(_Connection, Catalog):
     """The list of maps and their API keys (API process): ``catalog.sqlite`` in the data
     directory."""
 
@@ -175,61 +186,28 @@ class SqliteCatalog:
         self._conn = connect(data_dir / "catalog.sqlite", synchronous=synchronous)
         self._conn.executescript(_CATALOG_SCHEMA)
 
-    def close(self) -> None:
-        self._conn.close()
-
-    def add(self, record: MapRecord) -> None:
-        with transaction(self._conn):
-            self._conn.execute(
-                "INSERT INTO maps (id, name, mode, config, created) VALUES (?, ?, ?, ?, ?)",
-                (record.id, record.name, record.mode, json.dumps(record.config), record.created),
-            )
-
     def remove(self, map_id: str) -> None:
         """Delete a map's record and its keys."""
         with transaction(self._conn):
             self._conn.execute("DELETE FROM maps WHERE id = ?", (map_id,))
             self._conn.execute("DELETE FROM keys WHERE map_id = ?", (map_id,))
 
-    def set_mode(self, map_id: str, mode: str) -> None:
-        with transaction(self._conn):
-            self._conn.execute("UPDATE maps SET mode = ? WHERE id = ?", (mode, map_id))
-
-    def all(self) -> list[MapRecord]:
-        rows = self._conn.execute(
-            "SELECT id, name, mode, config, created FROM maps ORDER BY created, id"
-        ).fetchall()
-        return [MapRecord(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
-
-    def get(self, map_id: str) -> MapRecord | None:
-        r = self._conn.execute(
-            "SELECT id, name, mode, config, created FROM maps WHERE id = ?", (map_id,)
-        ).fetchone()
-        return None if r is None else MapRecord(r[0], r[1], r[2], json.loads(r[3]), r[4])
-
-    def add_key(self, key: KeyRecord) -> None:
-        with transaction(self._conn):
-            self._conn.execute(
-                "INSERT INTO keys (id, map_id, scope, hash, created) VALUES (?, ?, ?, ?, ?)",
-                (key.id, key.map_id, key.scope, key.hash, key.created),
-            )
-
-    def remove_key(self, key_id: str) -> None:
-        with transaction(self._conn):
-            self._conn.execute("DELETE FROM keys WHERE id = ?", (key_id,))
-
-    def keys(self) -> list[KeyRecord]:
-        rows = self._conn.execute(
-            "SELECT id, map_id, scope, hash, created FROM keys ORDER BY created, id"
-        ).fetchall()
-        return [KeyRecord(*r) for r in rows]
-
 
 # --------------------------------------------------------------------------- one map
 
 
-class SqliteMapStore:
+class SqliteMapStore(_Connection, MapStore):
     """One map's database file (owned by its worker process)."""
+
+    SCOPED = False
+    FRAME_STATS = (
+        "SELECT id, robot, seq, json_extract(result, '$.landmarks.live'), "
+        "json_extract(result, '$.landmarks.added'), "
+        "json_extract(result, '$.landmarks.marginalised'), "
+        "json_extract(result, '$.timing_ms.total'), json_extract(result, '$.covariance') "
+        "FROM frames WHERE result IS NOT NULL ORDER BY id"
+    )
+    REMOVED_LABELS = "SELECT DISTINCT landmark_id, json_extract(record, '$.label') FROM removal_log"
 
     def __init__(self, path: Path, *, synchronous: str) -> None:
         self.path = path
@@ -243,281 +221,20 @@ class SqliteMapStore:
                 )
                 self._conn.execute("DELETE FROM removals")
 
-    def close(self) -> None:
-        self._conn.close()
+    def _insert(self, sql: str, args: Args) -> int:
+        row_id = self._conn.execute(sql, args).lastrowid
+        assert row_id is not None
+        return row_id
 
-    # meta
-    def get_meta(self, key: str) -> Any | None:
-        row = self._conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
-        return None if row is None else json.loads(row[0])
+    def _many(self, sql: str, rows: Sequence[Args]) -> None:
+        self._conn.executemany(sql, rows)
 
-    def set_meta(self, key: str, value: Any) -> None:
-        with transaction(self._conn):
-            self._conn.execute(
-                "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, json.dumps(value))
-            )
-
-    # the frame log
-    def find_frame(self, robot: str, seq: int) -> StoredFrame | None:
-        row = self._conn.execute(
-            "SELECT id, robot, seq, body, result, attempts FROM frames WHERE robot = ? AND seq = ?",
-            (robot, seq),
-        ).fetchone()
-        return None if row is None else StoredFrame(*row)
-
-    def append_frame(
-        self,
-        robot: str,
-        seq: int,
-        body: str,
-        image: bytes | None = None,
-        observations: str | None = None,
-    ) -> int:
-        """Append an accepted frame (and its encoded image, or for an imported image frame
-        the observations its image gave) to the log and commit; its log id."""
-        with transaction(self._conn):
-            cur = self._conn.execute(
-                "INSERT INTO frames (robot, seq, body, received) VALUES (?, ?, ?, ?)",
-                (robot, seq, body, time.time()),
-            )
-            assert cur.lastrowid is not None
-            if image is not None:
-                self._conn.execute(
-                    "INSERT INTO images (frame_id, data) VALUES (?, ?)", (cur.lastrowid, image)
-                )
-            if observations is not None:
-                self._conn.execute(
-                    "INSERT INTO image_observations (frame_id, observations) VALUES (?, ?)",
-                    (cur.lastrowid, observations),
-                )
-        return cur.lastrowid
-
-    def frame_image(self, frame_id: int) -> bytes | None:
-        """The encoded image of a logged image frame (None for a frame without one)."""
-        row = self._conn.execute(
-            "SELECT data FROM images WHERE frame_id = ?", (frame_id,)
-        ).fetchone()
-        return None if row is None else bytes(row[0])
-
-    def image_observations(self, frame_id: int) -> list[Any] | None:
-        """The labelled observations a logged image frame's image gave (None: not stored)."""
-        row = self._conn.execute(
-            "SELECT observations FROM image_observations WHERE frame_id = ?", (frame_id,)
-        ).fetchone()
-        return None if row is None else list(json.loads(row[0]))
-
-    def count_attempt(self, frame_id: int) -> None:
-        """Note (durably) that an unfinished frame is about to be processed again."""
-        with transaction(self._conn):
-            self._conn.execute(
-                "UPDATE frames SET attempts = attempts + 1 WHERE id = ?", (frame_id,)
-            )
-
-    def delete_frame(self, frame_id: int) -> None:
-        with transaction(self._conn):
-            self._conn.execute("DELETE FROM frames WHERE id = ?", (frame_id,))
-            self._conn.execute("DELETE FROM images WHERE frame_id = ?", (frame_id,))
-            self._conn.execute("DELETE FROM image_observations WHERE frame_id = ?", (frame_id,))
-
-    def complete_frame(
-        self,
-        frame_id: int,
-        result: str,
-        events: list[tuple[str, str]],
-        removals: list[tuple[int, int, str]],
-        observations: str | None = None,
-        poses: list[PoseRow] | None = None,
-        *,
-        archived: Sequence[tuple[int, int, str]] = (),
-        restored: Sequence[int] = (),
-    ) -> list[int]:
-        now = time.time()
-        ids: list[int] = []
-        with transaction(self._conn):
-            self._conn.execute("UPDATE frames SET result = ? WHERE id = ?", (result, frame_id))
-            if observations is not None:
-                self._conn.execute(
-                    "INSERT OR REPLACE INTO image_observations (frame_id, observations) "
-                    "VALUES (?, ?)",
-                    (frame_id, observations),
-                )
-            self._conn.executemany(
-                "INSERT OR IGNORE INTO removal_log (landmark_id, frame, record) VALUES (?, ?, ?)",
-                removals,
-            )
-            self._conn.executemany(
-                "DELETE FROM archive WHERE landmark_id = ?", [(lid,) for lid in restored]
-            )
-            self._conn.executemany(
-                "INSERT OR REPLACE INTO archive (landmark_id, frame, record) VALUES (?, ?, ?)",
-                archived,
-            )
-            if poses:
-                self._put_poses(poses)
-            for kind, data in events:
-                cur = self._conn.execute(
-                    "INSERT INTO events (kind, data, created) VALUES (?, ?, ?)", (kind, data, now)
-                )
-                assert cur.lastrowid is not None
-                ids.append(cur.lastrowid)
-        return ids
-
-    def add_event(self, kind: str, data: str) -> int:
-        with transaction(self._conn):
-            cur = self._conn.execute(
-                "INSERT INTO events (kind, data, created) VALUES (?, ?, ?)",
-                (kind, data, time.time()),
-            )
-        assert cur.lastrowid is not None
-        return cur.lastrowid
-
-    def frames_after(self, frame_id: int) -> list[StoredFrame]:
-        rows = self._conn.execute(
-            "SELECT id, robot, seq, body, result, attempts FROM frames WHERE id > ? ORDER BY id",
-            (frame_id,),
-        ).fetchall()
-        return [StoredFrame(*r) for r in rows]
-
-    def frame_count(self) -> int:
-        return int(self._conn.execute("SELECT count(*) FROM frames").fetchone()[0])
-
-    def frame_stats(self) -> list[FrameFigures]:
-        """Figures of every processed frame from its stored result, in log order
-        (picked out by SQLite's json_extract; the covariance is left as JSON text)."""
-        rows = self._conn.execute(
-            "SELECT id, robot, seq, json_extract(result, '$.landmarks.live'), "
-            "json_extract(result, '$.landmarks.added'), "
-            "json_extract(result, '$.landmarks.marginalised'), "
-            "json_extract(result, '$.timing_ms.total'), json_extract(result, '$.covariance') "
-            "FROM frames WHERE result IS NOT NULL ORDER BY id"
-        ).fetchall()
-        return [FrameFigures.from_row(tuple(r)) for r in rows]
-
-    # final trajectory rows
-    def _put_poses(self, rows: list[PoseRow]) -> None:
-        self._conn.executemany(
-            "INSERT OR REPLACE INTO poses (robot, seq, stamp, x, y, theta) "
-            "VALUES (?, ?, ?, ?, ?, ?)",
-            [(r.robot, r.seq, r.stamp, r.x, r.y, r.theta) for r in rows],
-        )
-
-    def put_poses(self, rows: list[PoseRow]) -> None:
-        """Store final trajectory rows (replacing those of the same robot and seq)."""
-        if rows:
-            with transaction(self._conn):
-                self._put_poses(rows)
-
-    def poses(self, robot: str | None = None) -> dict[str, NDArray[np.float64]]:
-        """Stored final rows per robot (`robot`: that one only), each an (N, 5) array
-        seq, stamp, x, y, theta sorted by seq (as BearingSlam.trajectory)."""
-        sql = "SELECT robot, seq, stamp, x, y, theta FROM poses"
-        args: tuple[str, ...] = ()
-        if robot is not None:
-            sql, args = sql + " WHERE robot = ?", (robot,)
-        out: dict[str, list[tuple[float, ...]]] = {}
-        for name, *values in self._conn.execute(sql + " ORDER BY robot, seq", args):
-            out.setdefault(str(name), []).append(tuple(values))
-        return {k: np.array(v, dtype=np.float64).reshape(-1, 5) for k, v in out.items()}
-
-    def pose_positions(self) -> NDArray[np.float64]:
-        """(N, 2) x, y of every stored final row, metres."""
-        rows = self._conn.execute("SELECT x, y FROM poses").fetchall()
-        return np.array(rows, dtype=np.float64).reshape(-1, 2)
-
-    def pose_count(self) -> int:
-        return int(self._conn.execute("SELECT count(*) FROM poses").fetchone()[0])
-
-    # snapshots
-    def save_snapshot(
-        self,
-        upto: int,
-        state: bytes,
-        *,
-        keep: int,
-        frontend: bytes | None = None,
-        prune_images: bool = False,
-    ) -> None:
-        """Store a snapshot (and the front end's state with it); keep the newest `keep`.
-
-        `prune_images`: also delete the images of frames that every kept snapshot
-        covers and whose observations are stored (what a replay of such a frame, or
-        an export, uses instead of the image). Deleted pages are reused by later
-        inserts, so the file's size levels off."""
-        with transaction(self._conn):
-            cur = self._conn.execute(
-                "INSERT INTO snapshots (upto, created, state) VALUES (?, ?, ?)",
-                (upto, time.time(), state),
-            )
-            if frontend is not None:
-                self._conn.execute(
-                    "INSERT INTO frontend_states (snapshot_id, state) VALUES (?, ?)",
-                    (cur.lastrowid, frontend),
-                )
-            self._conn.execute(
-                "DELETE FROM snapshots WHERE id NOT IN "
-                "(SELECT id FROM snapshots ORDER BY id DESC LIMIT ?)",
-                (keep,),
-            )
-            self._conn.execute(
-                "DELETE FROM frontend_states WHERE snapshot_id NOT IN (SELECT id FROM snapshots)"
-            )
-            if prune_images:
-                self._conn.execute(
-                    "DELETE FROM images WHERE frame_id <= (SELECT min(upto) FROM snapshots) "
-                    "AND frame_id IN (SELECT frame_id FROM image_observations)"
-                )
+    def _transaction(self) -> AbstractContextManager[Any]:
+        return transaction(self._conn)
 
     def checkpoint(self) -> None:
         """Fold the WAL into the database file (so its size on disk says what it holds)."""
         self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-
-    def image_count(self) -> int:
-        """Images stored in the log."""
-        return int(self._conn.execute("SELECT count(*) FROM images").fetchone()[0])
-
-    def latest_snapshot(self) -> tuple[int, bytes] | None:
-        row = self._conn.execute(
-            "SELECT upto, state FROM snapshots ORDER BY id DESC LIMIT 1"
-        ).fetchone()
-        return None if row is None else (int(row[0]), bytes(row[1]))
-
-    def latest_frontend_state(self) -> bytes | None:
-        """The front end's state stored with the latest snapshot (None if it has none)."""
-        row = self._conn.execute(
-            "SELECT f.state FROM snapshots s JOIN frontend_states f ON f.snapshot_id = s.id "
-            "WHERE s.id = (SELECT max(id) FROM snapshots)"
-        ).fetchone()
-        return None if row is None else bytes(row[0])
-
-    # removals and events
-    def removals(self, limit: int | None = None) -> list[dict[str, Any]]:
-        """The most recent `limit` removals (all if None), oldest first."""
-        rows = self._conn.execute(
-            "SELECT record FROM (SELECT frame, landmark_id, record FROM removal_log "
-            "ORDER BY frame DESC, landmark_id DESC LIMIT ?) ORDER BY frame, landmark_id",
-            (-1 if limit is None else limit,),
-        ).fetchall()
-        return [json.loads(r[0]) for r in rows]
-
-    def removed_labels(self) -> dict[int, str]:
-        """Label of every landmark in the removal log, by landmark id."""
-        rows = self._conn.execute(
-            "SELECT DISTINCT landmark_id, json_extract(record, '$.label') FROM removal_log"
-        ).fetchall()
-        return {int(i): str(label) for i, label in rows}
-
-    def removal_count(self) -> int:
-        return int(self._conn.execute("SELECT count(*) FROM removal_log").fetchone()[0])
-
-    def archived(self) -> list[dict[str, Any]]:
-        rows = self._conn.execute("SELECT record FROM archive ORDER BY landmark_id").fetchall()
-        return [json.loads(r[0]) for r in rows]
-
-    def prune_events(self, keep: int) -> None:
-        with transaction(self._conn):
-            self._conn.execute(
-                "DELETE FROM events WHERE id <= (SELECT max(id) FROM events) - ?", (keep,)
-            )
 
 
 def read_events(path: Path, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
@@ -531,7 +248,7 @@ def read_events(path: Path, after: int, limit: int = 500) -> list[tuple[int, str
         ).fetchall()
     finally:
         conn.close()
-    return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+    return event_rows(rows)
 
 
 def latest_event_id(path: Path) -> int:

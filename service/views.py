@@ -19,9 +19,10 @@ from graph.policies import LandmarkTable, coverage_clusters, information_content
 from graph.slam import BearingSlam
 from graph.snapshot import last_accepted
 from graph.trajectory import with_final_rows
-from service.coverage import coverage_grid
 from service.errors import ServiceError
-from service.store import FrameFigures, MapStore
+from service.pipeline.coverage import coverage_grid
+from service.store import FrameFigures
+from service.store_sql import MapStore
 from service.tum import Trajectory, write_tum
 
 

@@ -1,8 +1,8 @@
 """What runs inside a worker process: the maps it owns and one call per request.
 
-`serve` is the process's main loop: it reads ``(request id, op, map_id,
-payload)`` messages from its connection to the API process (see service.pool)
-and answers each in turn, strictly in order, so a map's frames are applied in
+`serve` is the process's main loop: it reads ``(message id, map_id, request)``
+messages (a request of service.requests) from its connection to the API process (see
+service.pool) and answers each in turn, strictly in order, so a map's frames are applied in
 the order they arrived. A map is opened on first use
 (latest snapshot + log tail) and kept open. Every answer is a plain dict:
 ``{"ok": True, "value": ...}`` or ``{"ok": False, "error": ServiceError.as_dict()}``.
@@ -10,24 +10,32 @@ the order they arrived. A map is opened on first use
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import pickle
 import queue
 import signal
 import threading
-from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
 from threadpoolctl import threadpool_limits
 
 from frontend.pipeline import FrontEnd
-from service import queries
 from service.errors import ServiceError, internal_error, unknown_map
-from service.exchange import export_map, import_frames, parse_export
-from service.mapconfig import camera_model, slam_config
+from service.exchange import import_frames, parse_export
+from service.pipeline.config import camera_model, slam_config
+from service.queries import Summary
+from service.requests import (
+    CreateMap,
+    DeleteMap,
+    ImportMap,
+    MapRequest,
+    OpenMap,
+    Ping,
+    Request,
+    SubmitFrame,
+)
 from service.session import MapSession
 from service.settings import Settings
 from service.store import MapPlace, MapRecord, Store, connection_lost
@@ -89,12 +97,8 @@ def _session(map_id: str) -> MapSession:
     return session
 
 
-def _ping(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
-    return {"pid": os.getpid(), "maps": sorted(_sessions)}
-
-
-def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
-    record = MapRecord.from_dict(payload["record"])
+def _create(map_id: str, request: CreateMap) -> dict[str, Any]:
+    record = MapRecord.from_dict(request.record)
     try:  # the camera's and front end's own checks, which the config model cannot express
         camera = camera_model(record.config)
         if camera is not None:
@@ -106,76 +110,59 @@ def _create(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
     if old is not None:
         old.close()
     _sessions[map_id] = MapSession.create(_place(map_id), record, _cfg().store)
-    return queries.summary(_sessions[map_id])
+    return Summary().answer(_sessions[map_id])
 
 
-def _open(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
-    return {"frames": _session(map_id).slam.frame_count}
-
-
-def _delete(map_id: str, payload: dict[str, Any]) -> None:
+def _delete(map_id: str) -> None:
     session = _sessions.pop(map_id, None)
     if session is not None:
         session.close()
     _place(map_id).remove()
 
 
-def _import(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
+def _import(map_id: str, request: ImportMap) -> dict[str, Any]:
     """A new map from an export document's bytes: parse, check, replay its frame log
     (in mapping mode, as it was built), then set the document's mode."""
-    name, mode, config, frames, frontend = parse_export(payload["body"])
-    config = config.with_default_cap(payload["default_cap"])
+    name, mode, config, frames, frontend = parse_export(request.body)
+    config = config.with_default_cap(request.default_cap)
     try:
         slam_config(config.model_dump(mode="json"), mode)
     except ValueError as exc:
         detail = f"map.config: {exc}"
         raise ServiceError(422, "invalid-import", "Invalid map document", detail) from exc
-    record = MapRecord(map_id, name, "mapping", config.model_dump(mode="json"), payload["created"])
-    _create(map_id, {"record": record.as_dict()})
+    record = MapRecord(map_id, name, "mapping", config.model_dump(mode="json"), request.created)
+    _create(map_id, CreateMap(record.as_dict()))
     try:
         session = _sessions[map_id]
         import_frames(session, frames, frontend)
         if mode != "mapping":
             session.set_mode(mode)
     except BaseException:
-        _delete(map_id, {})
+        _delete(map_id)
         raise
-    return {"record": session.record.as_dict(), "summary": queries.summary(session)}
+    return {"record": session.record.as_dict(), "summary": Summary().answer(session)}
 
 
-def _export(map_id: str, payload: dict[str, Any]) -> bytes:
-    return json.dumps(export_map(_session(map_id)), separators=(",", ":")).encode()
+def carry_out(map_id: str, request: Request[Any]) -> Any:
+    """The answer to `request` on map `map_id` (errors raised)."""
+    if isinstance(request, MapRequest):
+        return request.answer(_session(map_id))
+    if isinstance(request, Ping):
+        return {"pid": os.getpid(), "maps": sorted(_sessions)}
+    if isinstance(request, OpenMap):
+        return {"frames": _session(map_id).slam.frame_count}
+    if isinstance(request, CreateMap):
+        return _create(map_id, request)
+    if isinstance(request, ImportMap):
+        return _import(map_id, request)
+    if isinstance(request, DeleteMap):
+        _delete(map_id)
+        return None
+    raise TypeError(f"not a request: {request!r}")
 
 
-def _set_mode(map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
-    session = _session(map_id)
-    session.set_mode(payload["mode"])
-    return queries.summary(session)
-
-
-_OPS: dict[str, Callable[[str, dict[str, Any]], Any]] = {
-    "ping": _ping,
-    "create": _create,
-    "open": _open,
-    "delete": _delete,
-    "import": _import,
-    "set_mode": _set_mode,
-    "frame": lambda m, p: _session(m).submit(p["frame"], p.get("image")),
-    "summary": lambda m, p: queries.summary(_session(m)),
-    "pose": lambda m, p: queries.pose(_session(m)),
-    "trajectory": lambda m, p: queries.trajectory(
-        _session(m), p.get("robot"), stats_every=p.get("stats_every", 0)
-    ),
-    "landmarks": lambda m, p: queries.landmarks(_session(m), p.get("state", "live")),
-    "coverage": lambda m, p: queries.coverage(_session(m), **p),
-    "places": lambda m, p: queries.places(_session(m)),
-    "learn_place": lambda m, p: queries.learn_place(_session(m), p.get("robot")),
-    "export": _export,
-}
-
-
-Request = tuple[Any, str, str, dict[str, Any]]
-"""(request id, op, map id, payload) as the API process sends it."""
+Message = tuple[Any, str, Request[Any]]
+"""(message id, map id, request) as the API process sends it."""
 
 
 def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
@@ -188,7 +175,7 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
     """
     init_worker(settings, index)
     limit = _cfg().workers.read_ahead
-    inbox: queue.Queue[Request | None] = queue.Queue(maxsize=max(1, limit))
+    inbox: queue.Queue[Message | None] = queue.Queue(maxsize=max(1, limit))
     reader = threading.Thread(
         target=_reader, args=(conn, inbox, limit > 0), name="covslam-reader", daemon=True
     )
@@ -197,8 +184,8 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
         request = inbox.get()
         if request is None:  # end of the connection
             return
-        request_id, op, map_id, payload = request
-        reply = call(op, map_id, payload)
+        request_id, map_id, what = request
+        reply = call(map_id, what)
         try:
             conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
         except (BrokenPipeError, OSError):
@@ -207,11 +194,11 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
             _idle_work(inbox)
 
 
-def _reader(conn: Connection, inbox: queue.Queue[Request | None], prefetch: bool) -> None:
+def _reader(conn: Connection, inbox: queue.Queue[Message | None], prefetch: bool) -> None:
     """Thread: requests from the pipe into `inbox`, in order; None at end of file."""
     while True:
         try:
-            request: Request = pickle.loads(conn.recv_bytes())
+            request: Message = pickle.loads(conn.recv_bytes())
         except (EOFError, OSError):
             inbox.put(None)
             return
@@ -220,10 +207,10 @@ def _reader(conn: Connection, inbox: queue.Queue[Request | None], prefetch: bool
         inbox.put(request)
 
 
-def _prefetch(request: Request) -> None:
+def _prefetch(request: Message) -> None:
     """Start extracting the features of an image frame for an open camera map."""
-    _, op, map_id, payload = request
-    image = payload.get("image") if op == "frame" else None
+    _, map_id, what = request
+    image = what.image if isinstance(what, SubmitFrame) else None
     session = _sessions.get(map_id)
     if image is None or session is None or session.vision is None:
         return
@@ -233,7 +220,7 @@ def _prefetch(request: Request) -> None:
         log.debug("no prefetch for map %s (closed)", map_id)
 
 
-def _idle_work(inbox: queue.Queue[Request | None]) -> None:
+def _idle_work(inbox: queue.Queue[Message | None]) -> None:
     """Snapshots that are due, one map at a time, while no request is waiting."""
     for map_id in list(_sessions):
         if not inbox.empty():
@@ -251,16 +238,16 @@ def snapshot_if_due(map_id: str) -> None:
             log.exception("snapshot of map %s failed", map_id)
 
 
-def call(op: str, map_id: str, payload: dict[str, Any]) -> dict[str, Any]:
-    """Run one operation on one map; never raises (errors come back as data)."""
+def call(map_id: str, request: Request[Any]) -> dict[str, Any]:
+    """Carry out one request on one map; never raises (errors come back as data)."""
     try:
-        return {"ok": True, "value": _OPS[op](map_id, payload)}
+        return {"ok": True, "value": carry_out(map_id, request)}
     except ServiceError as exc:
         return {"ok": False, "error": exc.as_dict()}
     except Exception as exc:
         if connection_lost(exc):
             return _store_lost(map_id, exc)
-        log.exception("op %s on map %s failed", op, map_id)
+        log.exception("%s on map %s failed", type(request).__name__, map_id)
         return {"ok": False, "error": internal_error(exc).as_dict()}
 
 

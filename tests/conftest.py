@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from bench.clusters import PrivatePostgres, Unavailable
+from tests.support.clusters import PrivatePostgres, Unavailable
 
 
 @pytest.fixture(scope="session")

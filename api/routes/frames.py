@@ -108,8 +108,8 @@ async def post_frame(
         raise
     metrics.record_frame(map_id, reply, 1e3 * (time.perf_counter() - t0))
     # The worker's JSON text goes out as stored: the same bytes for a retry.
-    headers = {"Idempotent-Replayed": "true"} if reply["replayed"] else None
-    return Response(reply["result_json"], media_type="application/json", headers=headers)
+    headers = {"Idempotent-Replayed": "true"} if reply.replayed else None
+    return Response(reply.result_json, media_type="application/json", headers=headers)
 
 
 def _form_error(detail: str, field: str | None = None) -> ServiceError:

@@ -9,6 +9,7 @@ from fastapi import APIRouter
 from api.auth import AUTH_ERRORS, MapRead, MapWrite
 from api.deps import JsonOnly, MapId, ServiceDep
 from api.models import PlaceLearnIn, PlaceLearnt, PlacesOut, Problem
+from service.queries import LearnPlace, Places
 
 router = APIRouter(prefix="/v1/maps/{map_id}/places", tags=["places"])
 
@@ -23,7 +24,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 async def list_places(map_id: MapId, service: ServiceDep) -> Any:
     """Learnt places (reference pose, landmarks with bearing, depth and its variance) and
     the transitions between consecutively visited places."""
-    return await service.query(map_id, "places")
+    return await service.query(map_id, Places())
 
 
 @router.post(
@@ -40,4 +41,4 @@ async def list_places(map_id: MapId, service: ServiceDep) -> Any:
 )
 async def learn_place(map_id: MapId, service: ServiceDep, body: PlaceLearnIn | None = None) -> Any:
     """Learn a place at a robot's current pose now."""
-    return await service.query(map_id, "learn_place", robot=None if body is None else body.robot)
+    return await service.query(map_id, LearnPlace(None if body is None else body.robot))

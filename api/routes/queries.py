@@ -17,6 +17,7 @@ from api.models import (
     TrajectoryOut,
 )
 from service.errors import ServiceError
+from service.queries import Coverage, Landmarks, Pose, Trajectory
 from service.views import tum_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"], dependencies=[MapRead])
@@ -31,7 +32,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 @router.get("/pose", response_model=PoseOut, responses=_ERRORS)
 async def get_pose(map_id: MapId, service: ServiceDep) -> Any:
     """Latest pose of each robot with its 3x3 covariance and localisation status."""
-    return await service.query(map_id, "pose")
+    return await service.query(map_id, Pose())
 
 
 @router.get(
@@ -75,7 +76,7 @@ async def get_trajectory(
             field="robot",
         )
     stats = stats_every if format == "json" else 0
-    rows = await service.query(map_id, "trajectory", robot=robot, stats_every=stats)
+    rows = await service.query(map_id, Trajectory(robot, stats))
     if format == "tum":
         assert robot is not None
         return Response(tum_text(rows[robot]), media_type="text/plain; charset=utf-8")
@@ -100,9 +101,7 @@ async def get_landmarks(
     removed that have not come back (their last estimate and covariance, E(X), count, the
     latest removal's reason). Seen again, an archived landmark comes back under its id
     (event `landmark_restored`)."""
-    if state == "archived":
-        return await service.query(map_id, "landmarks", state=state)
-    return await service.query(map_id, "landmarks")
+    return await service.query(map_id, Landmarks(state))
 
 
 @router.get("/coverage", response_model=CoverageOut, responses=_ERRORS)
@@ -117,10 +116,5 @@ async def get_coverage(
 ) -> Any:
     """Coverage clusters with spreads D, each landmark's E(X) and information, the
     coverage grid with its holes, and the removal log with reasons."""
-    return await service.query(
-        map_id,
-        "coverage",
-        cell_m=cell_m,
-        radius_m=radius_m if radius_m is not None else 2.0 * cell_m,
-        removals=removals,
-    )
+    radius = radius_m if radius_m is not None else 2.0 * cell_m
+    return await service.query(map_id, Coverage(cell_m, radius, removals))

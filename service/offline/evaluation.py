@@ -1,11 +1,13 @@
 """The absolute trajectory error (ATE) and landmark errors of planar trajectories
-(service.tum: the trajectory and its TUM files; its conventions)."""
+(service.tum: the trajectory and its TUM files; its conventions), and the figures of a
+map a service built from a simulated run (`map_figures`)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -13,6 +15,11 @@ from numpy.typing import ArrayLike, NDArray
 from graph.angles import wrap_angles
 from graph.types import FrameInput
 from service.tum import Trajectory, read_tum, write_tum
+
+if TYPE_CHECKING:
+    import httpx
+
+    from service.offline.datasets.indoor_sim import SimRun
 
 __all__ = [
     "MapFit",
@@ -249,4 +256,38 @@ def landmark_errors(
         label: float(np.hypot(*(np.asarray(xy, dtype=np.float64) - np.asarray(true_xy[label]))))
         for label, xy in estimated_xy.items()
         if label in true_xy
+    }
+
+
+def map_figures(
+    client: httpx.Client, map_id: str, run: SimRun, results: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """What a map made of `run` (whose frame results are `results`): trees initialised
+    (distinct labels) and landmark ids the frames added, ATE, live landmarks' errors."""
+    summary = client.get(f"/v1/maps/{map_id}").json()
+    counts = summary["counts"]
+    # stats_every beyond the run: the latest pose alone carries the frame's figures.
+    traj = client.get(f"/v1/maps/{map_id}/trajectory", params={"stats_every": 1_000_000})
+    rows = traj.json()["robots"]["r1"]
+    est = Trajectory.from_poses(
+        [p["stamp"] for p in rows], [[p["x"], p["y"], p["theta"]] for p in rows]
+    )
+    truth = {str(i): xy for i, xy in zip(run.landmark_ids.tolist(), run.landmarks, strict=True)}
+    landmarks = client.get(f"/v1/maps/{map_id}/landmarks").json()
+    errors = landmark_errors({m["label"]: (m["x"], m["y"]) for m in landmarks}, truth)
+    err = np.array(list(errors.values()))
+    observed = {o.label for f in run.frames for o in f.observations}
+    return {
+        "map_id": map_id,
+        "config": summary["config"],
+        "trees": len(truth),
+        "trees_observed": len(observed),
+        # A capped map re-initialises a removed tree seen again under a new id: count trees.
+        "trees_initialised": rows[-1]["uncapped"],
+        "landmark_initialisations": len({i for r in results for i in r["landmarks"]["added"]}),
+        "landmarks_live": counts["live_landmarks"],
+        "ate_rmse_m": ate_rmse(est, run.ground_truth),
+        "ate_rmse_aligned_m": ate_rmse(est, run.ground_truth, align=True),
+        "landmark_rmse_m": float(np.sqrt(np.mean(err**2))) if len(err) else None,
+        "landmark_max_error_m": float(err.max()) if len(err) else None,
     }

@@ -6,6 +6,9 @@ safe. Used by ``covslam replay ... --url URL``; with ``COVSLAM_API_KEY`` set, ev
 request carries it (``Authorization: Bearer``). A frame with an image
 (`service.offline.replay.ImageFrame`) is posted as multipart/form-data: ``meta`` (the
 frame JSON without observations) and ``image`` (the file's bytes).
+
+`post_until_answered` posts one frame until the service answers it (a client riding out a
+failover); `check_log` re-posts a map's frames and counts what its log lost or duplicated.
 """
 
 from __future__ import annotations
@@ -151,3 +154,49 @@ def fetch_tum(url: str, map_id: str, robot: str, *, attempts: int = 30) -> str:
         if r.status_code != 200:
             raise ReplayHTTPError(f"trajectory: {r.status_code} {r.text}")
         return r.text
+
+
+def post_until_answered(client: httpx.Client, map_id: str, frame: dict[str, Any]) -> dict[str, Any]:
+    """Post a frame, retrying on 503 (after Retry-After) and transport errors, until the
+    service answers; its result (any other status raises)."""
+    while True:
+        try:
+            r = client.post(f"/v1/maps/{map_id}/frames", json=frame)
+        except httpx.TransportError:
+            time.sleep(0.2)
+            continue
+        if r.status_code == 503:
+            time.sleep(float(r.headers.get("retry-after", "1")))
+            continue
+        if r.status_code != 200:
+            raise ReplayHTTPError(f"map {map_id} seq {frame['seq']}: {r.status_code} {r.text}")
+        result: dict[str, Any] = r.json()
+        return result
+
+
+def check_log(
+    url: str,
+    map_id: str,
+    frames: list[dict[str, Any]],
+    acked: list[dict[str, Any]],
+    headers: dict[str, str] | None = None,
+) -> dict[str, Any]:
+    """Lost and duplicated frames of a map: re-post every frame (each must be answered
+    from the log with its acknowledged result) and count the log's frames."""
+    lost = changed = 0
+    with httpx.Client(base_url=url, timeout=120, headers=headers) as c:
+        for frame, result in zip(frames, acked, strict=True):
+            r = c.post(f"/v1/maps/{map_id}/frames", json=frame)
+            if r.headers.get("idempotent-replayed") != "true":
+                lost += 1
+            elif r.json() != result:
+                changed += 1
+        logged = c.get(f"/v1/maps/{map_id}").json()["counts"]["frames"]
+    return {
+        "posted": len(frames),
+        "acknowledged": len(acked),
+        "logged": logged,
+        "lost": lost,
+        "duplicated": logged - len(frames),
+        "answer_changed_on_retry": changed,
+    }

@@ -27,8 +27,8 @@ from graph.config import SlamConfig
 from graph.slam import BearingSlam, RemovalRecord
 from graph.trajectory import PoseRow, with_final_rows
 from graph.types import FrameInput
-from service.frames_io import FrameFileError, read_frame_lines
 from service.offline.evaluation import Trajectory
+from service.offline.frame_files import FrameFileError, read_frame_lines
 from service.pipeline import ImageFeatures, MapPipeline
 from service.pipeline.images import ImageFrontEnd
 

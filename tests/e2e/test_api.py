@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.mapconfig import CAMERA_LANDMARK_CAP
+from service.pipeline.camera_config import CAMERA_LANDMARK_CAP
 from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
 
 FRAMES = frame_dicts(sim_frames(160))

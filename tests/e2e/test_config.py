@@ -9,11 +9,11 @@ from dataclasses import fields
 
 import httpx
 
-from bench.outdoor import CONFIGS, map_figures, outdoor_run
 from graph.config import SlamConfig
 from service.exchange import EXPORT_FORMAT, EXPORT_VERSION
-from service.mapconfig import SLAM_FIELD_PATHS, slam_config, slam_config_dict
-from service.offline.evaluation import ate_rmse, dead_reckoning
+from service.offline.datasets.outdoor_sim import CONFIGS, outdoor_run
+from service.offline.evaluation import ate_rmse, dead_reckoning, map_figures
+from service.pipeline.config import SLAM_FIELD_PATHS, slam_config, slam_config_dict
 from tests.e2e.conftest import create_map, frame_dicts, post_all, sim_frames
 from tests.service.test_mapconfig import LEGACY_STORED_CONFIG, non_default_config
 

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from frontend.cameras import PanoramaCamera
-from service.mapconfig import CAMERA_GRAPH_FRAME_DISTANCE_M
 from service.offline.datasets.render_run import RenderedRun, write_rendered_run
 from service.offline.evaluation import ate_rmse, dead_reckoning, read_tum
 from service.offline.http_client import fetch_tum, image_frame_parts, replay_http
 from service.offline.replay import ImageFrame, read_replay_frames
+from service.pipeline.camera_config import CAMERA_GRAPH_FRAME_DISTANCE_M
 from tests.e2e.conftest import Server, create_map
 from tests.frontend import _synthetic as synthetic
 

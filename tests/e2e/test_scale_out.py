@@ -17,9 +17,9 @@ from typing import Any
 import httpx
 import pytest
 
-from bench.clusters import LocalRayCluster, PrivatePostgres, Unavailable
-from bench.scale_out import check_log, post_until_answered
+from service.offline.http_client import check_log, post_until_answered
 from tests.e2e.conftest import REPO, Server, create_map, frame_dicts, post_all, sim_frames
+from tests.support.clusters import LocalRayCluster, PrivatePostgres, Unavailable
 
 FRAMES = frame_dicts(sim_frames(60, seed=3))
 SNAPSHOTS = {"COVSLAM_STORE__SNAPSHOT_EVERY": "20"}  # reloads use a snapshot + a log tail

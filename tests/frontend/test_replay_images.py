@@ -65,7 +65,7 @@ def test_replay_of_rendered_images_builds_a_map(rendered: Path, capsys) -> None:
 
 
 def test_image_frame_with_a_bad_image_field_is_refused(tmp_path: Path) -> None:
-    from service.frames_io import FrameFileError
+    from service.offline.frame_files import FrameFileError
 
     path = tmp_path / "f.jsonl"
     path.write_text(
@@ -78,7 +78,7 @@ def test_image_frame_with_a_bad_image_field_is_refused(tmp_path: Path) -> None:
 def test_image_replay_takes_the_camera_loss_and_cap_unless_given() -> None:
     from api.cli import _config, build_parser, camera_map_config
     from graph.config import SlamConfig
-    from service.mapconfig import CAMERA_LANDMARK_CAP, CAMERA_NOISE_DEFAULTS
+    from service.pipeline.camera_config import CAMERA_LANDMARK_CAP, CAMERA_NOISE_DEFAULTS
 
     camera_cfg = PanoramaCamera(1024, 256).as_config()
     plain = build_parser().parse_args(["replay", "frames.jsonl"])

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.clusters import PrivatePostgres
 from service.store import MapPlace, Store, open_store
+from tests.support.clusters import PrivatePostgres
 
 PlaceFactory = Callable[[str], Path | MapPlace]
 """A map's place by name: a SQLite file path, or a map id in the PostgreSQL store."""

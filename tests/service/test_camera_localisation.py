@@ -67,7 +67,7 @@ def _post(session: MapSession, leg: Leg, frames: range | None = None) -> list[di
     out = []
     for k in frames if frames is not None else range(len(leg.frames)):
         meta, image = leg.frames[k]
-        out.append(json.loads(session.submit(dict(meta), image)["result_json"]))
+        out.append(json.loads(session.submit(dict(meta), image).result_json))
     return out
 
 
@@ -99,7 +99,7 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     assert all(not r["landmarks"]["observed"] for r in results[:k])
     # ... but none is lost: the trajectory has every frame, the early ones re-expressed
     # from the anchor frame by dead-reckoning backwards.
-    rows = queries.trajectory(session, "r2")["r2"]
+    rows = queries.Trajectory("r2").answer(session)["r2"]
     assert [row["seq"] for row in rows] == [m["seq"] for m, _ in newcomer.frames]
     for row, t in zip(rows[:k], newcomer.truth[:k], strict=True):
         assert row["source"] == "odometry"
@@ -122,7 +122,7 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     assert [r["localisation"]["status"] for r in imported if r["robot"] == "r2"] == statuses
     moved = [
         math.hypot(a["x"] - b["x"], a["y"] - b["y"])
-        for a, b in zip(queries.trajectory(target, "r2")["r2"], rows, strict=True)
+        for a, b in zip(queries.Trajectory("r2").answer(target)["r2"], rows, strict=True)
     ]
     assert max(moved) < 0.05, moved
     target.close()
@@ -202,7 +202,7 @@ def test_a_searching_camera_robot_survives_a_snapshot_and_log_tail_reload(
     assert k + 3 <= RELOCALISE_WITHIN
     e_m, e_deg = pose_error(results[k]["pose"], newcomer.truth[k + 2])
     assert e_m < 0.3 and e_deg < 10.0
-    assert queries.pose(reopened)["robots"]["r2"]["localisation"]["status"] == TRACKING
+    assert queries.Pose().answer(reopened)["robots"]["r2"]["localisation"]["status"] == TRACKING
     reopened.close()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.coverage import MAX_CELLS_PER_SIDE, coverage_grid
+from service.pipeline.coverage import MAX_CELLS_PER_SIDE, coverage_grid
 
 
 def test_convention_cells_rows_are_y_columns_are_x() -> None:

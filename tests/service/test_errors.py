@@ -11,6 +11,8 @@ import pytest
 
 from service import worker
 from service.errors import internal_error
+from service.requests import MapRequest
+from service.session import MapSession
 
 
 def _real_sqlite_full(tmp_path: Path) -> sqlite3.Error:
@@ -60,15 +62,16 @@ def test_worker_answers_with_the_same_classification(
 ) -> None:
     full = _real_sqlite_full(tmp_path)
 
-    def disk_full(map_id: str, payload: dict) -> None:
-        raise full
+    class DiskFull(MapRequest[None]):
+        def answer(self, session: MapSession) -> None:
+            raise full
 
-    def deep(map_id: str, payload: dict) -> None:
-        raise RecursionError("maximum recursion depth exceeded while decoding a JSON array")
+    class Deep(MapRequest[None]):
+        def answer(self, session: MapSession) -> None:
+            raise RecursionError("maximum recursion depth exceeded while decoding a JSON array")
 
-    monkeypatch.setitem(worker._OPS, "disk_full", disk_full)
-    monkeypatch.setitem(worker._OPS, "deep", deep)
-    reply = worker.call("disk_full", "m", {})
+    monkeypatch.setattr(worker, "_session", lambda map_id: None)
+    reply = worker.call("m", DiskFull())
     assert reply["ok"] is False and reply["error"]["status"] == 507
-    reply = worker.call("deep", "m", {})
+    reply = worker.call("m", Deep())
     assert reply["error"]["status"] == 400 and "nested too deeply" in reply["error"]["detail"]

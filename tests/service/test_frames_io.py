@@ -15,13 +15,8 @@ from hypothesis import strategies as st
 from graph.errors import InvalidFrame
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
 from service.frame_model import FrameLimits, parse_frame
-from service.frames_io import (
-    FrameFileError,
-    frame_from_dict,
-    frame_to_dict,
-    read_frames,
-    write_frames,
-)
+from service.frames_io import frame_from_dict, frame_to_dict
+from service.offline.frame_files import FrameFileError, read_frames, write_frames
 from service.settings import Settings
 
 DESIGN_EXAMPLE: dict[str, Any] = {

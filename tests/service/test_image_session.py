@@ -73,7 +73,7 @@ def test_image_frames_are_logged_with_their_image_and_reload_identically(
     results = []
     for meta, image in run[:30]:
         reply = session.submit(meta, image)
-        results.append(json.loads(reply["result_json"]))
+        results.append(json.loads(reply.result_json))
         if session.snapshot_due:
             session.snapshot()
     assert session.vision is not None
@@ -85,19 +85,19 @@ def test_image_frames_are_logged_with_their_image_and_reload_identically(
     assert session.store.frame_image(stored[0].id) is None
     assert session.store.frame_image(stored[-1].id) == run[29][1]
     assert json.loads(stored[0].body)["image"]["bytes"] == len(run[0][1])
-    before = queries.trajectory(session)["r1"]
+    before = queries.Trajectory().answer(session)["r1"]
     live_before = sorted(session.slam.landmarks)
     session.close()
 
     # Reopen: snapshot at frame 20 (with the front end's state) + 10 image frames replayed.
     reopened = MapSession(path, StoreSettings(snapshot_every=20))
     assert reopened.loaded_from_snapshot == 20
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     assert _worst_move(after, before) < 0.02
     assert sorted(reopened.slam.landmarks) == live_before
     # ... and goes on matching the landmarks it knew.
-    nxt = json.loads(reopened.submit(*run[30])["result_json"])
+    nxt = json.loads(reopened.submit(*run[30]).result_json)
     assert len(nxt["landmarks"]["observed"]) > 5
     reopened.close()
 
@@ -109,13 +109,13 @@ def test_whole_log_replay_without_snapshot_reproduces_the_map(
     session = _new(path, every=10**6)
     for meta, image in run[:15]:
         session.submit(meta, image)
-    before = queries.trajectory(session)["r1"]
+    before = queries.Trajectory().answer(session)["r1"]
     landmarks = sorted(session.slam.landmarks)
     session.close()
     reopened = MapSession(path, StoreSettings(snapshot_every=10**6))
     assert reopened.loaded_from_snapshot == 0
     assert sorted(reopened.slam.landmarks) == landmarks
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert max(abs(a["x"] - b["x"]) for a, b in zip(after, before, strict=True)) < 1e-6
     reopened.close()
 
@@ -130,7 +130,7 @@ def _images_and_trajectory(
         session.submit(meta, image)
         if session.snapshot_due:
             session.snapshot()
-    count, trajectory = session.store.image_count(), queries.trajectory(session)["r1"]
+    count, trajectory = session.store.image_count(), queries.Trajectory().answer(session)["r1"]
     session.close()
     return count, trajectory
 
@@ -151,7 +151,7 @@ def test_images_are_pruned_once_every_kept_snapshot_covers_them(
     # Snapshot + tail: the tail's images are all there; the map is as it was.
     reopened = MapSession(path, settings)
     assert reopened.loaded_from_snapshot == 30
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     assert _worst_move(after, before) < 0.02
     reopened.close()
@@ -166,7 +166,7 @@ def test_images_are_pruned_once_every_kept_snapshot_covers_them(
     conn.close()
     rebuilt = MapSession(path, settings)
     assert rebuilt.loaded_from_snapshot == 0 and rebuilt.replay_errors == 0
-    again = queries.trajectory(rebuilt)["r1"]
+    again = queries.Trajectory().answer(rebuilt)["r1"]
     assert [p["seq"] for p in again] == [p["seq"] for p in before]
     drift = _worst_move(again, before)
     assert drift < 0.3, drift
@@ -180,7 +180,7 @@ def test_retry_needs_the_same_image(
     for meta, image in run[:3]:
         session.submit(meta, image)
     again = session.submit(*run[2])
-    assert again["replayed"]
+    assert again.replayed
     detail = _refused(session, run[2][0], run[3][1], 409)
     assert "seq" in detail
     session.close()
@@ -206,7 +206,7 @@ def test_bad_image_frames_leave_the_map_unchanged(
     new_robot.pop("initial_pose", None)
     assert "initial_pose" in _refused(session, new_robot, run[1][1], 422)
     # The map goes on as if nothing happened.
-    assert not session.submit(*run[1])["replayed"]
+    assert not session.submit(*run[1]).replayed
     assert session.slam.frame_count == 2
     session.close()
 
@@ -223,6 +223,7 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
     tmp_path: Path, run: list[tuple[dict[str, Any], bytes]]
 ) -> None:
     from service import worker
+    from service.requests import SubmitFrame
 
     session = _new(tmp_path / "cam.sqlite")
     assert session.vision is not None
@@ -230,7 +231,7 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
     api_end, worker_end = Pipe()
     try:
         for k in range(3):
-            request = (k, "frame", "cam", {"frame": run[k][0], "image": run[k][1]})
+            request = (k, "cam", SubmitFrame(run[k][0], run[k][1]))
             api_end.send_bytes(pickle.dumps(request))
         api_end.close()  # end of file after the three requests
         inbox: queue.Queue[Any] = queue.Queue()
@@ -239,10 +240,10 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
         assert queued[3] is None, "end of the connection comes last"
         assert [q[0] for q in queued[:3]] == [0, 1, 2], "read in arrival order"
         assert len(session.vision._prefetched) == 3
-        replies = [worker.call(op, m, payload) for _, op, m, payload in queued[:3]]
+        replies = [worker.call(m, request) for _, m, request in queued[:3]]
         assert all(r["ok"] for r in replies), replies
         assert not session.vision._prefetched, "each frame took its own prefetched features"
-        assert [json.loads(r["value"]["result_json"])["seq"] for r in replies] == [
+        assert [json.loads(r["value"].result_json)["seq"] for r in replies] == [
             run[k][0]["seq"] for k in range(3)
         ]
     finally:
@@ -253,7 +254,7 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
 
 def _labels(reply: dict[str, Any], session: MapSession) -> list[str]:
     """Labels of the landmarks a frame's result says it observed."""
-    result = json.loads(reply["result_json"])
+    result = json.loads(reply.result_json)
     return sorted(session.slam.landmarks[i].label for i in result["landmarks"]["observed"])
 
 
@@ -280,7 +281,7 @@ def test_export_import_of_an_image_map_goes_on_associating_as_the_original(
         assert _labels(a, source) == _labels(b, target)
         observed += len(_labels(a, source))
     assert observed > 50
-    ta, tb = queries.trajectory(source)["r1"], queries.trajectory(target)["r1"]
+    ta, tb = queries.Trajectory().answer(source)["r1"], queries.Trajectory().answer(target)["r1"]
     assert len(ta) == len(tb) == len(run)
     for pa, pb in zip(ta, tb, strict=True):
         assert abs(pa["x"] - pb["x"]) < 1e-6 and abs(pa["y"] - pb["y"]) < 1e-6
@@ -299,8 +300,8 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
     import cv2
 
     session = _new(tmp_path / "cam.sqlite")
-    results = [json.loads(session.submit(m, i)["result_json"]) for m, i in run[:30]]
-    places = queries.places(session)["appearance_places"]
+    results = [json.loads(session.submit(m, i).result_json) for m, i in run[:30]]
+    places = queries.Places().answer(session)["appearance_places"]
     assert len(places) >= 2, "the run crosses more than one place spacing"
     assert places[0]["robot"] == "r1" and places[0]["frame"] == 0
     assert results[0]["localisation"]["place"] == 0
@@ -326,10 +327,11 @@ def test_image_frames_learn_and_recognise_appearance_places_whatever_the_heading
         "seq": 0,
         "initial_pose": {**start, "theta": start["theta"] + np.pi / 2},
     }
-    result = json.loads(session.submit(meta, png.tobytes())["result_json"])
+    result = json.loads(session.submit(meta, png.tobytes()).result_json)
     assert result["localisation"]["place"] == 0
     assert result["localisation"]["confidence"] > 0.95
-    assert len(queries.places(session)["appearance_places"]) == len(places)  # nothing new learnt
+    # nothing new learnt
+    assert len(queries.Places().answer(session)["appearance_places"]) == len(places)
 
 
 def test_imported_image_map_reloads_from_its_log_alone(
@@ -405,7 +407,7 @@ def _run_with_json_gap(
     results = []
     for k, (meta, image) in enumerate(run[:30]):
         reply = session.submit(_json_frame(meta)) if k in gap else session.submit(meta, image)
-        results.append(json.loads(reply["result_json"]))
+        results.append(json.loads(reply.result_json))
     return session, results
 
 
@@ -421,7 +423,7 @@ def test_json_frames_in_a_camera_map_move_the_front_ends_prediction(
     np.testing.assert_allclose(pose, [last["x"], last["y"], last["theta"]], atol=1e-9)
     after = results[gap.stop]
     reference = _new(tmp_path / "ref.sqlite", every=1000)
-    ref = [json.loads(reference.submit(m, i)["result_json"]) for m, i in run[: gap.stop + 1]]
+    ref = [json.loads(reference.submit(m, i).result_json) for m, i in run[: gap.stop + 1]]
     assert len(after["landmarks"]["observed"]) >= 10  # measured 14 (36 with images throughout)
     assert abs(after["pose"]["x"] - ref[-1]["pose"]["x"]) < 0.05
     # Reopened from its log (no snapshot), the map predicts the same way.
@@ -447,9 +449,9 @@ def test_a_robot_may_start_with_a_json_frame_then_send_images(
     session = _new(tmp_path / "c.sqlite", every=1000)
     session.submit(_json_frame(run[0][0]))
     meta = {k: v for k, v in run[1][0].items() if k != "initial_pose"}
-    result = json.loads(session.submit(meta, run[1][1])["result_json"])
+    result = json.loads(session.submit(meta, run[1][1]).result_json)
     assert result["seq"] == run[1][0]["seq"]
     for meta, image in run[2:8]:
-        result = json.loads(session.submit(meta, image)["result_json"])
+        result = json.loads(session.submit(meta, image).result_json)
     assert len(session.slam.landmarks) > 0 and result["landmarks"]["observed"]
     session.close()

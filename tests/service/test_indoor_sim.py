@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angles
-from service.frames_io import read_frames
 from service.offline.datasets.indoor_sim import (
     IndoorWorld,
     SimRun,
@@ -20,6 +19,7 @@ from service.offline.datasets.indoor_sim import (
     write_run,
 )
 from service.offline.evaluation import dead_reckoning, read_tum
+from service.offline.frame_files import read_frames
 
 
 @pytest.fixture(scope="module")

@@ -4,9 +4,11 @@ runtime around it."""
 
 from __future__ import annotations
 
+import ast
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 
 def _loaded(*modules: str) -> list[str]:
@@ -38,3 +40,36 @@ def test_the_pipeline_imports_no_runtime() -> None:
         if m.startswith(("api", "service.")) and not m.startswith("service.pipeline")
     ]
     assert runtime == []
+
+
+def _imported_names(path: Path) -> set[str]:
+    """Every module name an `import` or `from ... import` in `path` names."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module is not None and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def test_no_test_imports_the_benchmarks() -> None:
+    """`bench` is not shipped: what tests need lives in the product or under tests/."""
+    tests = Path(__file__).resolve().parents[1]
+    modules = sorted(tests.rglob("*.py"))
+    assert len(modules) > 50
+    offenders = {
+        str(p.relative_to(tests)): sorted(
+            n for n in _imported_names(p) if n.split(".")[0] == "bench"
+        )
+        for p in modules
+    }
+    assert {p: names for p, names in offenders.items() if names} == {}
+
+
+def test_the_import_check_sees_a_bench_import(tmp_path: Path) -> None:
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import os\nfrom bench.clusters import PrivatePostgres\nimport bench.lifelong\n"
+    )
+    assert {"bench.clusters", "bench.lifelong", "os"} == _imported_names(probe)

@@ -15,16 +15,13 @@ from pydantic.fields import FieldInfo
 
 from graph.config import SlamConfig
 from graph.policies import POLICY_NAMES
-from service.mapconfig import (
+from service.pipeline.camera_config import (
     CAMERA_GRAPH_FRAME_DISTANCE_M,
     CAMERA_LANDMARK_CAP,
     CAMERA_LANDMARK_FACTORS,
     CAMERA_NOISE_DEFAULTS,
-    SLAM_FIELD_PATHS,
-    MapConfig,
-    slam_config,
-    slam_config_dict,
 )
+from service.pipeline.config import SLAM_FIELD_PATHS, MapConfig, slam_config, slam_config_dict
 
 
 def test_camera_map_defaults_to_the_landmark_factor_bound() -> None:

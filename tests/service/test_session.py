@@ -12,8 +12,8 @@ import pytest
 from service import queries
 from service.errors import ServiceError
 from service.exchange import export_map
-from service.frames_io import frame_to_dict
-from service.session import MapSession, canonical_frame
+from service.frames_io import canonical_frame, frame_to_dict
+from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord
 from tests.graph._world import circle_frames
@@ -35,25 +35,25 @@ def test_reopen_from_snapshot_and_tail_answers_as_before(place: PlaceFactory) ->
     session = _new(path)
     results = []
     for f in FRAMES[:70]:
-        results.append(json.loads(session.submit(f)["result_json"]))
+        results.append(json.loads(session.submit(f).result_json))
         if session.snapshot_due:  # what the worker does between requests
             session.snapshot()
-    before = queries.trajectory(session)["r1"]
+    before = queries.Trajectory().answer(session)["r1"]
     session.close()
 
     reopened = MapSession(path, StoreSettings(snapshot_every=25))
     # 70 frames, a snapshot every 25: the reload restored frame 50's and replayed 20
     assert reopened.loaded_from_snapshot == 50
     assert reopened.slam.frame_count == 70
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in before]
     moved = [
         abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, before, strict=True)
     ]
     assert max(moved) < 5e-3
     replay = reopened.submit(FRAMES[40])
-    assert replay["replayed"] and json.loads(replay["result_json"]) == results[40]
-    assert not reopened.submit(FRAMES[70])["replayed"]
+    assert replay.replayed and json.loads(replay.result_json) == results[40]
+    assert not reopened.submit(FRAMES[70]).replayed
 
 
 def test_frame_logged_before_a_crash_is_processed_on_reload(place: PlaceFactory) -> None:
@@ -104,7 +104,7 @@ def test_a_frame_that_keeps_killing_the_worker_is_dropped(place: PlaceFactory) -
     assert reopened.slam.frame_count == 5
     assert reopened.store.find_frame("r1", FRAMES[5]["seq"]) is None
     assert reopened.replay_errors == 1
-    assert not reopened.submit(FRAMES[5])["replayed"]  # the robot can send it again
+    assert not reopened.submit(FRAMES[5]).replayed  # the robot can send it again
 
 
 def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> None:
@@ -120,9 +120,9 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> No
 
 def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> None:
     session = _new(place("m1"))
-    results = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[:60]]
-    plain = queries.trajectory(session)["r1"]
-    rows = queries.trajectory(session, stats_every=7)["r1"]
+    results = [json.loads(session.submit(f).result_json) for f in FRAMES[:60]]
+    plain = queries.Trajectory().answer(session)["r1"]
+    rows = queries.Trajectory(stats_every=7).answer(session)["r1"]
     assert [{k: p[k] for k in ("seq", "x", "y")} for p in rows] == [
         {k: p[k] for k in ("seq", "x", "y")} for p in plain
     ]
@@ -132,9 +132,9 @@ def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> N
 
     # Labels of every landmark id, from the removal log and the live landmarks.
     label = {r["landmark_id"]: r["label"] for r in session.store.removals()}
-    label.update({lm["id"]: lm["label"] for lm in queries.landmarks(session)})
+    label.update({lm["id"]: lm["label"] for lm in queries.Landmarks().answer(session)})
     removed_labels = [r["label"] for r in session.store.removals()]
-    readded = set(removed_labels) & {lm["label"] for lm in queries.landmarks(session)}
+    readded = set(removed_labels) & {lm["label"] for lm in queries.Landmarks().answer(session)}
     assert readded, "the run should restore a removed landmark (the case counted once)"
     ids: list[int] = []
     for i, result in enumerate(results):
@@ -170,12 +170,12 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
     from graph.slam import BearingSlam
 
     clean = _new(place("clean"))
-    expected = [json.loads(clean.submit(f)["result_json"]) for f in FRAMES[:14]]
+    expected = [json.loads(clean.submit(f).result_json) for f in FRAMES[:14]]
 
     session = _new(place("m1"))
     for f in FRAMES[:12]:
         session.submit(f)
-    before = queries.trajectory(session)["r1"]
+    before = queries.Trajectory().answer(session)["r1"]
     real = BearingSlam.process
 
     failed: list[int] = []
@@ -201,8 +201,8 @@ def test_a_frame_the_estimator_fails_on_leaves_the_map_as_it_was(
 
     assert session.store.find_frame("r1", FRAMES[12]["seq"]) is None
     assert session.slam.frame_count == 12
-    assert queries.trajectory(session)["r1"] == before
-    got = [json.loads(session.submit(f)["result_json"]) for f in FRAMES[12:14]]
+    assert queries.Trajectory().answer(session)["r1"] == before
+    got = [json.loads(session.submit(f).result_json) for f in FRAMES[12:14]]
     for a, b in zip(got, expected[12:14], strict=True):
         assert a["seq"] == b["seq"] and a["localisation"] == b["localisation"]
         assert abs(a["pose"]["x"] - b["pose"]["x"]) + abs(a["pose"]["y"] - b["pose"]["y"]) < 5e-3
@@ -213,7 +213,7 @@ def test_final_trajectory_rows_are_stored_and_leave_the_estimator(place: PlaceFa
     the frame that finalised it, and neither the estimator nor its snapshots hold it."""
     from graph.slam import BearingSlam
     from graph.snapshot import restore
-    from service.mapconfig import slam_config
+    from service.pipeline.config import slam_config
 
     path = place("m1")
     session = _new(path, config=RETIRING)
@@ -234,7 +234,7 @@ def test_final_trajectory_rows_are_stored_and_leave_the_estimator(place: PlaceFa
     for frame in frames:
         reference.process(frame)
     expected = reference.trajectory("r1")["r1"]
-    rows = queries.trajectory(session)["r1"]
+    rows = queries.Trajectory().answer(session)["r1"]
     got = np.array([[p["seq"], p["stamp"], p["x"], p["y"], p["theta"]] for p in rows])
     np.testing.assert_array_equal(got, expected)
     assert len(export_map(session)["trajectories"]["r1"]) == 120
@@ -244,7 +244,7 @@ def test_final_trajectory_rows_are_stored_and_leave_the_estimator(place: PlaceFa
     reopened = MapSession(path, StoreSettings(snapshot_every=25))
     assert reopened.loaded_from_snapshot == 100
     assert reopened.store.pose_count() + reopened.slam.held_trajectory_rows == 120
-    after = queries.trajectory(reopened)["r1"]
+    after = queries.Trajectory().answer(reopened)["r1"]
     assert [p["seq"] for p in after] == [p["seq"] for p in rows]
     assert (
         max(abs(a["x"] - b["x"]) + abs(a["y"] - b["y"]) for a, b in zip(after, rows, strict=True))
@@ -277,14 +277,14 @@ def test_a_failed_frame_stores_no_final_rows(
 
     monkeypatch.setattr(BearingSlam, "process", half_way)
     for f in frames[100:]:
-        before, stored = queries.trajectory(session)["r1"], session.store.pose_count()
+        before, stored = queries.Trajectory().answer(session)["r1"], session.store.pose_count()
         try:
             session.submit(f)
         except ServiceError:
             break
     assert failed, "no frame finalised a row"
     assert session.store.pose_count() == stored
-    assert queries.trajectory(session)["r1"] == before
+    assert queries.Trajectory().answer(session)["r1"] == before
     session.submit(frames[failed[0]])
     assert session.store.pose_count() > stored
-    assert len(queries.trajectory(session)["r1"]) == failed[0] + 1
+    assert len(queries.Trajectory().answer(session)["r1"]) == failed[0] + 1

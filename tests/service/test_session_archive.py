@@ -53,7 +53,7 @@ def test_the_store_holds_the_archive_the_removal_log_and_restore_events(
     session = _run(place("m1"), FRAMES)
     slam = session.slam
     assert slam.restoration_count > 0
-    archived = queries.landmarks(session, "archived")
+    archived = queries.Landmarks("archived").answer(session)
     assert archived == [e.as_dict() for e in sorted(slam.archive, key=lambda e: e.id)]
     assert {a["id"] for a in archived}.isdisjoint(slam.landmarks)
     # every removal is in the log, a landmark removed twice twice
@@ -72,7 +72,7 @@ def test_the_store_holds_the_archive_the_removal_log_and_restore_events(
             for m in marginalised
         )
     # the live answer is what it was: live landmarks only, with their clusters
-    live = queries.landmarks(session)
+    live = queries.Landmarks().answer(session)
     assert sorted(lm["id"] for lm in live) == sorted(slam.landmarks)
     assert all("cluster" in lm and "removals" not in lm for lm in live)
     session.close()
@@ -83,7 +83,7 @@ def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(
 ) -> None:
     path = place("m1")
     session = _run(path, FRAMES)
-    archive, store_rows = session.slam.archive, queries.landmarks(session, "archived")
+    archive, store_rows = session.slam.archive, queries.Landmarks("archived").answer(session)
     restorations = session.slam.restoration_count
     session.close()
 
@@ -91,7 +91,7 @@ def test_the_archive_survives_a_reload_from_snapshot_and_from_the_log(
     assert reopened.loaded_from_snapshot > 0
     assert [e.id for e in reopened.slam.archive] == [e.id for e in archive]
     assert reopened.slam.restoration_count == restorations
-    assert queries.landmarks(reopened, "archived") == store_rows
+    assert queries.Landmarks("archived").answer(reopened) == store_rows
 
     # a snapshot from before the archive (version 3) is refused: the log is replayed
     state = pickle.loads(snapshot_pipeline(reopened.pipeline)[0])

@@ -38,14 +38,14 @@ def kidnapped(tmp_path_factory: pytest.TempPathFactory) -> dict:
     statuses, while_lost = [], None
     for seq, k in enumerate(KEPT):
         frame = frame_to_dict(dataclasses.replace(FRAMES[k], seq=seq))
-        result = json.loads(session.submit(frame)["result_json"])
+        result = json.loads(session.submit(frame).result_json)
         statuses.append(result["localisation"]["status"])
         if while_lost is None and statuses[-3:] == ["lost"] * 3:
             while_lost = {
                 "seq": seq,
                 "result": result,
-                "trajectory": queries.trajectory(session, "r1")["r1"],
-                "pose": queries.pose(session)["robots"]["r1"],
+                "trajectory": queries.Trajectory("r1").answer(session)["r1"],
+                "pose": queries.Pose().answer(session)["robots"]["r1"],
             }
     yield {"session": session, "statuses": statuses, "while_lost": while_lost}
     session.close()
@@ -72,7 +72,7 @@ def test_frames_acknowledged_while_lost_are_in_the_trajectory(kidnapped) -> None
     assert snap["pose"]["pose"]["x"] == last["x"]
 
     # Re-anchored: still every frame, in order; the gap dead-reckoned back from the anchor.
-    rows = queries.trajectory(kidnapped["session"])["r1"]
+    rows = queries.Trajectory().answer(kidnapped["session"])["r1"]
     assert [r["seq"] for r in rows] == list(range(len(KEPT)))
     assert {r.get("source") for r in rows[lost + 1 : again]} == {"odometry"}
     assert all("source" not in r for r in (*rows[: lost + 1], *rows[again:]))
@@ -86,7 +86,7 @@ def test_frames_acknowledged_while_lost_are_in_the_trajectory(kidnapped) -> None
 
 
 def test_map_counts_every_acknowledged_frame(kidnapped) -> None:
-    counts = queries.summary(kidnapped["session"])["counts"]
+    counts = queries.Summary().answer(kidnapped["session"])["counts"]
     statuses = kidnapped["statuses"]
     lost, again = statuses.index("lost"), statuses.index("relocalised", statuses.index("lost"))
     assert counts["frames"] == len(KEPT)
@@ -94,7 +94,7 @@ def test_map_counts_every_acknowledged_frame(kidnapped) -> None:
 
 
 def test_tum_text_has_every_frame(kidnapped) -> None:
-    rows = queries.trajectory(kidnapped["session"], "r1")["r1"]
+    rows = queries.Trajectory("r1").answer(kidnapped["session"])["r1"]
     lines = [ln for ln in tum_text(rows).splitlines() if ln and not ln.startswith("#")]
     assert len(lines) == len(KEPT)
     stamps = [float(ln.split()[0]) for ln in lines]
@@ -110,11 +110,11 @@ def test_initialising_robot_in_pose_and_trajectory(tmp_path: Path) -> None:
     for k in range(30):
         f = dataclasses.replace(FRAMES[60 + k], robot="r2", seq=k, initial_pose=None)
         f = dataclasses.replace(f, odometry=None) if k == 0 else f
-        result = json.loads(session.submit(frame_to_dict(f))["result_json"])
+        result = json.loads(session.submit(frame_to_dict(f)).result_json)
         statuses.append(result["localisation"]["status"])
-        poses.append(queries.pose(session)["robots"].get("r2"))
+        poses.append(queries.Pose().answer(session)["robots"].get("r2"))
         if k == 0:
-            rows = queries.trajectory(session, "r2")["r2"]
+            rows = queries.Trajectory("r2").answer(session)["r2"]
             assert [(r["seq"], r["source"]) for r in rows] == [(0, "filter")]
     first = statuses.index("relocalised")
     assert first > 0 and set(statuses[:first]) == {"initialising"}
@@ -126,7 +126,7 @@ def test_initialising_robot_in_pose_and_trajectory(tmp_path: Path) -> None:
             assert np.all(np.linalg.eigvalsh(np.array(doc["covariance"])) >= -1e-12)
     assert poses[first - 1]["pose"] is not None  # the filter weighed many frames by then
     assert poses[-1]["localisation"]["status"] == "tracking"
-    rows = queries.trajectory(session, "r2")["r2"]
+    rows = queries.Trajectory("r2").answer(session)["r2"]
     assert [r["seq"] for r in rows] == list(range(30))
     assert {r.get("source") for r in rows[:first]} == {"odometry"}
     err = [

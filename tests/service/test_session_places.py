@@ -42,9 +42,9 @@ def mapped(tmp_path_factory: pytest.TempPathFactory) -> tuple[MapSession, list[d
     path = tmp_path_factory.mktemp("places") / "m1.sqlite"
     session = _new(path)
     for f in FRAMES[:START]:
-        result = json.loads(session.submit(frame_to_dict(f))["result_json"])
+        result = json.loads(session.submit(frame_to_dict(f)).result_json)
         assert result["localisation"]["status"] == "tracking"
-    r2 = [json.loads(session.submit(_r2(k))["result_json"]) for k in range(30)]
+    r2 = [json.loads(session.submit(_r2(k)).result_json) for k in range(30)]
     return session, r2, path
 
 
@@ -64,54 +64,54 @@ def test_robot_without_initial_pose_is_found_and_anchored(mapped) -> None:
         assert math.hypot(pose["x"] - truth[0], pose["y"] - truth[1]) < 0.3
         assert abs(wrap_angle(pose["theta"] - truth[2])) < math.radians(5)
     assert "r2" in session.slam.robots
-    poses = queries.pose(session)["robots"]
+    poses = queries.Pose().answer(session)["robots"]
     assert poses["r2"]["localisation"]["status"] == "tracking"
 
 
 def test_places_learnt_listed_and_learn_now(mapped) -> None:
     session, _, _ = mapped
-    doc = queries.places(session)
+    doc = queries.Places().answer(session)
     assert doc["places"], "places are learnt automatically while tracking"
     for place in doc["places"]:
         assert len(place["landmarks"]) >= 2
         assert all(lm["depth"] > 0 and lm["depth_variance"] >= 0 for lm in place["landmarks"])
     before = len(doc["places"])
-    learnt = queries.learn_place(session, "r1")
+    learnt = queries.LearnPlace("r1").answer(session)
     assert learnt["place"]["id"] == before and len(learnt["places"]) == before + 1
     p = learnt["place"]["pose"]
     assert math.hypot(p["x"] - TRUTH[START - 1][0], p["y"] - TRUTH[START - 1][1]) < 0.3
     with pytest.raises(ServiceError) as err:
-        queries.learn_place(session, "nobody")
+        queries.LearnPlace("nobody").answer(session)
     assert err.value.status == 404
-    assert len(queries.places(session)["places"]) == before + 1
+    assert len(queries.Places().answer(session)["places"]) == before + 1
 
 
 def test_localiser_state_survives_a_restart(mapped) -> None:
     session, _, path = mapped
-    places = queries.places(session)
+    places = queries.Places().answer(session)
     session.snapshot()
     session.submit(_r2(30))  # one frame in the log's tail after the snapshot
-    expected = queries.pose(session)["robots"]["r2"]
+    expected = queries.Pose().answer(session)["robots"]["r2"]
     session.close()
     reopened = MapSession(path, StoreSettings(snapshot_every=1000))
-    assert queries.places(reopened)["places"] == places["places"] or len(
-        queries.places(reopened)["places"]
+    assert queries.Places().answer(reopened)["places"] == places["places"] or len(
+        queries.Places().answer(reopened)["places"]
     ) >= len(places["places"])
-    got = queries.pose(reopened)["robots"]["r2"]
+    got = queries.Pose().answer(reopened)["robots"]["r2"]
     assert got["localisation"]["status"] == expected["localisation"]["status"] == "tracking"
     np.testing.assert_allclose(
         [got["pose"]["x"], got["pose"]["y"]],
         [expected["pose"]["x"], expected["pose"]["y"]],
         atol=5e-3,
     )
-    nxt = json.loads(reopened.submit(_r2(31))["result_json"])
+    nxt = json.loads(reopened.submit(_r2(31)).result_json)
     assert nxt["localisation"]["status"] == "tracking"
     reopened.close()
 
 
 def test_first_frame_without_pose_and_bad_input_leave_the_map_unchanged(tmp_path: Path) -> None:
     session = _new(tmp_path / "m2.sqlite")
-    result = json.loads(session.submit(_r2(0))["result_json"])
+    result = json.loads(session.submit(_r2(0)).result_json)
     assert result["localisation"]["status"] == "initialising"
     assert session.slam.robots == []
     bad = _r2(1)
@@ -123,6 +123,6 @@ def test_first_frame_without_pose_and_bad_input_leave_the_map_unchanged(tmp_path
         session.submit(_r2(0) | {"seq": 0, "stamp": 99.0})  # a different frame, same seq
     assert session.store.frame_count() == 1
     with pytest.raises(ServiceError) as err:
-        queries.learn_place(session, "r2")  # initialising: no pose to learn at
+        queries.LearnPlace("r2").answer(session)  # initialising: no pose to learn at
     assert err.value.status == 409
     session.close()

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.clusters import PrivatePostgres
 from service.maps import MapService
 from service.settings import Settings
 from service.store import MapRecord
+from tests.support.clusters import PrivatePostgres
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

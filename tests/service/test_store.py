@@ -10,7 +10,8 @@ import pytest
 
 from graph.trajectory import PoseRow
 from service.keys import key_hash
-from service.store import KeyRecord, MapRecord, MapStore, Store
+from service.store import KeyRecord, MapRecord, Store
+from service.store_sql import MapStore
 
 
 def _result(live: int, added: list[int], marginalised: list[int], cov: object) -> str:

@@ -147,7 +147,7 @@ def run_turns(run: TurnRun, *, seed: int = 0, compass: bool = True) -> dict[str,
         for k, (frame, image) in enumerate(zip(run.frames, run.images, strict=True)):
             meta = frame_to_dict(frame)
             del meta["observations"]
-            result = json.loads(session.submit(meta, image)["result_json"])
+            result = json.loads(session.submit(meta, image).result_json)
             obs = session.store.image_observations(result["frame_id"]) or []
             pose = result["pose"]
             cov = np.asarray(result["covariance"], dtype=np.float64)

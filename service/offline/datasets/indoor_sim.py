@@ -28,8 +28,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.angles import wrap_angle, wrap_angles
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
-from service.frames_io import write_frames
 from service.offline.evaluation import Trajectory, write_tum
+from service.offline.frame_files import write_frames
 
 if TYPE_CHECKING:
     from service.offline.datasets.outdoor_sim import OutdoorWorld

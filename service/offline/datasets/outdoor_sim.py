@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -29,7 +30,14 @@ from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
 from service.offline.datasets.indoor_sim import FloatArray, IntArray, SimRun, noisy_observations
 from service.offline.evaluation import Trajectory
 
-__all__ = ["OutdoorWorld", "make_outdoor_world", "simulate_outdoor"]
+__all__ = [
+    "CONFIGS",
+    "OUTDOOR_TRIANGULATION",
+    "OutdoorWorld",
+    "make_outdoor_world",
+    "outdoor_run",
+    "simulate_outdoor",
+]
 
 _ROAD_SPACING_M = 0.25
 """Spacing of the road's sample points (tree clearances are measured to them)."""
@@ -230,4 +238,48 @@ def simulate_outdoor(
         landmarks=world.landmarks.copy(),
         landmark_ids=world.landmark_ids.copy(),
         world=world,
+    )
+
+
+OUTDOOR_TRIANGULATION: dict[str, Any] = {
+    "max_depth_m": 100.0,
+    "max_position_sigma_m": 2.0,
+    "max_rays": 80,
+}
+"""The map config's triangulation group for an outdoor map: trees up to 100 m away, a
+far tree's depth known to 2 m, and 80 rays kept (a long baseline for far trees)."""
+
+CONFIGS: dict[str, dict[str, Any]] = {
+    "default": {"landmark_cap": None},
+    "outdoor": {"landmark_cap": None, "triangulation": OUTDOOR_TRIANGULATION},
+    "depth_only": {"landmark_cap": None, "triangulation": {"max_depth_m": 100.0}},
+    "outdoor_default_cap": {"triangulation": OUTDOOR_TRIANGULATION},
+}
+"""The maps the benchmark makes: the defaults, the outdoor triangulation, the depth range
+alone, and the outdoor triangulation under the service's default landmark cap."""
+
+
+def outdoor_run(seed: int, *, small: bool = False, odometry_scale: float = 1.01) -> SimRun:
+    """The benchmark's run; `small`: a 120 x 60 m loop, 60 trees, 1.1 laps at 1 m a frame
+    (369 frames, 8 bearings a frame) for tests."""
+    if small:
+        world = make_outdoor_world(
+            rng=np.random.default_rng(seed),
+            length_m=120.0,
+            width_m=60.0,
+            corner_radius_m=15.0,
+            trees=60,
+        )
+        return simulate_outdoor(
+            world,
+            rng=np.random.default_rng(seed + 1),
+            laps=1.1,
+            step_m=1.0,
+            max_observations=8,
+            odometry_scale=odometry_scale,
+        )
+    return simulate_outdoor(
+        make_outdoor_world(rng=np.random.default_rng(seed)),
+        rng=np.random.default_rng(seed + 1),
+        odometry_scale=odometry_scale,
     )

@@ -1,4 +1,5 @@
-"""A map's configuration as clients give it, and its translation to `SlamConfig`.
+"""A map's configuration as clients give it, and its translation to `SlamConfig`: the
+map pipeline's configuration (the camera's part: service.pipeline.camera_config).
 
 Units: metres, radians. Every field carries its unit in its description, which
 is what the OpenAPI schema shows.
@@ -9,12 +10,20 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import fields
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from graph.config import BearingLoss, MarginalSparsification, Optimizer, SlamConfig
 from graph.policies import POLICY_NAMES
+from service.pipeline.camera_config import (
+    CAMERA_GRAPH_FRAME_DISTANCE_M,
+    CAMERA_LANDMARK_CAP,
+    CAMERA_LANDMARK_FACTORS,
+    CAMERA_NOISE_DEFAULTS,
+    CameraConfig,
+    StrictModel,
+)
 
 if TYPE_CHECKING:
     from frontend.cameras import CameraModel
@@ -24,10 +33,8 @@ Mode = Literal["mapping", "localisation"]
 _DEFAULTS = SlamConfig()
 
 
-class NoiseConfig(BaseModel):
+class NoiseConfig(StrictModel):
     """Noise models of the estimator (one-sigma values)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     bearing_sigma_rad: float = Field(
         _DEFAULTS.bearing_sigma_rad,
@@ -98,14 +105,12 @@ class NoiseConfig(BaseModel):
         return value
 
 
-class TriangulationConfig(BaseModel):
+class TriangulationConfig(StrictModel):
     """When an unmatched observation track (a candidate) becomes a landmark: enough rays,
     enough parallax, a consistent and well-determined intersection within a depth range.
     The defaults suit rooms and halls (landmarks within 15 m); an outdoor map whose
     landmarks stand tens of metres away needs a larger max_depth_m and
     max_position_sigma_m (see docs/configuration.md)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     min_rays: int = Field(
         _DEFAULTS.min_rays,
@@ -181,12 +186,10 @@ class TriangulationConfig(BaseModel):
         return self
 
 
-class GatingConfig(BaseModel):
+class GatingConfig(StrictModel):
     """The innovation gate: an observation of an established landmark far from its
     predicted bearing, in a frame where another observation confirms the pose, gets no
     factor (a wrong match or a reflection a robust loss cannot shrug off)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     max_innovation_rad: float | None = Field(
         _DEFAULTS.max_innovation_rad,
@@ -209,10 +212,8 @@ class GatingConfig(BaseModel):
     )
 
 
-class KeyframeConfig(BaseModel):
+class KeyframeConfig(StrictModel):
     """Which poses leaving the pose window stay in the graph as keyframes."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     keyframe_distance_m: float = Field(
         _DEFAULTS.keyframe_distance_m,
@@ -251,11 +252,9 @@ class KeyframeConfig(BaseModel):
     )
 
 
-class SolverConfig(BaseModel):
+class SolverConfig(StrictModel):
     """iSAM2's relinearisation and how old poses' marginals are kept. (The iSAM2 step
     itself is the map config's top-level `optimizer`.)"""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     relinearize_threshold: float = Field(
         _DEFAULTS.relinearize_threshold,
@@ -282,11 +281,9 @@ class SolverConfig(BaseModel):
     )
 
 
-class ArchiveConfig(BaseModel):
+class ArchiveConfig(StrictModel):
     """Removed landmarks are archived; seen again by label they come back under their own
     id (graph.archive), unless removed so recently that they would churn."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     restore_archived: bool = Field(
         _DEFAULTS.restore_archived,
@@ -312,84 +309,9 @@ class ArchiveConfig(BaseModel):
     )
 
 
-MAX_CAMERA_PIXELS = 16 * 2**20
-"""Largest image a camera may expect, pixels (the front end's decode limit)."""
-
-
-class PanoramaCameraConfig(BaseModel):
-    """An unwrapped 360° strip. Column u looks at bearing wrap(pi - 2 pi (u + 0.5) / width):
-    the middle column looks forward, bearings grow towards the left (DESIGN.md, Cameras)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-    model: Literal["panorama"] = Field("panorama", description="camera model")
-    width: int = Field(2048, ge=8, description="image width, pixels (covers 360°)")
-    height: int = Field(512, ge=1, description="image height, pixels")
-    vfov_deg: float = Field(
-        90.0, gt=0, lt=180, description="vertical field of view, degrees, centred on the horizon"
-    )
-
-    @model_validator(mode="after")
-    def _bounded(self) -> PanoramaCameraConfig:
-        if self.width * self.height > MAX_CAMERA_PIXELS:
-            raise ValueError(f"width x height must be at most {MAX_CAMERA_PIXELS} pixels")
-        return self
-
-
-class OmniCameraConfig(BaseModel):
-    """A raw catadioptric ring image, unwrapped to a panorama (frontend.cameras.OmniCamera)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-    model: Literal["omni"] = Field(description="camera model")
-    width: int = Field(ge=8, description="image width, pixels")
-    height: int = Field(ge=8, description="image height, pixels")
-    centre_xy: tuple[float, float] = Field(
-        description="mirror centre in pixel coordinates (x right, y down), pixels"
-    )
-    inner_radius_px: float = Field(ge=0, description="radius seeing the bottom of the vfov, px")
-    outer_radius_px: float = Field(gt=0, description="radius seeing the top of the vfov, px")
-    forward_deg: float = Field(
-        0.0, description="image angle (degrees, counter-clockwise from +x) looking forward"
-    )
-    mirrored: bool = Field(False, description="true if bearings grow clockwise in the image")
-    pano_width: int = Field(2048, ge=8, description="width of the unwrapped panorama, pixels")
-    pano_height: int = Field(512, ge=1, description="height of the unwrapped panorama, pixels")
-    vfov_deg: float = Field(90.0, gt=0, lt=180, description="vertical field of view, degrees")
-
-    @model_validator(mode="after")
-    def _bounded(self) -> OmniCameraConfig:
-        if not self.inner_radius_px < self.outer_radius_px:
-            raise ValueError("need inner_radius_px < outer_radius_px")
-        cx, cy = self.centre_xy
-        if not (0 <= cx <= self.width and 0 <= cy <= self.height):
-            raise ValueError("centre_xy must lie inside the image")
-        for w, h in ((self.width, self.height), (self.pano_width, self.pano_height)):
-            if w * h > MAX_CAMERA_PIXELS:
-                raise ValueError(f"images must be at most {MAX_CAMERA_PIXELS} pixels")
-        return self
-
-
-CameraConfig = Annotated[PanoramaCameraConfig | OmniCameraConfig, Field(discriminator="model")]
-
-
-CAMERA_LANDMARK_FACTORS = 60
-"""Default `max_landmark_factors` of a camera map (see SlamConfig.max_landmark_factors)."""
-CAMERA_GRAPH_FRAME_DISTANCE_M = 0.5
-"""`graph_frame_distance_m` of a camera map created without one (see MapConfig.for_new_map)."""
-CAMERA_ESTIMATOR_DEFAULTS = {
-    "max_landmark_factors": CAMERA_LANDMARK_FACTORS,
-    "graph_frame_distance_m": CAMERA_GRAPH_FRAME_DISTANCE_M,
-}
-"""What a camera map created without these estimator fields gets (MapConfig does it for
-the service; an in-process replay of image frames applies them to its SlamConfig)."""
 DEFAULT_LANDMARK_CAP = 50
 """The service's default landmark cap of a map created without one (its setting
 `default_landmark_cap`; an in-process replay without --landmark-cap too)."""
-CAMERA_LANDMARK_CAP = 200
-"""The service's default landmark cap of a camera map created without one (its setting
-`default_camera_landmark_cap`). A camera map matches 45-60 landmarks a frame; at cap 50
-the rendered runs' image ATE was 0.0242 / 0.0267 m (seeds 0 / 1), at 200 0.0083 / 0.0138."""
 RANDOM_WALK_NOISE_DEFAULTS: dict[str, Any] = {
     "odometry_sigma_per_sqrt_metre": _DEFAULTS.odometry_sigma_per_sqrt_metre,
     "odometry_sigma_per_sqrt_radian": _DEFAULTS.odometry_sigma_per_sqrt_radian,
@@ -397,9 +319,6 @@ RANDOM_WALK_NOISE_DEFAULTS: dict[str, Any] = {
 """The odometry random walks a map created without them gets (MapConfig.for_new_map).
 A stored config without them is a map built before they existed: its log replays
 without them, as it was processed."""
-CAMERA_NOISE_DEFAULTS: dict[str, Any] = {"bearing_loss": "geman_mcclure", "huber_k": 1.0}
-"""The `noise` fields a camera map created without them gets (MapConfig.for_new_map), and
-an in-process replay of image frames (see SlamConfig.bearing_loss)."""
 WINDOW_FIELDS = (
     "pose_window",
     "window_observations",
@@ -423,7 +342,7 @@ def window_settings(given: Mapping[str, int | None]) -> dict[str, int | None]:
     return {k: given[k] if k in given else defaults[k] for k in WINDOW_FIELDS}
 
 
-class MapConfig(BaseModel):
+class MapConfig(StrictModel):
     """How a map estimates. Omitted fields take the service's defaults.
 
     Every estimator parameter (graph.config.SlamConfig) has one place here, listed in
@@ -434,8 +353,6 @@ class MapConfig(BaseModel):
     which a client sets beside the config. A stored config that lacks a group (every map
     created before it existed) gets its defaults, which are the estimator's.
     """
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     landmark_cap: int | None = Field(
         None,

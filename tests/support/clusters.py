@@ -1,4 +1,5 @@
-"""Private servers for tests and benchmarks: a PostgreSQL cluster and a local Ray cluster.
+"""Private servers for tests and benchmarks: a PostgreSQL cluster, a local Ray cluster
+and `covslam serve` processes.
 
 `PrivatePostgres` runs Debian's PostgreSQL (``initdb`` + ``pg_ctl``) in a temporary
 directory on a free port, as the ``postgres`` user when we are root (PostgreSQL

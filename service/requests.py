@@ -1,0 +1,84 @@
+"""What the API process asks of a map's worker: one frozen dataclass per operation.
+
+A request carries its arguments; its type names the operation and, as its type
+parameter, the type of the answer, so ``await engine.call(map_id, Pose())`` is typed
+end to end. A `MapRequest` answers from the map's open session (`answer`); a
+`WorkerRequest` (ping, create, open, delete, import) works on the worker's set of
+maps and is carried out by service.worker. Requests cross the process boundary
+pickled (a local worker's pipe, or a Ray actor call).
+
+The queries are in service.queries, the export in service.exchange: adding a query is a
+`MapRequest` there and the route that asks it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+from service.frame_results import FrameReply
+from service.session import MapSession
+
+T = TypeVar("T", covariant=True)
+
+Doc = dict[str, Any]
+"""A JSON document (the REST response models describe and check its members)."""
+
+
+class Request(Generic[T]):
+    """Anything the API process sends a worker; its answer is a `T`."""
+
+
+class MapRequest(Request[T]):
+    """An operation on one open map, answered from its session."""
+
+    def answer(self, session: MapSession) -> T:
+        raise NotImplementedError
+
+
+class WorkerRequest(Request[T]):
+    """An operation on the worker's set of maps (service.worker carries it out)."""
+
+
+# ------------------------------------------------------------ the worker's maps
+@dataclass(frozen=True)
+class Ping(WorkerRequest[Doc]):
+    """The worker's process id and the maps it has open."""
+
+
+@dataclass(frozen=True)
+class CreateMap(WorkerRequest[Doc]):
+    """A new, empty map of `record` (a MapRecord's dict); its summary."""
+
+    record: Doc
+
+
+@dataclass(frozen=True)
+class OpenMap(WorkerRequest[Doc]):
+    """Open the map (snapshot + log tail) if it is not open; its frame count."""
+
+
+@dataclass(frozen=True)
+class DeleteMap(WorkerRequest[None]):
+    """Close the map and remove its store."""
+
+
+@dataclass(frozen=True)
+class ImportMap(WorkerRequest[Doc]):
+    """A new map from an export document's bytes: {"record", "summary"}."""
+
+    body: bytes
+    created: float
+    default_cap: int | None
+
+
+# ------------------------------------------------------------ one map
+@dataclass(frozen=True)
+class SubmitFrame(MapRequest[FrameReply]):
+    """One frame object (with `image`: an image frame's meta and its bytes)."""
+
+    frame: Doc
+    image: bytes | None = None
+
+    def answer(self, session: MapSession) -> FrameReply:
+        return session.submit(self.frame, self.image)
