@@ -178,11 +178,19 @@ class LandmarkArchive:
 
     @staticmethod
     def admits(
-        entry: ArchivedLandmark, frame: int, rays: int, *, after_frames: int, min_rays: int
+        entry: ArchivedLandmark,
+        frame: int,
+        rays: int,
+        *,
+        after_frames: int,
+        min_rays: int,
+        backoff: bool = False,
     ) -> bool:
         """May `entry` come back at `frame`, observed `rays` times since its removal?
-        Yes once `after_frames` frames went by since, or with `min_rays` observations."""
-        return frame - entry.removed_frame >= after_frames or rays >= min_rays
+        Yes once `after_frames` frames went by since, or with `min_rays` observations;
+        with `backoff`, both doubled for each removal of it after the first."""
+        scale = 2 ** min(entry.removals - 1, 20) if backoff else 1
+        return frame - entry.removed_frame >= after_frames * scale or rays >= min_rays * scale
 
     def take(self, landmark_id: int, frame: int) -> LandmarkRecord:
         """Remove an entry from the archive: the live record it comes back as (same id,

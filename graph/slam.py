@@ -556,6 +556,7 @@ class BearingSlam:
                     len(rays),
                     after_frames=cfg.restore_after_frames,
                     min_rays=cfg.restore_min_rays,
+                    backoff=cfg.restore_backoff,
                 ):
                     tri = self._triangulate(rays, key, predicted)
                     used = self._restore(archived, rays, values, factors, tri)

@@ -301,6 +301,12 @@ class ArchiveConfig(StrictModel):
         ge=1,
         description="observations a recently removed landmark needs to come back, count",
     )
+    restore_backoff: bool = Field(
+        _DEFAULTS.restore_backoff,
+        description="each removal of a landmark doubles its hysteresis (removed k times: "
+        "restore_after_frames and restore_min_rays times 2^(k-1)), so that a landmark in "
+        "view of dense frames does not churn in and out of the graph",
+    )
     restore_prior_sigma_m: float = Field(
         _DEFAULTS.restore_prior_sigma_m,
         gt=0,
