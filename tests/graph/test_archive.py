@@ -216,3 +216,30 @@ def _entry(archive: LandmarkArchive, lid: int, label: str, *, frame: int):
         policy="coverage",
         reason="test",
     )
+
+
+def test_restore_backoff_doubles_the_hysteresis_for_each_removal() -> None:
+    """Removed a third time, a landmark needs 4x the rays and frames to come back with
+    backoff; without it, the same rays as after its first removal."""
+    from graph.landmarks import LandmarkRecord
+
+    archive = LandmarkArchive()
+    record = LandmarkRecord(
+        5, "b", 0, 0.0, 1.0, observed_from=np.array([1.0, 2.0]), count=4, removals=2
+    )
+    entry = archive.put(
+        record,
+        position=np.array([3.0, 4.0]),
+        covariance=np.diag([0.01, 0.04]),
+        frame=100,
+        stamp=2.0,
+        policy="coverage",
+        reason="test",
+    )
+    assert entry.removals == 3
+    limits = {"after_frames": 50, "min_rays": 10}
+    assert LandmarkArchive.admits(entry, 110, 10, **limits)
+    assert not LandmarkArchive.admits(entry, 110, 39, **limits, backoff=True)
+    assert LandmarkArchive.admits(entry, 110, 40, **limits, backoff=True)
+    assert not LandmarkArchive.admits(entry, 299, 0, **limits, backoff=True)
+    assert LandmarkArchive.admits(entry, 300, 0, **limits, backoff=True)
