@@ -255,6 +255,13 @@ def main() -> None:
         help="estimator settings for the capped maps, as JSON (e.g. '{\"spare_observed\": true}')",
     )
     parser.add_argument(
+        "--capped-from",
+        type=Path,
+        default=None,
+        help="take the rows of the capped policies not in --policies from an earlier run's "
+        ".rows.json (when only those policies' code changed); the summary covers them all",
+    )
+    parser.add_argument(
         "--uncapped-from",
         type=Path,
         default=None,
@@ -302,6 +309,14 @@ def main() -> None:
             # Every finished run is on disk at once: a long run interrupted keeps its figures.
             (args.out / f"{args.name}.rows.json").write_text(json.dumps(rows, indent=1))
     seconds = time.perf_counter() - t0
+    if args.capped_from is not None:
+        earlier = json.loads(args.capped_from.read_text())
+        earlier = earlier.get("rows", earlier)  # a results file, or its .rows.json
+        for robot in rows:
+            kept = {k: v for k, v in earlier[robot].items() if k.startswith(f"cap{CAP}_")}
+            rows[robot].update({k: v for k, v in kept.items() if k not in rows[robot]})
+        reused = {k[len(f"cap{CAP}_") :] for r in rows.values() for k in r if k.startswith("cap")}
+        policies = [*policies, *sorted(reused - set(policies))]
     methods = [*UNCAPPED, *(f"cap{CAP}_{p}" for p in policies)]
     for robot, row in rows.items():
         print(f"{robot} cap {CAP}: " + _line(row, methods[len(UNCAPPED) :]))
@@ -313,6 +328,7 @@ def main() -> None:
             "robots": robots,
             "seeds": args.seeds,
             "policies": policies,
+            "capped_rows_reused_from": None if args.capped_from is None else str(args.capped_from),
             "capped_config": args.capped_config,
             "noise": args.noise,
             "cap": CAP,
