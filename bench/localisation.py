@@ -501,6 +501,7 @@ def build_online_map(
     rot, trans = align_se2(
         np.array([landmarks[k] for k in common]), np.array([surveyed[k] for k in common])
     )
+    residual = {k: float(np.hypot(*(rot @ landmarks[k] + trans - surveyed[k]))) for k in common}
     return {
         "mapper": mapper,
         "frames": len(frames),
@@ -513,6 +514,7 @@ def build_online_map(
         "landmark_rmse_m": fit.rmse_m,
         "landmark_rmse_in_map_frame_m": fit.rmse_aligned_m,
         "map_landmarks": {k: [float(v[0]), float(v[1])] for k, v in landmarks.items()},
+        "landmark_error_in_map_frame_m": residual,
         "_rot": rot,
         "_trans": trans,
     }
@@ -562,15 +564,15 @@ def _online_start(
         if success_at is not None:
             break
     session.close()
-    for f in tmp.glob(f"{name}.sqlite*"):
-        f.unlink()
+    for copy in tmp.glob(f"{name}.sqlite*"):
+        copy.unlink()
     return {
         "frames_run": len(within),
         "relocalised": events,
         "frames_to_success": success_at,
         "success": success_at is not None,
         "wrong_relocalised": sum(not e["within"] for e in events),
-        "landmarks_seen": len({o.label for f in stream[: len(within)] for o in f.observations}),
+        "labels_seen": sorted({o.label for f in stream[: len(within)] for o in f.observations}),
         "ms": 1e3 * (time.perf_counter() - t0),
     }
 
@@ -595,6 +597,7 @@ def online_localisation(
         where = tmp / "map.sqlite"
         built = build_online_map(directory, mapper, where, config)
         rot, trans = built.pop("_rot"), built.pop("_trans")
+        residual = built["landmark_error_in_map_frame_m"]
         map_xy = {k: np.array(v) for k, v in built["map_landmarks"].items()}
         bound_cfg = FilterConfig()
         for seed in seeds:
@@ -608,6 +611,12 @@ def online_localisation(
                         _online_start(where, tmp, f"s{seed}r{robot}i{i}", frames, gt_map, k0,
                                       max_frames)
                     )  # fmt: skip
+                    # How far off (in the map's frame) the landmarks this start saw sit:
+                    # a pose consistent with them is that far off too.
+                    seen = [residual[k] for k in row["labels_seen"] if k in residual]
+                    row["seen_landmarks_error_rms_m"] = (
+                        float(np.sqrt(np.mean(np.square(seen)))) if seen else None
+                    )
                     if bound:
                         got = frames_to_information(
                             frames, gt_map, k0, max_frames, map_xy, bound_cfg, None
@@ -615,7 +624,7 @@ def online_localisation(
                         row["frames_to_information"] = got[0.25]
                     rows.append(row)
                     print(
-                        {k: v for k, v in row.items() if k != "relocalised"},
+                        {k: v for k, v in row.items() if k not in ("relocalised", "labels_seen")},
                         [(e["frame"], round(e["error_m"] or -1, 2)) for e in row["relocalised"]],
                         flush=True,
                     )
@@ -625,6 +634,7 @@ def online_localisation(
 def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, Any]:
     ok = [r for r in rows if r["success"]]
     info = [r.get("frames_to_information") for r in rows]
+    med_success, med_info = _median([r["frames_to_success"] for r in ok]), _median(info)
     paired = [
         r["frames_to_success"] / r["frames_to_information"]
         for r in ok
@@ -635,13 +645,11 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
         "max_frames": max_frames,
         "hold_frames": HOLD_FRAMES,
         "success_rate": len(ok) / len(rows) if rows else None,
-        "median_frames_to_success": _median([r["frames_to_success"] for r in ok]),
-        "median_frames_to_information": _median(info),
+        "median_frames_to_success": med_success,
+        "median_frames_to_information": med_info,
         "information_reached": sum(v is not None for v in info),
         "median_ratio_success_to_information": _median(paired),
-        "ratio_of_medians": None
-        if not ok or _median(info) is None
-        else _median([r["frames_to_success"] for r in ok]) / _median(info),
+        "ratio_of_medians": None if med_success is None or not med_info else med_success / med_info,
         "wrong_convergence_rate": sum(r["wrong_relocalised"] > 0 for r in rows) / len(rows)
         if rows
         else None,
