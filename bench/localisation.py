@@ -53,7 +53,7 @@ import numpy as np
 from graph.angles import wrap_angle
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
-from graph.types import FrameInput, Odometry
+from graph.types import FrameInput, Odometry, Pose2D
 from service.frames_io import frame_to_dict
 from service.mapconfig import DEFAULT_LANDMARK_CAP, MapConfig
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
@@ -665,6 +665,71 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
     }
 
 
+def online_kidnap(
+    directory: Path, mapper: int, before_s: float, cut_s: float, after_s: float
+) -> dict[str, Any]:
+    """Kidnapping in the map one robot built (as `online_localisation`): each other robot
+    enters a copy of it at its true first pose (moved into the map's frame), tracks for
+    `before_s`, loses `cut_s` of frames (a jump without odometry), then runs `after_s`.
+    Judged in the map's frame: frames from the cut to `lost` and to `relocalised`, the
+    error then, whether the 20 frames after it hold the tolerance; false `lost` before."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        where = tmp / "map.sqlite"
+        built = build_online_map(directory, mapper, where, rest_config())
+        rot, trans = built.pop("_rot"), built.pop("_trans")
+        for robot in (r for r in range(1, 6) if r != mapper):
+            frames, gt = mrclam_frames(load_mrclam(directory, robot))
+            gt_map = _map_frame(gt, rot, trans)
+            t0 = frames[0].stamp
+            pre = [f for f in frames if f.stamp < t0 + before_s]
+            t1 = t0 + before_s + cut_s
+            post = [f for f in frames if t1 <= f.stamp < t1 + after_s]
+            start = _truth_at(gt_map, t0)
+            assert start is not None
+            first = dataclasses.replace(pre[0], initial_pose=Pose2D(*(float(v) for v in start)))
+            jump = dataclasses.replace(post[0], odometry=Odometry(0.0, 0.0, 0.0))
+            stream = [first, *pre[1:], jump, *post[1:]]
+            path = tmp / f"k{robot}.sqlite"
+            _copy_store(where, path)
+            session = MapSession(path, StoreSettings(snapshot_every=100_000))
+            results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+            session.close()
+            errs = []
+            for r in results:
+                truth = _truth_at(gt_map, r["stamp"])
+                pose = r.get("pose")
+                errs.append(
+                    None
+                    if truth is None or pose is None
+                    else _errors(np.array([pose["x"], pose["y"], pose["theta"]]), truth)
+                )
+            cut = len(pre)
+            after = _after_cut(results, cut, gt_map)
+            reloc = after["frames_to_relocalised"]
+            held = None
+            if reloc is not None:
+                window = errs[cut + reloc : cut + reloc + HOLD_FRAMES]
+                held = len(window) == HOLD_FRAMES and all(
+                    e is not None and _within(e) for e in window
+                )
+            at = None if reloc is None else errs[cut + reloc]
+            rows.append(
+                {
+                    "robot": robot,
+                    "frames_before": cut,
+                    "jump_m": _jump(gt_map, pre[-1].stamp, post[0].stamp),
+                    **after,
+                    "error_at_relocalised_m": None if at is None else at[0],
+                    "error_at_relocalised_deg": None if at is None else math.degrees(at[1]),
+                    "held_20_frames": held,
+                }
+            )
+            print(rows[-1], flush=True)
+    return {"map": built, "before_s": before_s, "cut_s": cut_s, "after_s": after_s, "runs": rows}
+
+
 # --------------------------------------------------------------------------- 3. kidnap
 def _jump(gt: Trajectory, t_from: float, t_to: float) -> float | None:
     a, b = _truth_at(gt, t_from), _truth_at(gt, t_to)
@@ -926,7 +991,7 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="*",
-        choices=["pf", "global", "study", "bound", "online", "kidnap", "tracking"],
+        choices=["pf", "global", "study", "bound", "online", "online-kidnap", "kidnap", "tracking"],
         default=["pf", "global", "kidnap"],
         help="parts to run; the others keep their figures from an existing localisation.json",
     )
@@ -989,6 +1054,9 @@ def main() -> None:
             bound=not args.no_bound,
         )
         print(json.dumps({k: v for k, v in doc[args.online_key].items() if k != "runs"}))
+    if "online-kidnap" in args.parts:
+        doc["runs_of_parts"]["online_kidnap"] = _stamp()
+        doc["online_kidnap"] = online_kidnap(directory, args.mapper, 120.0, 60.0, 120.0)
     if "kidnap" in args.parts:
         doc["runs_of_parts"]["kidnap"] = _stamp()
         doc["kidnap_localiser"] = [
