@@ -724,6 +724,11 @@ def online_kidnap(
                     "error_at_relocalised_m": None if at is None else at[0],
                     "error_at_relocalised_deg": None if at is None else math.degrees(at[1]),
                     "held_20_frames": held,
+                    # Whatever the status said: how far off the reported poses were from
+                    # 20 frames after the cut on (a graph that recovers needs no `lost`).
+                    "ate_from_20_frames_after_cut_m": _ate_of_results(
+                        results[cut + HOLD_FRAMES :], gt_map
+                    ),
                 }
             )
             print(rows[-1], flush=True)

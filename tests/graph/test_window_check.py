@@ -4,6 +4,7 @@ the localiser relocalising only at a pose that check confirms."""
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 
@@ -122,3 +123,17 @@ def test_the_callers_check_takes_precedence_over_the_window() -> None:
         verify=lambda est: False,
     )
     assert result.status == INITIALISING
+
+
+def test_a_track_pickled_before_the_window_existed_loads_with_an_empty_one() -> None:
+    rng = np.random.default_rng(0)
+    track = RobotTrack(
+        ParticleFilter.around(_circle_pose(0), (0.1, 0.1, 0.1), FilterConfig(), rng=rng),
+        INITIALISING,
+    )
+    state = dict(track.__dict__)
+    del state["window"]
+    old = RobotTrack.__new__(RobotTrack)
+    old.__setstate__(state)
+    again = pickle.loads(pickle.dumps(old))
+    assert list(again.window) == [] and again.status == INITIALISING
