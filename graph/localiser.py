@@ -110,7 +110,7 @@ class LocaliserConfig:
     # New fields go last: a pickled config is the tuple of its field values, in order.
     hint_heading_sigma_rad: float = 0.1
     """Heading spread of proposals around a hint (see Localiser.proposal)."""
-    verify_window: int = 30
+    verify_window: int = 150
     """Frames of a search (labelled bearings and odometry) kept to check a converged
     filter before the robot is relocalised when the caller gives no check of its own
     (see graph.window_check); 0: no check."""

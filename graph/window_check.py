@@ -58,7 +58,13 @@ class WindowCheckConfig:
     outlier_sigmas: float = 3.0
     """A bearing whose residual at the solution exceeds this many sigmas misfits."""
     max_misfit_share: float = 0.2
-    """Refuted when more than this share of the window's bearings misfit."""
+    """Refuted when more than this share of the latest `misfit_frames` frames' bearings
+    misfit."""
+    misfit_frames: int = 30
+    """The latest frames whose bearings are counted for misfits (older frames still
+    shape the solution): a few landmarks the map got wrong where the robot was (e.g.
+    from the frames the graph took between a kidnap and `lost`) keep misfitting in the
+    frames that saw them, and the robot has moved on since."""
     gate: float = 16.27
     """Squared Mahalanobis distance (3 dof, 99.9 %) of the solved latest pose from the
     filter's estimate under the sum of their covariances, beyond which it is refuted."""
@@ -135,16 +141,17 @@ def check_window(
         cov = gtsam.Marginals(graph, solved).marginalCovariance(xk(n - 1))
     except RuntimeError:  # an indeterminate system: the frames do not fix the pose
         return WindowVerdict(WAIT, est, np.diag(np.square(cfg.prior_sigma)), 0.0, bearings)
-    misfits = 0
-    for k, f in enumerate(frames):
-        p = solved.atPose2(xk(k))
+    misfits = counted = 0
+    for k in range(max(n - cfg.misfit_frames, 0), n):
+        f, p = frames[k], solved.atPose2(xk(k))
+        counted += len(f.bearings_rad)
         for xy, z, s in zip(f.landmarks_xy, f.bearings_rad, f.sigmas_rad, strict=True):
             d = np.asarray(xy, np.float64) - np.array([p.x(), p.y()])
             r = math.remainder(math.atan2(d[1], d[0]) - p.theta() - float(z), math.tau)
             misfits += abs(r) > cfg.outlier_sigmas * float(s)
     last = solved.atPose2(xk(n - 1))
     pose = np.array([last.x(), last.y(), last.theta()])
-    share = misfits / bearings if bearings else 0.0
+    share = misfits / counted if counted else 0.0
     e = pose - est
     e[2] = math.remainder(float(e[2]), math.tau)
     d2 = float(e @ np.linalg.solve(cov + np.asarray(estimate_covariance, np.float64), e))
