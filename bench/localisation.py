@@ -305,6 +305,34 @@ def global_study(directory: Path, starts: int, max_frames: int, seeds: list[int]
     return out
 
 
+def global_check_study(directory: Path, starts: int, max_frames: int, seeds: list[int]) -> dict:
+    """Global localisation on the surveyed map with and without the window check
+    (graph.window_check): per seed, success, wrong convergences (`relocalised` beyond the
+    tolerance), starts never relocalised, median frames."""
+    out: dict[str, Any] = {}
+    for name, window in (("without_check", 0), ("with_check", LocaliserConfig().verify_window)):
+        rows = []
+        for seed in seeds:
+            doc = global_localisation(
+                directory, starts, max_frames, seed, LocaliserConfig(verify_window=window)
+            )
+            runs = doc["runs"]
+            rows.append(
+                {
+                    "seed": seed,
+                    "success_rate": doc["success_rate"],
+                    "wrong_relocalised": sum(
+                        r["frames_to_relocalise"] is not None and not r["success"] for r in runs
+                    ),
+                    "never_relocalised": sum(r["frames_to_relocalise"] is None for r in runs),
+                    "median_frames_to_relocalise": doc["median_frames_to_relocalise"],
+                }
+            )
+            print(name, rows[-1], flush=True)
+        out[name] = {"verify_window": window, "runs": rows}
+    return out
+
+
 _SUMMARY = (
     "success_rate",
     "median_frames_to_relocalise",
@@ -996,7 +1024,17 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="*",
-        choices=["pf", "global", "study", "bound", "online", "online-kidnap", "kidnap", "tracking"],
+        choices=[
+            "pf",
+            "global",
+            "check",
+            "study",
+            "bound",
+            "online",
+            "online-kidnap",
+            "kidnap",
+            "tracking",
+        ],
         default=["pf", "global", "kidnap"],
         help="parts to run; the others keep their figures from an existing localisation.json",
     )
@@ -1035,6 +1073,12 @@ def main() -> None:
                 {"seed": seed, **{k: v for k, v in other.items() if k not in ("runs", "map")}}
             )
             print(doc["global_other_seeds"][-1])
+    if "check" in args.parts:
+        doc["runs_of_parts"]["check"] = _stamp()
+        seeds = [args.seed, *args.other_seeds]
+        doc["global_window_check"] = global_check_study(
+            directory, args.starts, args.max_frames, seeds
+        )
     if "study" in args.parts:
         doc["runs_of_parts"]["study"] = _stamp()
         seeds = [args.seed, *args.other_seeds[:1]]
