@@ -24,11 +24,14 @@
    `relocalised` frame's reported pose and the next 19 lie within 0.5 m / 15 deg; a
    wrong convergence is `relocalised` reported beyond it. Beside each start, the
    information bound of 2b on the map's own landmarks.
+2d. Window check (``--parts check``): global localisation on the surveyed map with and
+   without graph.window_check, per seed: wrong convergences, starts never relocalised.
+3b. Online kidnap (``--parts online-kidnap``): kidnapping in the map of 2c.
 4. Tracking (``--parts tracking``): each robot's whole run, no kidnap, through the same
    pipeline; every `lost` there is a false alarm.
 
-    python -m bench.localisation [--starts 50] [--parts pf global kidnap tracking]
-                                 [--out bench/results]
+    python -m bench.localisation [--starts 50] [--out bench/results]
+        [--parts pf global check study bound online online-kidnap kidnap tracking]
 """
 
 from __future__ import annotations
