@@ -16,11 +16,22 @@
    Cramer-Rao bound of the pose (odometry + labelled bearings, linearised at ground
    truth) is as tight as the filter's convergence test: no estimator can be that sure
    sooner on the same frames.
+2c. Online map (``--parts online``): robot N (``--mapper``) maps its whole run through the
+   service as a REST client would (default config, its true initial pose); the other
+   robots then enter a copy of that map without ``initial_pose`` from random frames
+   (``--online-starts`` per robot and seed). Judged in the map's own frame (ground truth
+   moved by the fit of the map's landmarks to the surveyed ones): success when a
+   `relocalised` frame's reported pose and the next 19 lie within 0.5 m / 15 deg; a
+   wrong convergence is `relocalised` reported beyond it. Beside each start, the
+   information bound of 2b on the map's own landmarks.
+2d. Window check (``--parts check``): global localisation on the surveyed map with and
+   without graph.window_check, per seed: wrong convergences, starts never relocalised.
+3b. Online kidnap (``--parts online-kidnap``): kidnapping in the map of 2c.
 4. Tracking (``--parts tracking``): each robot's whole run, no kidnap, through the same
    pipeline; every `lost` there is a false alarm.
 
-    python -m bench.localisation [--starts 50] [--parts pf global kidnap tracking]
-                                 [--out bench/results]
+    python -m bench.localisation [--starts 50] [--out bench/results]
+        [--parts pf global check study bound online online-kidnap kidnap tracking]
 """
 
 from __future__ import annotations
@@ -32,6 +43,7 @@ import json
 import math
 import os
 import platform
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
@@ -44,10 +56,12 @@ import numpy as np
 from graph.angles import wrap_angle
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
-from graph.types import FrameInput, Odometry
+from graph.types import FrameInput, Odometry, Pose2D
 from service.frames_io import frame_to_dict
+from service.mapconfig import DEFAULT_LANDMARK_CAP, MapConfig
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
-from service.offline.evaluation import Trajectory, interpolate
+from service.offline.evaluation import Trajectory, align_se2, fit_landmarks, interpolate
+from service.pipeline.localiser import landmark_map
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -294,6 +308,34 @@ def global_study(directory: Path, starts: int, max_frames: int, seeds: list[int]
     return out
 
 
+def global_check_study(directory: Path, starts: int, max_frames: int, seeds: list[int]) -> dict:
+    """Global localisation on the surveyed map with and without the window check
+    (graph.window_check): per seed, success, wrong convergences (`relocalised` beyond the
+    tolerance), starts never relocalised, median frames."""
+    out: dict[str, Any] = {}
+    for name, window in (("without_check", 0), ("with_check", LocaliserConfig().verify_window)):
+        rows = []
+        for seed in seeds:
+            doc = global_localisation(
+                directory, starts, max_frames, seed, LocaliserConfig(verify_window=window)
+            )
+            runs = doc["runs"]
+            rows.append(
+                {
+                    "seed": seed,
+                    "success_rate": doc["success_rate"],
+                    "wrong_relocalised": sum(
+                        r["frames_to_relocalise"] is not None and not r["success"] for r in runs
+                    ),
+                    "never_relocalised": sum(r["frames_to_relocalise"] is None for r in runs),
+                    "median_frames_to_relocalise": doc["median_frames_to_relocalise"],
+                }
+            )
+            print(name, rows[-1], flush=True)
+        out[name] = {"verify_window": window, "runs": rows}
+    return out
+
+
 _SUMMARY = (
     "success_rate",
     "median_frames_to_relocalise",
@@ -439,6 +481,289 @@ def information_bound(
             "filter_sooner_than_bound": int(sum(d < 0 for d in lag)),
         }
     return out
+
+
+# ------------------------------------------------------------ 2c. on a map built online
+HOLD_FRAMES = 20
+"""A start succeeds when the reported pose stays within tolerance this many frames."""
+
+
+def rest_config() -> dict[str, Any]:
+    """The config a REST client's map gets when it gives none (the service's defaults:
+    landmark cap, odometry random walks)."""
+    return MapConfig().for_new_map(DEFAULT_LANDMARK_CAP).model_dump(mode="json")
+
+
+def _map_frame(truth: Trajectory, rot: np.ndarray, trans: np.ndarray) -> Trajectory:
+    """Ground truth moved into a map's frame, where `rot`, `trans` move the map's
+    landmarks onto the surveyed ones (x_survey = rot @ x_map + trans)."""
+    xy = (truth.xy - trans) @ rot  # rot.T @ (x - trans), row-wise
+    turn = math.atan2(float(rot[1, 0]), float(rot[0, 0]))
+    return Trajectory(truth.stamps, xy, truth.theta - turn)
+
+
+def _copy_store(src: Path, dst: Path) -> None:
+    for f in src.parent.glob(src.name + "*"):
+        shutil.copyfile(f, dst.parent / (dst.name + f.name[len(src.name) :]))
+
+
+def build_online_map(
+    directory: Path, mapper: int, where: Path, config: dict[str, Any]
+) -> dict[str, Any]:
+    """The map one robot builds through the service from its true initial pose (its
+    whole run), stored at `where` with a snapshot; its landmarks fitted to the survey."""
+    data = load_mrclam(directory, mapper)
+    assert data.landmarks is not None
+    surveyed = {str(int(s)): np.array([x, y]) for s, x, y in data.landmarks}
+    frames, _ = mrclam_frames(data)
+    record = MapRecord("m", "online", "mapping", config, time.time())
+    session = MapSession.create(where, record, StoreSettings(snapshot_every=100_000))
+    t0 = time.perf_counter()
+    for f in frames:
+        session.submit(frame_to_dict(f))
+    seconds = time.perf_counter() - t0
+    landmarks = landmark_map(session.slam)
+    assert session.pipeline.localiser is not None
+    places = len(session.pipeline.localiser.localiser.places.places)
+    session.snapshot()
+    session.close()
+    fit = fit_landmarks(landmarks, surveyed)
+    common = list(fit.labels)
+    rot, trans = align_se2(
+        np.array([landmarks[k] for k in common]), np.array([surveyed[k] for k in common])
+    )
+    residual = {k: float(np.hypot(*(rot @ landmarks[k] + trans - surveyed[k]))) for k in common}
+    return {
+        "mapper": mapper,
+        "frames": len(frames),
+        "seconds": seconds,
+        "landmarks": len(landmarks),
+        "places": places,
+        "landmarks_fitted": len(common),
+        "frame_rotation_deg": math.degrees(fit.rotation_rad),
+        "frame_shift_m": fit.shift_m,
+        "landmark_rmse_m": fit.rmse_m,
+        "landmark_rmse_in_map_frame_m": fit.rmse_aligned_m,
+        "map_landmarks": {k: [float(v[0]), float(v[1])] for k, v in landmarks.items()},
+        "landmark_error_in_map_frame_m": residual,
+        "_rot": rot,
+        "_trans": trans,
+    }
+
+
+def _online_start(
+    where: Path,
+    tmp: Path,
+    name: str,
+    frames: list[FrameInput],
+    gt: Trajectory,
+    k0: int,
+    max_frames: int,
+) -> dict[str, Any]:
+    """One robot entering the stored map at frame `k0` without an initial pose: frames
+    through a copy of the map until success is settled or `max_frames` + HOLD_FRAMES."""
+    path = tmp / f"{name}.sqlite"
+    _copy_store(where, path)
+    session = MapSession(path, StoreSettings(snapshot_every=100_000))
+    stream = frames[k0 : k0 + max_frames + HOLD_FRAMES]
+    stream = [dataclasses.replace(stream[0], initial_pose=None), *stream[1:]]
+    events: list[dict[str, Any]] = []
+    within: list[bool] = []
+    success_at = None
+    t0 = time.perf_counter()
+    for k, f in enumerate(stream):
+        r = json.loads(session.submit(frame_to_dict(f))["result_json"])
+        truth = _truth_at(gt, f.stamp)
+        pose = r.get("pose")
+        err = None
+        if truth is not None and pose is not None:
+            err = _errors(np.array([pose["x"], pose["y"], pose["theta"]]), truth)
+        within.append(err is not None and _within(err))
+        if r["localisation"]["status"] == RELOCALISED:
+            events.append(
+                {
+                    "frame": k,
+                    "error_m": None if err is None else err[0],
+                    "error_deg": None if err is None else math.degrees(err[1]),
+                    "within": within[-1],
+                }
+            )
+        for e in events:
+            held = k == e["frame"] + HOLD_FRAMES - 1 and all(within[e["frame"] :])
+            if success_at is None and e["frame"] <= max_frames and held:
+                success_at = e["frame"]
+        if success_at is not None:
+            break
+    session.close()
+    for copy in tmp.glob(f"{name}.sqlite*"):
+        copy.unlink()
+    return {
+        "frames_run": len(within),
+        "relocalised": events,
+        "frames_to_success": success_at,
+        "success": success_at is not None,
+        "wrong_relocalised": sum(not e["within"] for e in events),
+        "labels_seen": sorted({o.label for f in stream[: len(within)] for o in f.observations}),
+        "ms": 1e3 * (time.perf_counter() - t0),
+    }
+
+
+def online_localisation(
+    directory: Path,
+    mapper: int,
+    starts_per_robot: int,
+    max_frames: int,
+    seeds: list[int],
+    bound: bool = True,
+) -> dict[str, Any]:
+    """One robot maps through the service (a REST client's default config, its true
+    initial pose); the other robots then enter the map without an initial pose, each
+    from `starts_per_robot` random frames per seed. Judged in the map's own frame: ground
+    truth moved by the fit of the map's landmarks to the surveyed ones."""
+    config = rest_config()
+    runs = {r: mrclam_frames(load_mrclam(directory, r)) for r in range(1, 6) if r != mapper}
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        where = tmp / "map.sqlite"
+        built = build_online_map(directory, mapper, where, config)
+        rot, trans = built.pop("_rot"), built.pop("_trans")
+        residual = built["landmark_error_in_map_frame_m"]
+        map_xy = {k: np.array(v) for k, v in built["map_landmarks"].items()}
+        bound_cfg = FilterConfig()
+        for seed in seeds:
+            rng = np.random.default_rng(seed)
+            for robot, (frames, gt) in runs.items():
+                gt_map = _map_frame(gt, rot, trans)
+                for i in range(starts_per_robot):
+                    k0 = int(rng.integers(0, len(frames) - max_frames - HOLD_FRAMES - 1))
+                    row: dict[str, Any] = {"seed": seed, "robot": robot, "start_frame": k0}
+                    row.update(
+                        _online_start(where, tmp, f"s{seed}r{robot}i{i}", frames, gt_map, k0,
+                                      max_frames)
+                    )  # fmt: skip
+                    # How far off (in the map's frame) the landmarks this start saw sit:
+                    # a pose consistent with them is that far off too.
+                    seen = [residual[k] for k in row["labels_seen"] if k in residual]
+                    row["seen_landmarks_error_rms_m"] = (
+                        float(np.sqrt(np.mean(np.square(seen)))) if seen else None
+                    )
+                    if bound:
+                        got = frames_to_information(
+                            frames, gt_map, k0, max_frames, map_xy, bound_cfg, None
+                        )
+                        row["frames_to_information"] = got[0.25]
+                    rows.append(row)
+                    print(
+                        {k: v for k, v in row.items() if k not in ("relocalised", "labels_seen")},
+                        [(e["frame"], round(e["error_m"] or -1, 2)) for e in row["relocalised"]],
+                        flush=True,
+                    )
+    return {"map": built, "config": config, **_online_summary(rows, max_frames), "runs": rows}
+
+
+def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, Any]:
+    ok = [r for r in rows if r["success"]]
+    info = [r.get("frames_to_information") for r in rows]
+    med_success, med_info = _median([r["frames_to_success"] for r in ok]), _median(info)
+    paired = [
+        r["frames_to_success"] / r["frames_to_information"]
+        for r in ok
+        if r.get("frames_to_information")
+    ]
+    return {
+        "starts": len(rows),
+        "max_frames": max_frames,
+        "hold_frames": HOLD_FRAMES,
+        "success_rate": len(ok) / len(rows) if rows else None,
+        "median_frames_to_success": med_success,
+        "median_frames_to_information": med_info,
+        "information_reached": sum(v is not None for v in info),
+        "median_ratio_success_to_information": _median(paired),
+        "ratio_of_medians": None if med_success is None or not med_info else med_success / med_info,
+        "wrong_convergence_rate": sum(r["wrong_relocalised"] > 0 for r in rows) / len(rows)
+        if rows
+        else None,
+        "wrong_relocalised_events": sum(r["wrong_relocalised"] for r in rows),
+        "relocalised_then_drifted": sum(
+            1 for r in rows if not r["success"] and any(e["within"] for e in r["relocalised"])
+        ),
+        "never_relocalised": sum(1 for r in rows if not r["relocalised"]),
+        "per_robot_success": {
+            str(robot): float(np.mean([r["success"] for r in rows if r["robot"] == robot]))
+            for robot in sorted({r["robot"] for r in rows})
+        },
+    }
+
+
+def online_kidnap(
+    directory: Path, mapper: int, before_s: float, cut_s: float, after_s: float
+) -> dict[str, Any]:
+    """Kidnapping in the map one robot built (as `online_localisation`): each other robot
+    enters a copy of it at its true first pose (moved into the map's frame), tracks for
+    `before_s`, loses `cut_s` of frames (a jump without odometry), then runs `after_s`.
+    Judged in the map's frame: frames from the cut to `lost` and to `relocalised`, the
+    error then, whether the 20 frames after it hold the tolerance; false `lost` before."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        where = tmp / "map.sqlite"
+        built = build_online_map(directory, mapper, where, rest_config())
+        rot, trans = built.pop("_rot"), built.pop("_trans")
+        for robot in (r for r in range(1, 6) if r != mapper):
+            frames, gt = mrclam_frames(load_mrclam(directory, robot))
+            gt_map = _map_frame(gt, rot, trans)
+            t0 = frames[0].stamp
+            pre = [f for f in frames if f.stamp < t0 + before_s]
+            t1 = t0 + before_s + cut_s
+            post = [f for f in frames if t1 <= f.stamp < t1 + after_s]
+            start = _truth_at(gt_map, t0)
+            assert start is not None
+            first = dataclasses.replace(pre[0], initial_pose=Pose2D(*(float(v) for v in start)))
+            jump = dataclasses.replace(post[0], odometry=Odometry(0.0, 0.0, 0.0))
+            stream = [first, *pre[1:], jump, *post[1:]]
+            path = tmp / f"k{robot}.sqlite"
+            _copy_store(where, path)
+            session = MapSession(path, StoreSettings(snapshot_every=100_000))
+            results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+            session.close()
+            errs = []
+            for r in results:
+                truth = _truth_at(gt_map, r["stamp"])
+                pose = r.get("pose")
+                errs.append(
+                    None
+                    if truth is None or pose is None
+                    else _errors(np.array([pose["x"], pose["y"], pose["theta"]]), truth)
+                )
+            cut = len(pre)
+            after = _after_cut(results, cut, gt_map)
+            reloc = after["frames_to_relocalised"]
+            held = None
+            if reloc is not None:
+                window = errs[cut + reloc : cut + reloc + HOLD_FRAMES]
+                held = len(window) == HOLD_FRAMES and all(
+                    e is not None and _within(e) for e in window
+                )
+            at = None if reloc is None else errs[cut + reloc]
+            rows.append(
+                {
+                    "robot": robot,
+                    "frames_before": cut,
+                    "jump_m": _jump(gt_map, pre[-1].stamp, post[0].stamp),
+                    **after,
+                    "error_at_relocalised_m": None if at is None else at[0],
+                    "error_at_relocalised_deg": None if at is None else math.degrees(at[1]),
+                    "held_20_frames": held,
+                    # Whatever the status said: how far off the reported poses were from
+                    # 20 frames after the cut on (a graph that recovers needs no `lost`).
+                    "ate_from_20_frames_after_cut_m": _ate_of_results(
+                        results[cut + HOLD_FRAMES :], gt_map
+                    ),
+                }
+            )
+            print(rows[-1], flush=True)
+    return {"map": built, "before_s": before_s, "cut_s": cut_s, "after_s": after_s, "runs": rows}
 
 
 # --------------------------------------------------------------------------- 3. kidnap
@@ -702,10 +1027,27 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="*",
-        choices=["pf", "global", "study", "bound", "kidnap", "tracking"],
+        choices=[
+            "pf",
+            "global",
+            "check",
+            "study",
+            "bound",
+            "online",
+            "online-kidnap",
+            "kidnap",
+            "tracking",
+        ],
         default=["pf", "global", "kidnap"],
         help="parts to run; the others keep their figures from an existing localisation.json",
     )
+    parser.add_argument("--mapper", type=int, default=1, help="online: the robot that maps")
+    parser.add_argument("--online-starts", type=int, default=5, help="online: starts per robot")
+    parser.add_argument("--online-seeds", type=int, nargs="*", default=[0, 1])
+    parser.add_argument(
+        "--online-key", default="online", help="online: the key its figures go under"
+    )
+    parser.add_argument("--no-bound", action="store_true", help="online: skip the bound")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--data", type=Path, default=None)
     args = parser.parse_args()
@@ -734,6 +1076,12 @@ def main() -> None:
                 {"seed": seed, **{k: v for k, v in other.items() if k not in ("runs", "map")}}
             )
             print(doc["global_other_seeds"][-1])
+    if "check" in args.parts:
+        doc["runs_of_parts"]["check"] = _stamp()
+        seeds = [args.seed, *args.other_seeds]
+        doc["global_window_check"] = global_check_study(
+            directory, args.starts, args.max_frames, seeds
+        )
     if "study" in args.parts:
         doc["runs_of_parts"]["study"] = _stamp()
         seeds = [args.seed, *args.other_seeds[:1]]
@@ -747,6 +1095,20 @@ def main() -> None:
             directory, args.starts, args.max_frames, seeds, doc
         )
         print(json.dumps({k: v for k, v in doc["information_bound"].items() if k != "runs"}))
+    if "online" in args.parts:
+        doc["runs_of_parts"][args.online_key] = _stamp()
+        doc[args.online_key] = online_localisation(
+            directory,
+            args.mapper,
+            args.online_starts,
+            args.max_frames,
+            args.online_seeds,
+            bound=not args.no_bound,
+        )
+        print(json.dumps({k: v for k, v in doc[args.online_key].items() if k != "runs"}))
+    if "online-kidnap" in args.parts:
+        doc["runs_of_parts"]["online_kidnap"] = _stamp()
+        doc["online_kidnap"] = online_kidnap(directory, args.mapper, 120.0, 60.0, 120.0)
     if "kidnap" in args.parts:
         doc["runs_of_parts"]["kidnap"] = _stamp()
         doc["kidnap_localiser"] = [

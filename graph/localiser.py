@@ -38,6 +38,7 @@ from graph.angles import wrap_angles
 from graph.particles import FilterConfig, FilterEstimate, Injector, ParticleFilter
 from graph.places import LandmarkCandidate, Place, PlaceConfig, PlaceMap, Recognition
 from graph.types import Pose2D
+from graph.window_check import CONFIRMED, REFUTED, WindowFrame, check_window
 
 FloatArray = NDArray[np.float64]
 
@@ -109,6 +110,10 @@ class LocaliserConfig:
     # New fields go last: a pickled config is the tuple of its field values, in order.
     hint_heading_sigma_rad: float = 0.1
     """Heading spread of proposals around a hint (see Localiser.proposal)."""
+    verify_window: int = 150
+    """Frames of a search (labelled bearings and odometry) kept to check a converged
+    filter before the robot is relocalised when the caller gives no check of its own
+    (see graph.window_check); 0: no check."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
         # A config pickled before later fields existed: those take their defaults.
@@ -139,6 +144,13 @@ class RobotTrack:
     lost_reason: str | None = None
     lost_count: int = 0
     seen: deque[frozenset[str]] = field(default_factory=deque)
+    window: deque[WindowFrame] = field(default_factory=deque)
+    """The frames of the current search (initialising or lost), for check_window."""
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # A track pickled before `window` existed.
+        self.__dict__.update(state)
+        self.__dict__.setdefault("window", deque())
 
 
 def _bounds(landmarks: Mapping[str, FloatArray], margin: float) -> tuple[float, ...]:
@@ -333,6 +345,12 @@ class Localiser:
         track.seen.append(frozenset(labels))
         while len(track.seen) > cfg.reliability_frames:
             track.seen.popleft()
+        if track.status in (INITIALISING, LOST) and cfg.verify_window > 0:
+            sigmas = track.pf.bearing_sigmas(len(z), sig)
+            odo = None if odometry is None else np.asarray(odometry, dtype=np.float64)
+            track.window.append(WindowFrame(odo, dt_s, lm_xy, z, sigmas))
+            while len(track.window) > cfg.verify_window:
+                track.window.popleft()
 
         anchor = False
         if track.status == RELOCALISED:
@@ -355,6 +373,7 @@ class Localiser:
         if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
             # The belief no longer explains what the robot sees: search afresh.
             track.status = LOST
+            track.window.clear()
             track.lost_reason = "observations no longer fit the map"
             track.converged_frames = track.disagree_frames = track.weak_frames = 0
             track.lost_count += 1
@@ -378,6 +397,7 @@ class Localiser:
             track.disagree_frames = track.disagree_frames + 1 if beyond else 0
             if track.disagree_frames >= cfg.lost_frames:
                 track.status = LOST
+                track.window.clear()
                 track.lost_reason = "graph and filter disagree"
                 track.lost_count += 1
                 track.converged_frames = 0
@@ -388,11 +408,15 @@ class Localiser:
                 track.converged_frames = 0
             elif len(z):
                 track.converged_frames += 1
-            if track.converged_frames >= cfg.confirm_frames and (verify is None or verify(est)):
+            verdict = None
+            if track.converged_frames >= cfg.confirm_frames:
+                verdict = self._verdict(track, est, verify, labelled=q is None)
+            if verdict == CONFIRMED:
                 track.status = RELOCALISED
                 track.converged_frames = 0
+                track.window.clear()
                 anchor = True
-            elif track.converged_frames >= cfg.confirm_frames:
+            elif verdict == REFUTED:
                 # The caller's check refused the pose (the observations fit it only by
                 # chance): search afresh rather than converge on it again.
                 track.converged_frames = 0
@@ -425,6 +449,23 @@ class Localiser:
         if track.status in (INITIALISING, LOST):
             confidence = min(confidence, float(est.converged))
         return StepResult(track.status, est, place, confidence, anchor, learnt)
+
+    def _verdict(
+        self,
+        track: RobotTrack,
+        est: FilterEstimate,
+        verify: Callable[[FilterEstimate], bool] | None,
+        *,
+        labelled: bool,
+    ) -> str:
+        """CONFIRMED, REFUTED or WAIT (see graph.window_check) for a converged filter:
+        the caller's check if it gives one, else (labelled bearings) the window check."""
+        if verify is not None:
+            return CONFIRMED if verify(est) else REFUTED
+        if not labelled or self.config.verify_window <= 0 or not track.window:
+            return CONFIRMED
+        frames = list(track.window)
+        return check_window(est.pose_xytheta, est.covariance, frames, self.config.filter).verdict
 
     def learn(
         self,
