@@ -58,9 +58,9 @@ from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, R
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
 from graph.types import FrameInput, Odometry, Pose2D
 from service.frames_io import frame_to_dict
-from service.mapconfig import DEFAULT_LANDMARK_CAP, MapConfig
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.offline.evaluation import Trajectory, align_se2, fit_landmarks, interpolate
+from service.pipeline.config import DEFAULT_LANDMARK_CAP, MapConfig
 from service.pipeline.localiser import landmark_map
 from service.session import MapSession
 from service.settings import StoreSettings
