@@ -572,7 +572,7 @@ def _online_start(
     success_at = None
     t0 = time.perf_counter()
     for k, f in enumerate(stream):
-        r = json.loads(session.submit(frame_to_dict(f))["result_json"])
+        r = json.loads(session.submit(frame_to_dict(f)).result_json)
         truth = _truth_at(gt, f.stamp)
         pose = r.get("pose")
         err = None
@@ -725,7 +725,7 @@ def online_kidnap(
             path = tmp / f"k{robot}.sqlite"
             _copy_store(where, path)
             session = MapSession(path, StoreSettings(snapshot_every=100_000))
-            results = [json.loads(session.submit(frame_to_dict(f))["result_json"]) for f in stream]
+            results = [json.loads(session.submit(frame_to_dict(f)).result_json) for f in stream]
             session.close()
             errs = []
             for r in results:
