@@ -121,12 +121,13 @@ def test_a_singleton_cluster_is_never_chosen_while_a_larger_one_exists() -> None
 def test_coverage_keeps_a_lone_landmark_and_takes_the_least_informative_shared_one(
     seed: int,
 ) -> None:
-    # Two rooms of four (x=0 and x=50) and a lone landmark far away, the least precise.
-    # The paper's rule takes the lowest I of the widest-spread cluster (the one holding
-    # the best landmark, I=1000); the product's takes the lowest I of every shared one.
+    # Two rooms of four (x=0 and x=50) and a lone landmark far away, known as well as the
+    # median. The paper's rule takes the lowest I of the widest-spread cluster (the one
+    # holding the best landmark, I=1000); the product's takes the lowest I of all but the
+    # protected lone one.
     room = [[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]
     observed = [*room, *([x + 50.0, y] for x, y in room), [200.0, 200.0]]  # k = 3
-    info = [1000.0, 50.0, 60.0, 70.0, 10.0, 20.0, 30.0, 40.0, 1.0]
+    info = [1000.0, 50.0, 60.0, 70.0, 10.0, 20.0, 30.0, 40.0, 45.0]  # median 45
     table = _table(observed, info, ids=list(range(1, 10)))
     rng = np.random.default_rng(seed)
     removal = get_policy("coverage").select(table, rng=rng)
@@ -135,7 +136,22 @@ def test_coverage_keeps_a_lone_landmark_and_takes_the_least_informative_shared_o
     assert sorted(removal.details["cluster_members"]) == [5, 6, 7, 8]
     paper = get_policy("coverage_paper").select(table, rng=np.random.default_rng(seed))
     assert paper.landmark_id == 2
-    assert get_policy("information").select(table, rng=rng).landmark_id == 9
+    assert get_policy("information").select(table, rng=rng).landmark_id == 5
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_coverage_does_not_protect_a_lone_landmark_known_worse_than_the_median(
+    seed: int,
+) -> None:
+    # The same rooms, the lone landmark barely known (a landmark just triangulated from a
+    # new place): it covers its region with an uncertain position and is not protected.
+    room = [[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]]
+    observed = [*room, *([x + 50.0, y] for x, y in room), [200.0, 200.0]]
+    info = [1000.0, 50.0, 60.0, 70.0, 10.0, 20.0, 30.0, 40.0, 1.0]
+    table = _table(observed, info, ids=list(range(1, 10)))
+    removal = get_policy("coverage").select(table, rng=np.random.default_rng(seed))
+    assert removal.landmark_id == 9
+    assert removal.details["protected"] == []
 
 
 def test_coverage_with_only_lone_landmarks_removes_the_least_informative() -> None:
