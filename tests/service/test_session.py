@@ -119,7 +119,8 @@ def test_a_never_idle_map_is_snapshotted_when_overdue(place: PlaceFactory) -> No
 
 
 def test_trajectory_stats_agree_with_the_frame_results(place: PlaceFactory) -> None:
-    session = _new(place("m1"))
+    # Cap 9: over these 60 frames a removed landmark comes back (the case counted once).
+    session = _new(place("m1"), config={"landmark_cap": 9, "pose_window": 30})
     results = [json.loads(session.submit(f).result_json) for f in FRAMES[:60]]
     plain = queries.Trajectory().answer(session)["r1"]
     rows = queries.Trajectory(stats_every=7).answer(session)["r1"]
