@@ -292,9 +292,10 @@ def main() -> None:
         for r in robots:
             for p in policies:
                 for seed in range(args.seeds if p in STOCHASTIC else 1):
-                    extra = args.capped_config
                     job = pool.submit(
-                        run_capped, r, p, seed, args.noise, args.data, args.frames, extra
+                        run_capped,
+                        *(r, p, seed, args.noise, args.data, args.frames),
+                        extra=args.capped_config,
                     )
                     futures[job] = (f"r{r}", p)
         for future in as_completed(futures):

@@ -1086,12 +1086,12 @@ class BearingSlam:
             information=information,
         )
         chosen: list[Removal] = []
-        spared = self._in_view(frame) if self.config.spare_observed else set()
+        spared = list(self._in_view(frame)) if self.config.spare_observed else []
         # Marginalising a landmark leaves the others' marginals unchanged, so one
         # covariance computation serves every removal of this frame.
         while len(table.ids) > cap - self.config.removal_margin:
-            candidates = np.array([int(i) not in spared for i in table.ids], dtype=bool)
-            pool = table if not candidates.any() else _rows(table, candidates)
+            candidates = ~np.isin(table.ids, spared)
+            pool = _rows(table, candidates) if spared and candidates.any() else table
             removal = self._policy.select(pool, rng=self._rng)
             chosen.append(removal)
             table = _rows(table, table.ids != removal.landmark_id)

@@ -42,7 +42,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import gtsam
 import numpy as np
@@ -154,36 +153,33 @@ def _padded_index(dims: Sequence[int]) -> tuple[NDArray[np.int64], NDArray[np.bo
     return index, real
 
 
+def _logdets(cov: FloatArray, index: NDArray[np.int64], real: NDArray[np.bool_]) -> FloatArray:
+    """log|S_b| of every block b of `cov` whose columns are the rows of `index`
+    (..., k), in one batched call; padded columns (not `real`) get the identity, which
+    leaves the determinant."""
+    blocks = cov[index[..., :, None], index[..., None, :]]
+    pad = ~(real[..., :, None] & real[..., None, :])
+    eye = np.eye(index.shape[-1], dtype=bool)
+    return np.asarray(np.linalg.slogdet(np.where(pad, eye, blocks))[1], dtype=np.float64)
+
+
 def _pairwise_mutual_information(cov: FloatArray, dims: Sequence[int]) -> FloatArray:
-    """I(x_i; x_j) = 0.5 (log|S_ii| + log|S_jj| - log|S_ij,ij|) for every pair, from one
-    covariance, with the log-determinants of all pairs in one batched call (each block
-    padded to 3 columns a variable with the identity, which leaves its determinant)."""
+    """I(x_i; x_j) = 0.5 (log|S_ii| + log|S_jj| - log|S_ij,ij|) for every pair i < j,
+    from one covariance (each variable's columns padded to 3, see `_padded_index`)."""
     n = len(dims)
+    out = np.zeros((n, n))
     if n < 2:
-        return np.zeros((n, n))
+        return out
     index, real = _padded_index(dims)
-    blocks = cov[index[:, :, None], index[:, None, :]]  # (n, 3, 3)
-    pad = ~(real[:, :, None] & real[:, None, :])
-    eye = np.eye(3, dtype=bool)[None]
-    blocks = np.where(pad, np.where(eye, 1.0, 0.0), blocks)
-    single = np.linalg.slogdet(blocks)[1]
-
-    def both(a: NDArray[Any]) -> NDArray[Any]:
-        """(n, n, 6): variable i's three columns, then variable j's."""
-        return np.concatenate(
-            [np.broadcast_to(a[:, None, :], (n, n, 3)), np.broadcast_to(a[None, :, :], (n, n, 3))],
-            axis=2,
-        )
-
-    pair_index, pair_real = both(index), both(real)
-    pairs = cov[pair_index[..., :, None], pair_index[..., None, :]]  # (n, n, 6, 6)
-    pad = ~(pair_real[..., :, None] & pair_real[..., None, :])
-    eye6 = np.eye(6, dtype=bool)[None, None]
-    pairs = np.where(pad, np.where(eye6, 1.0, 0.0), pairs)
-    joint = np.linalg.slogdet(pairs)[1]
-    out = np.maximum(0.5 * (single[:, None] + single[None, :] - joint), 0.0)
-    np.fill_diagonal(out, 0.0)
-    return out
+    single = _logdets(cov, index, real)
+    i, j = np.triu_indices(n, 1)
+    joint = _logdets(
+        cov,
+        np.concatenate([index[i], index[j]], axis=1),
+        np.concatenate([real[i], real[j]], axis=1),
+    )
+    out[i, j] = np.maximum(0.5 * (single[i] + single[j] - joint), 0.0)
+    return out + out.T
 
 
 def maximum_spanning_tree(weights: FloatArray, root: int = 0) -> list[tuple[int, int]]:

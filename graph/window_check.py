@@ -28,7 +28,8 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.particles import FilterConfig, motion_sigmas
+from graph.angles import wrap_angle, wrap_angles
+from graph.particles import FilterConfig, motion_sigmas, predicted_bearings
 
 FloatArray = NDArray[np.float64]
 
@@ -145,15 +146,15 @@ def check_window(
     for k in range(max(n - cfg.misfit_frames, 0), n):
         f, p = frames[k], solved.atPose2(xk(k))
         counted += len(f.bearings_rad)
-        for xy, z, s in zip(f.landmarks_xy, f.bearings_rad, f.sigmas_rad, strict=True):
-            d = np.asarray(xy, np.float64) - np.array([p.x(), p.y()])
-            r = math.remainder(math.atan2(d[1], d[0]) - p.theta() - float(z), math.tau)
-            misfits += abs(r) > cfg.outlier_sigmas * float(s)
+        if len(f.bearings_rad):
+            predicted = predicted_bearings(np.array([[p.x(), p.y(), p.theta()]]), f.landmarks_xy)
+            residual = wrap_angles(predicted[0] - np.asarray(f.bearings_rad, np.float64))
+            misfits += int(np.count_nonzero(np.abs(residual) > cfg.outlier_sigmas * f.sigmas_rad))
     last = solved.atPose2(xk(n - 1))
     pose = np.array([last.x(), last.y(), last.theta()])
     share = misfits / counted if counted else 0.0
     e = pose - est
-    e[2] = math.remainder(float(e[2]), math.tau)
+    e[2] = wrap_angle(float(e[2]))
     d2 = float(e @ np.linalg.solve(cov + np.asarray(estimate_covariance, np.float64), e))
     if share > cfg.max_misfit_share or d2 > cfg.gate:
         return WindowVerdict(REFUTED, pose, cov, share, bearings)
