@@ -215,6 +215,16 @@ class SlamConfig:
     (Used only where window_observations is None: maps stored before capped maps grew.)"""
     max_pose_window: int = 600
     """Most poses of a grown window (see window_factor_bound; pose_window if that is more)."""
+    window_marginals: int | None = 128
+    """A window grows beyond pose_window only while fewer than this many marginal
+    factors touch its poses, and sheds a pose a frame while more than this (+ 5 %) do;
+    None: no such bound. Each removed landmark leaves a dense marginal on the poses that
+    saw it, evaluated in Python at every iSAM2 dogleg step: on the dense lifelong world
+    (~25 bearings a frame, ~2 removals a frame, but few of the bearings on live
+    landmarks, so window_observations let the window grow to 470 poses) 1 111 of them
+    made a frame cost 226 ms (median over 1 000 frames) and p99 6.3x that; the window
+    of pose_window poses, 57 ms and 2.6x. MRCLAM-6 never reaches it: at most 80 at cap
+    8, 1 uncapped."""
     removal_margin: int = 0
     """When the live count exceeds landmark_cap, the policy removes landmarks down to
     landmark_cap - removal_margin, in one marginalisation. A removal costs one iSAM2
@@ -266,6 +276,8 @@ class SlamConfig:
             self.landmark_cap is not None and self.removal_margin >= self.landmark_cap
         ):
             raise ValueError("removal_margin must be >= 0 and below landmark_cap")
+        if self.window_marginals is not None and self.window_marginals < 1:
+            raise ValueError("window_marginals must be >= 1 or None")
         if self.pose_window is not None and self.pose_window < 2:
             raise ValueError("pose_window must be >= 2 or None")
         if not (self.bearing_sigma_rad > 0 and math.isfinite(self.bearing_sigma_rad)):

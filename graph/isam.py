@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
+from itertools import chain
 
 import gtsam
 import numpy as np
@@ -42,7 +43,7 @@ from numpy.typing import NDArray
 from graph.config import SlamConfig
 from graph.errors import EstimationError
 from graph.factors import is_landmark_key
-from graph.relative import choose_reference, relative_marginal
+from graph.relative import RelativeMarginalFactor, choose_reference, relative_marginal
 from graph.sparsify import kl_divergence, tree_factors
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,9 @@ class IncrementalGraph:
         (dogleg's step evaluates the whole graph's error)."""
         self._cov_cache: dict[int, NDArray[np.float64]] = {}
         """Marginal covariances of poses asked for since the last update."""
+        self._marginals: set[int] = set()
+        """Indices of the marginal factors (relative or linear; not those that are
+        between factors, which are evaluated in C++)."""
         self.marginal_keys: list[tuple[int, ...]] = []
         """Keys of every marginal factor added since the caller last cleared this."""
         self.sparsifications = 0
@@ -121,6 +125,11 @@ class IncrementalGraph:
 
     def is_bearing(self, index: int) -> bool:
         return isinstance(self._factors[index], gtsam.BearingFactor2D)
+
+    def marginals_touching(self, keys: Iterable[int]) -> int:
+        """How many marginal factors (evaluated in Python or held linear) touch `keys`."""
+        touching = chain.from_iterable(self._key_factors.get(k, ()) for k in keys)
+        return len(self._marginals.intersection(touching))
 
     def factor_keys(self, index: int) -> tuple[int, ...]:
         return tuple(self._factors[index].keys())
@@ -276,6 +285,7 @@ class IncrementalGraph:
         self._point_cache = {}
         self._cov_cache = {}
         for index in remove:
+            self._marginals.discard(index)
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]
                 keyed.discard(index)
@@ -283,6 +293,8 @@ class IncrementalGraph:
                     del self._key_factors[key]
         for index, factor in zip(result.getNewFactorsIndices(), added, strict=True):
             self._factors[index] = factor
+            if isinstance(factor, RelativeMarginalFactor | gtsam.LinearContainerFactor):
+                self._marginals.add(index)
             for key in factor.keys():
                 self._key_factors.setdefault(key, set()).add(index)
 

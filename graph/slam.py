@@ -53,7 +53,8 @@ from graph.types import BearingObservation, FrameInput, Pose2D
 from graph.validation import validate_frame
 
 _SHRINK_SLACK = 20
-"""A window shrinks by an extra pose beyond window_factor_bound * (1 + 1/this)."""
+"""A window shrinks by an extra pose beyond window_factor_bound (or window_marginals)
+* (1 + 1/this)."""
 _SWEEP_EVERY = 50
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -764,12 +765,18 @@ class BearingSlam:
         bound = cfg.window_factor_bound
         if bound is None or n >= max(cfg.max_pose_window, cfg.pose_window):
             return True
+        if self._window_marginals(robot) >= (cfg.window_marginals or math.inf):
+            return True
         return self._window_factor_count(robot) >= bound
 
     def _window_factor_count(self, robot: _Robot) -> int:
         """Bearing factors on the robot's window poses (see SlamConfig.window_factor_bound)."""
         counts = self._window_factors
         return sum(counts.get(key, 0) for key, _ in robot.window)
+
+    def _window_marginals(self, robot: _Robot) -> int:
+        """Marginal factors on the robot's window poses (see SlamConfig.window_marginals)."""
+        return self._graph.marginals_touching(key for key, _ in robot.window)
 
     def _holds_candidate_ray(self, key: int) -> bool:
         """Does a candidate track hold its first ray from pose `key` (and is the option on)?"""
@@ -941,14 +948,18 @@ class BearingSlam:
 
     def _shrink_window(self, robot: _Robot) -> None:
         """One more pose leaves a window longer than pose_window whose poses hold more
-        than window_factor_bound bearing factors (+ 5 %, so that this second update is
-        rare): the frame's own exit only keeps the window's length, and the factors later
-        added to its poses (a landmark's earlier rays) or a denser stretch of observations
-        would otherwise hold it over the bound."""
+        than window_factor_bound bearing factors or window_marginals marginal factors
+        (+ 5 %, so that this second update is rare): the frame's own exit only keeps the
+        window's length, and the factors later added to its poses (a landmark's earlier
+        rays, a removed landmark's marginal) or a denser stretch of observations would
+        otherwise hold it over the bound."""
         bound, length = self.config.window_factor_bound, self.config.pose_window
         if bound is None or length is None or len(robot.window) <= length:
             return
-        if self._window_factor_count(robot) <= bound + bound // _SHRINK_SLACK:
+        most = self.config.window_marginals
+        if self._window_factor_count(robot) <= bound + bound // _SHRINK_SLACK and (
+            most is None or self._window_marginals(robot) <= most + most // _SHRINK_SLACK
+        ):
             return
         exiting = robot.window[0]
         promoted, leaving = self._window_exit(robot, exiting)

@@ -396,6 +396,14 @@ class MapConfig(StrictModel):
         ge=2,
         description="most poses of a grown window (pose_window if that is more)",
     )
+    window_marginals: int | None = Field(
+        None,
+        ge=1,
+        description="a window grows beyond pose_window only while fewer than this many "
+        "marginal factors (left by removed landmarks and poses) touch its poses, and "
+        "sheds a pose a frame while more do; null = no such bound. A map created without "
+        f"it gets {_DEFAULTS.window_marginals}; a stored config without it, none",
+    )
     camera: CameraConfig | None = Field(
         None,
         description="camera of the map's image frames (multipart meta + image); "
@@ -522,19 +530,23 @@ class MapConfig(StrictModel):
     ) -> MapConfig:
         """The config a map is created with: the service's default cap if the client gave
         none (`camera_default_cap` for a camera map; None: uncapped); the odometry random
-        walks of RANDOM_WALK_NOISE_DEFAULTS where the client gave none; for a camera map,
+        walks of RANDOM_WALK_NOISE_DEFAULTS and the estimator's window_marginals where
+        the client gave none; for a camera map,
         graph_frame_distance_m and the noise's bearing loss and
         scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at
         creation: a stored config or an export without these fields is a map built with
-        every frame in the graph and Huber's loss, and its frame log replays that way."""
+        every frame in the graph, Huber's loss and no marginal bound on its window, and
+        its frame log replays that way."""
         given = self.noise.model_fields_set
         noise = self.noise.model_copy(
             update={k: v for k, v in RANDOM_WALK_NOISE_DEFAULTS.items() if k not in given}
         )
-        if self.camera is None:
-            return self.with_default_cap(default_cap).model_copy(update={"noise": noise})
-        config = self.with_default_cap(camera_default_cap)
         update: dict[str, Any] = {"noise": noise}
+        if "window_marginals" not in self.model_fields_set:
+            update["window_marginals"] = _DEFAULTS.window_marginals
+        if self.camera is None:
+            return self.with_default_cap(default_cap).model_copy(update=update)
+        config = self.with_default_cap(camera_default_cap)
         if "graph_frame_distance_m" not in self.model_fields_set:
             update["graph_frame_distance_m"] = CAMERA_GRAPH_FRAME_DISTANCE_M
         if not {"bearing_loss", "huber_k"} & given:
@@ -553,6 +565,7 @@ _TOP_LEVEL_FIELDS = (
     "landmark_cap",
     "policy",
     *WINDOW_FIELDS,
+    "window_marginals",
     "optimizer",
     "max_landmark_factors",
     "removal_margin",

@@ -485,6 +485,47 @@ def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> N
     assert _rmse(slam.trajectory()["r1"], truth) < 1.0
 
 
+def test_a_window_stops_growing_when_removed_landmarks_marginals_pile_up_on_it() -> None:
+    """window_marginals: a window whose bearing factors would let it grow (here
+    window_observations never binds) does not grow while more marginal factors than
+    the bound touch its poses, and sheds a pose when more than the bound + 5 % do; each
+    removal of a landmark leaves one on the poses that saw it."""
+    frames, truth, _ = circle_frames(300, seed=3, n_landmarks=12, max_range=4.0)
+    runs = {}
+    for bound in (None, 6):
+        cfg = SlamConfig(
+            landmark_cap=4,
+            pose_window=20,
+            window_observations=10**6,
+            max_pose_window=200,
+            window_marginals=bound,
+        )
+        slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+        lengths, counts = [], []
+        for f in frames:
+            slam.process(f, with_covariance=False)
+            robot = slam._robots["r1"]
+            lengths.append(len(robot.window))
+            counts.append(slam._window_marginals(robot))
+        assert slam.removal_count > 10, "the cap must remove landmarks"
+        assert _rmse(slam.trajectory()["r1"], truth) < 1.0
+        runs[bound] = lengths, counts
+    free, bounded = runs[None][0], runs[6][0]
+    assert max(free) == 200, "without the bound, the window grows to max_pose_window"
+    assert max(bounded) < 150 and bounded[-1] < free[-1]
+    lengths, counts = runs[6]
+    grew_over = [
+        i for i in range(1, len(lengths)) if counts[i - 1] > 6 and lengths[i] > lengths[i - 1]
+    ]
+    assert not grew_over, "over the bound, the window must not grow"
+    shed = [
+        i
+        for i in range(1, len(lengths))
+        if counts[i - 1] > 6 + 6 // 20 and lengths[i - 1] > 20 and lengths[i] < lengths[i - 1]
+    ]
+    assert shed, "the run must exercise the shedding"
+
+
 def test_by_default_every_maps_window_grows_and_a_stored_capped_one_does_not() -> None:
     """window_factor_bound: window_observations (900 by default), capped or not; where
     it is None (maps stored before capped maps grew), an uncapped map grows by
