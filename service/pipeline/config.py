@@ -434,10 +434,10 @@ class MapConfig(StrictModel):
     )
     optimizer: Optimizer = Field(
         _DEFAULTS.optimizer,
-        description="iSAM2 step: 'dogleg' (trust region: robust, but every update costs a "
-        "step over the whole graph; MRCLAM-6 r1 at cap 8: 3.0 ms/frame median) or "
-        "'gauss_newton' (undamped, partial updates: 1.3 ms/frame there, but a poorly "
-        "linearised landmark can throw the estimate off for good)",
+        description="iSAM2 step: 'gauss_newton' (partial updates; the default) or 'dogleg' "
+        "(Powell's trust region: every update evaluates every factor's error, ~2x a "
+        "frame's cost on a dense map, and it let a landmark seen along one ray flip "
+        "along it on MRCLAM-6)",
     )
     max_landmark_factors: int | None = Field(
         None,

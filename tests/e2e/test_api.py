@@ -60,9 +60,9 @@ def test_default_cap_comes_from_settings_and_null_means_uncapped(client: httpx.C
     assert camera.json()["estimator"]["landmark_cap"] == CAMERA_LANDMARK_CAP
     uncapped = client.post("/v1/maps", json={"name": "u", "config": {"landmark_cap": None}})
     assert uncapped.json()["estimator"]["landmark_cap"] is None
-    assert default["estimator"]["optimizer"] == "dogleg"
-    fast = client.post("/v1/maps", json={"name": "g", "config": {"optimizer": "gauss_newton"}})
-    assert fast.json()["estimator"]["optimizer"] == "gauss_newton"
+    assert default["estimator"]["optimizer"] == "gauss_newton"
+    damped = client.post("/v1/maps", json={"name": "g", "config": {"optimizer": "dogleg"}})
+    assert damped.json()["estimator"]["optimizer"] == "dogleg"
 
 
 def test_frames_give_results_and_the_map_answers(

@@ -83,10 +83,11 @@ def test_marginalising_a_landmark_equals_batch_elimination(seed: int) -> None:
     assert gone not in inc
     assert not inc.estimate().exists(gone)
     rest = poses + [m for m in marks if m != gone]
-    # Estimate: marginalisation does not move the MAP of the remaining variables.
+    # Estimate: marginalisation does not move the MAP of the remaining variables (to
+    # iSAM2's Gauss-Newton, which leaves deltas under its wildfire threshold behind).
     for key in poses:
         np.testing.assert_allclose(
-            inc.estimate().atPose2(key).matrix(), optimum.atPose2(key).matrix(), atol=1e-6
+            inc.estimate().atPose2(key).matrix(), optimum.atPose2(key).matrix(), atol=1e-5
         )
     # Covariances: equal to the batch graph with the landmark eliminated.
     batch = _eliminated_covariance(graph, optimum, gone, rest)
