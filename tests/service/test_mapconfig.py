@@ -100,6 +100,27 @@ def test_removal_margin_reaches_the_estimator_and_must_stay_below_the_cap() -> N
         slam_config({"landmark_cap": 5, "removal_margin": 5}, "mapping")
 
 
+def test_a_new_map_bounds_its_window_by_marginals_and_a_stored_one_keeps_its_own() -> None:
+    """At creation a map without window_marginals gets the estimator's bound; an explicit
+    value (null included) is kept, and a stored config (or an export) without the field
+    replays with no such bound, as it was processed."""
+    default = SlamConfig().window_marginals
+    assert default is not None
+    new = MapConfig.model_validate({}).for_new_map(50)
+    assert new.window_marginals == default
+    stored = new.model_dump(mode="json")
+    assert slam_config(stored, "mapping").window_marginals == default
+    camera = MapConfig.model_validate({"camera": "panorama"}).for_new_map(50)
+    assert camera.window_marginals == default
+    free = MapConfig.model_validate({"window_marginals": None}).for_new_map(50)
+    assert free.window_marginals is None
+    assert MapConfig.model_validate({"window_marginals": 7}).for_new_map(50).window_marginals == 7
+    old = {k: v for k, v in stored.items() if k != "window_marginals"}
+    assert slam_config(old, "mapping").window_marginals is None
+    with pytest.raises(ValidationError):
+        MapConfig.model_validate({"window_marginals": 0})
+
+
 def test_a_camera_map_is_created_with_graph_frames_and_a_stored_one_keeps_its_own() -> None:
     """At creation a camera map without graph_frame_distance_m gets the camera's; a map
     without a camera, an explicit value (null included) and a stored config (or an export)
@@ -342,10 +363,13 @@ def test_every_estimator_parameter_at_once_and_the_defaults_are_the_estimators()
 
 def test_a_config_stored_before_the_groups_loads_with_the_estimators_defaults() -> None:
     loaded = slam_config(LEGACY_STORED_CONFIG, "mapping")
-    # As it was built: no odometry random walks, a capped window that does not grow.
+    # As it was built: no odometry random walks, a capped window that does not grow (and
+    # no bound by marginals), and the optimizer it stored (dogleg, the default then).
     assert loaded == replace(
         SlamConfig(),
         window_observations=None,
+        window_marginals=None,
+        optimizer="dogleg",
         odometry_sigma_per_sqrt_metre=(0.0, 0.0, 0.0),
         odometry_sigma_per_sqrt_radian=0.0,
     )
