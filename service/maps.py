@@ -1,9 +1,10 @@
-"""The service as the API sees it: one method per use case, all routed to workers.
+"""The service as the API sees it: one method per use case, routed to workers.
 
 `MapService` lives in the API process. It keeps the catalogue of maps (the store's),
-the engine that runs the maps (local worker processes, or Ray actors), and a notifier
-that wakes the event streams of a map when its worker reported something new.
-Everything heavy happens in the workers.
+the engine that runs the maps (local worker processes, or Ray actors), each map's
+latest published view (service.published: reads are answered from it, never queued
+behind frames), and each map's event feed, which the frame answers fill and the event
+streams read from memory. Everything heavy happens in the workers.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import builtins
 import logging
 import secrets
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -22,6 +24,7 @@ from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
+from service.published import MapView
 from service.queries import SetMode, Summary
 from service.requests import CreateMap, DeleteMap, ImportMap, MapRequest, SubmitFrame
 from service.settings import Settings
@@ -36,19 +39,47 @@ EventRows = list[tuple[int, str, str]]
 
 
 class Notifier:
-    """Wakes the waiters of a map when new events were stored for it."""
+    """Wakes the waiters of a map when new events were stored for it, and keeps each
+    map's latest events in memory (a feed), so that any number of event streams read
+    them without a store query each."""
 
-    def __init__(self) -> None:
+    def __init__(self, feed_size: int = 1000) -> None:
         self._events: dict[str, asyncio.Event] = {}
+        self._feeds: dict[str, deque[tuple[int, str, str]]] = {}
+        self._feed_size = feed_size
 
     def handle(self, map_id: str) -> asyncio.Event:
-        """An event set at the next `notify(map_id)`; take it *before* reading the store."""
+        """An event set at the next `notify(map_id)`; take it *before* reading the events."""
         return self._events.setdefault(map_id, asyncio.Event())
 
     def notify(self, map_id: str) -> None:
         event = self._events.pop(map_id, None)
         if event is not None:
             event.set()
+
+    def publish(self, map_id: str, rows: EventRows) -> None:
+        """Events a frame stored (ids consecutive and after those fed before, else the
+        feed restarts with them), then wake the map's waiters."""
+        if rows:
+            feed = self._feeds.get(map_id)
+            if feed is None or not feed or feed[-1][0] + 1 != rows[0][0]:
+                feed = self._feeds[map_id] = deque(maxlen=self._feed_size)
+            feed.extend(rows)
+        self.notify(map_id)
+
+    def forget(self, map_id: str) -> None:
+        self._feeds.pop(map_id, None)
+        self.notify(map_id)
+
+    def fed_after(self, map_id: str, after: int) -> EventRows | None:
+        """The fed events with id > `after`, or None when the feed does not reach back to
+        `after` (read the store)."""
+        feed = self._feeds.get(map_id)
+        if not feed or feed[0][0] > after + 1:
+            return None
+        if feed[-1][0] <= after:
+            return []
+        return [row for row in feed if row[0] > after]
 
 
 def _imported_record(reply: dict[str, Any]) -> MapRecord:
@@ -66,8 +97,14 @@ class MapService:
         self._keys: dict[str, KeyRecord] = {k.hash: k for k in self._catalog.keys()}
         self._creating = 0
         self.pool: Engine = make_engine(settings, on_restart=on_worker_restart)
+        self.pool.on_view = self._publish_view
+        self._views: dict[str, MapView] = {}
         self.notifier = Notifier()
         self.started = False
+
+    def _publish_view(self, view: MapView) -> None:
+        if view.map_id in self._records:
+            self._views[view.map_id] = view.updated(self._views.get(view.map_id))
 
     async def start(self) -> None:
         await self.pool.start(self._records)
@@ -166,8 +203,7 @@ class MapService:
         return {**summary, "worker": self.pool.worker_of(record.id)}
 
     async def summary(self, map_id: str) -> dict[str, Any]:
-        self.record(map_id)
-        summary = await self.pool.call(map_id, Summary())
+        summary = await self.query(map_id, Summary())
         return {**summary, "worker": self.pool.worker_of(map_id)}
 
     async def delete(self, map_id: str) -> None:
@@ -176,7 +212,8 @@ class MapService:
         del self._records[map_id]
         self._keys = {h: k for h, k in self._keys.items() if k.map_id != map_id}
         self.pool.untrack(map_id)
-        self.notifier.notify(map_id)
+        self._views.pop(map_id, None)
+        self.notifier.forget(map_id)
         await self.pool.call(map_id, DeleteMap())
 
     async def set_mode(self, map_id: str, mode: Mode) -> dict[str, Any]:
@@ -198,18 +235,39 @@ class MapService:
         the map's worker)."""
         self.record(map_id)
         reply = await self.pool.call(map_id, SubmitFrame(frame, image))
-        if reply.event_ids:
-            self.notifier.notify(map_id)
+        if reply.events:
+            if self.pool.shared:  # other API processes feed the store too: read it
+                self.notifier.notify(map_id)
+            else:
+                self.notifier.publish(map_id, reply.events)
         return reply
 
     async def query(self, map_id: str, request: MapRequest[T]) -> T:
-        """A query (service.queries) on a map; its answer."""
+        """A query (service.queries) on a map; its answer: from the map's published view
+        when the query can be answered from it (no wait for the worker), else the
+        worker's."""
         self.record(map_id)
+        view = self._views.get(map_id)
+        if view is not None:
+            if request.view_reads_store:
+                answer = await asyncio.to_thread(request.from_view, view, self.store)
+            else:
+                answer = request.from_view(view, self.store)
+            if answer is not None:
+                return answer
         return await self.pool.call(map_id, request)
 
     def read_events(self, map_id: str, after: int) -> EventRows:
         """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""
         return self.store.read_events(map_id, after)
+
+    async def events_after(self, map_id: str, after: int) -> EventRows:
+        """A map's events after id `after`: from its feed in memory, or (a stream that
+        starts or fell behind) from the store."""
+        rows = self.notifier.fed_after(map_id, after)
+        if rows is None:
+            rows = await asyncio.to_thread(self.read_events, map_id, after)
+        return rows
 
     def latest_event_id(self, map_id: str) -> int:
         """The id of the map's newest stored event, 0 if none (blocking I/O)."""

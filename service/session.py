@@ -286,6 +286,11 @@ class MapSession:
         """
         return self._since_snapshot >= self._settings.snapshot_every
 
+    @property
+    def unsnapshotted(self) -> bool:
+        """Frames came since the last snapshot (a reload would replay them)."""
+        return self._since_snapshot > 0
+
     def _count_frame(self) -> None:
         self._since_snapshot += 1
         if self._since_snapshot >= SNAPSHOT_OVERDUE * self._settings.snapshot_every:
@@ -392,7 +397,7 @@ class MapSession:
         result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
-        event_ids = self._complete(
+        events = self._complete(
             self.slam,
             log_id,
             text,
@@ -407,7 +412,7 @@ class MapSession:
         self._count_frame()
         return FrameReply(
             text,
-            event_ids=event_ids,
+            events=events,
             timing_ms=result["timing_ms"],
             store_ms=store_ms,
             live=len(self.slam.landmarks),
@@ -452,12 +457,12 @@ class MapSession:
         removals: list[RemovalRecord],
         observations: str | None = None,
         poses: list[PoseRow] | None = None,
-    ) -> list[int]:
+    ) -> list[tuple[int, str, str]]:
         """Store the frame's result with its events, removals, archived landmarks and
-        final trajectory rows (one transaction); the events' ids."""
+        final trajectory rows (one transaction); the events as stored (id, kind, data)."""
         events, rows, archived = frame_events(slam, step, result_json, removals, log_id)
         restored = () if step.outcome is None else step.outcome.restored
-        return self.store.complete_frame(
+        ids = self.store.complete_frame(
             log_id,
             result_json,
             events,
@@ -467,6 +472,7 @@ class MapSession:
             archived=archived,
             restored=restored,
         )
+        return [(i, kind, data) for i, (kind, data) in zip(ids, events, strict=True)]
 
     def seed(self) -> int:
         """The map's seed (its config's)."""

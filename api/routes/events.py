@@ -29,11 +29,12 @@ async def _stream(
         if who.key is not None and not service.key_alive(who.key):
             return
         wake = service.notifier.handle(map_id)
-        rows = await asyncio.to_thread(service.read_events, map_id, after)
-        for event_id, kind, data in rows:
-            after = event_id
-            yield f"id: {event_id}\nevent: {kind}\ndata: {data}\n\n".encode()
-        if rows:
+        rows = await service.events_after(map_id, after)
+        if rows:  # one write for what came since the last one
+            after = rows[-1][0]
+            yield "".join(
+                f"id: {i}\nevent: {kind}\ndata: {data}\n\n" for i, kind, data in rows
+            ).encode()
             continue
         if await request.is_disconnected() or map_id not in {r.id for r in service.list()}:
             return

@@ -1,0 +1,73 @@
+"""The published view of a map: what its reads are answered from, without its worker.
+
+After every change of a map (a frame, a mode switch, a learnt place, an open) the
+worker that owns it builds a `MapView` — plain, immutable documents of the map's state
+right after that change — and sends it to the API process with its answer. The API
+process answers GET summary, pose, live landmarks, places and trajectory from the
+latest view it holds, so a read never waits behind the frames the worker is busy with
+(its own map's or other maps'). What a view cannot answer (coverage, archived
+landmarks, per-frame statistics, a robot known only to the place localiser) still goes
+to the worker.
+
+The live landmarks' marginal covariances cost a joint marginal of every live landmark
+(~5 ms for 50 landmarks, a third of a frame): the view refreshes that document every
+`landmarks_every` frames of the map and whenever the worker is idle, and keeps the last
+one in between (`landmarks_log_id` says which frame it is of).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.queries import Landmarks, Places, Pose, Summary
+from service.session import MapSession
+
+Doc = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class MapView:
+    """A map's state after the change of log frame `log_id`, as documents."""
+
+    map_id: str
+    log_id: int
+    summary: Doc
+    pose: Doc
+    places: Doc | None
+    """None: the map has no place localiser."""
+    held: dict[str, NDArray[np.float64]] | None
+    """Trajectory rows the estimator still holds per robot ((N, 5) seq, stamp, x, y,
+    theta); the final rows before them are in the store. None: the map has off-graph
+    frames, whose rows only the worker can place."""
+    landmarks: list[Doc] | None
+    """The live landmarks (GET /landmarks), of frame `landmarks_log_id`; None: not
+    refreshed with this view (the previous view's stand)."""
+    landmarks_log_id: int = 0
+
+    def updated(self, previous: MapView | None) -> MapView:
+        """This view, with `previous`'s landmarks when it carries none."""
+        if self.landmarks is not None or previous is None or previous.landmarks is None:
+            return self
+        return replace(
+            self, landmarks=previous.landmarks, landmarks_log_id=previous.landmarks_log_id
+        )
+
+
+def build_view(session: MapSession, *, landmarks: bool) -> MapView:
+    """The view of an open map now; `landmarks`: with the live landmarks' document."""
+    pipeline = session.pipeline
+    has_off_graph = bool(pipeline.off_graph_robots())
+    return MapView(
+        map_id=session.record.id,
+        log_id=session.last_log_id,
+        summary=Summary().answer(session),
+        pose=Pose().answer(session),
+        places=None if pipeline.localiser is None else Places().answer(session),
+        held=None if has_off_graph else session.slam.trajectory(),
+        landmarks=Landmarks().answer(session) if landmarks else None,
+        landmarks_log_id=session.last_log_id if landmarks else 0,
+    )
