@@ -5,15 +5,17 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 root, niced (2 cores, shared)::
 
     nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 60]
-                                    [--phase-s 12] [--subscribers 200] [--out bench/results]
+                                    [--event-maps 2] [--event-frames 40]
+                                    [--subscribers 200] [--out bench/results]
 
 Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmarks,
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
 same world. Map config: landmark cap 50, the default policy.
 
 1. ``cpu_bound``: the frames of every map through ``MapSession.submit`` in-process,
-   the maps dealt to two processes (one per core), each map's robots interleaved
-   frame by frame: frames/s = all frames / the slower process's wall time.
+   the maps dealt to two processes (one per core, at a worker's niceness), each map's
+   robots interleaved frame by frame: frames/s = all frames / the slower process's
+   wall time.
 2. ``http``: a ``covslam serve --workers 2`` (uvicorn in a subprocess, SQLite,
    synchronous NORMAL); 12 maps are created (placed 6:6) and 4 of worker 1's deleted, so
    the load maps start placed 6:2 on the workers, as a placement by id did. M maps x C
@@ -22,10 +24,11 @@ same world. Map config: landmark cap 50, the default policy.
    third of the phase (the balancer's effect), the moves the pool made. Meanwhile a
    reader process GETs pose, landmarks, trajectory and the summary of an idle map
    and of a busy map, one after the other: p50/p99 per target.
-3. ``events``: the same clients post further frames for `phase-s` seconds with no
-   event stream open, then for `phase-s` seconds with `subscribers` SSE streams open
-   (spread over the load maps, read by one asyncio process), then again with none:
-   frames/s and POST p50, the middle phase against the mean of the other two.
+3. ``events``: three times `event-maps` fresh maps take the same frames from C clients
+   each (`event-frames` per client): with no event stream open, with `subscribers` SSE
+   streams open on them (read by one asyncio process), and with none again: frames/s
+   and POST p50, the middle phase against the mean of the other two. The maps are
+   deleted afterwards.
 4. ``restart``: SIGTERM (seconds until the process group ended), the frames each map's
    log holds beyond its latest snapshot (what a start would replay), then a start on
    the same data: seconds until /readyz answered 200 with every map loaded, and the
@@ -62,6 +65,8 @@ from tests.support.clusters import free_port
 
 MAP_CONFIG = {"landmark_cap": 50}
 READ_PATHS = ("pose", "landmarks", "trajectory", "")
+READ_PAUSE_S = 0.25
+"""Between two rounds of reads (a dashboard's polling, not a second load)."""
 
 
 def _loadavg() -> float:
@@ -99,8 +104,10 @@ def make_frames(maps: int, clients: int, frames: int) -> list[list[list[dict[str
 def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float]:
     """(frames, wall s) of these maps' frames through MapSession.submit, one process."""
     from service.session import MapSession
-    from service.settings import StoreSettings
+    from service.settings import StoreSettings, WorkerSettings
     from service.store import MapRecord
+
+    os.nice(WorkerSettings().nice)  # as a worker process: the same share of the cores
 
     work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
     sessions = []
@@ -244,7 +251,7 @@ def _reader(url: str, targets: dict[str, str], stop: Any, queue: Any) -> None:
                     out[name].append(1e3 * (time.perf_counter() - t0))
                     if r.status_code != 200:
                         raise RuntimeError(f"GET {path}: {r.status_code} {r.text}")
-            time.sleep(0.02)
+            time.sleep(READ_PAUSE_S)
     queue.put(out)
 
 
@@ -288,8 +295,7 @@ def _unreplayed(data: Path) -> dict[str, int]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    extra = 400  # frames each client may post in the events phases
-    frames = make_frames(args.maps + 1, args.clients, args.frames + extra)
+    frames = make_frames(args.maps + 1, args.clients, max(args.frames, args.event_frames, 100))
     main = [[run[: args.frames] for run in runs] for runs in frames[: args.maps]]
     result: dict[str, Any] = {
         "command": "nice -n 10 python -m bench.load " + " ".join(sys.argv[1:]),
@@ -348,32 +354,34 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result["http"] = http_run
     print("http", http_run, flush=True)
 
-    # 3. events: 0 subscribers, then `subscribers`, then 0 again
+    # 3. events: fresh maps, the same frames, 0 subscribers, then `subscribers`, then 0
     events: dict[str, Any] = {}
-    offset = args.frames
+    phase = [[run[: args.event_frames] for run in runs] for runs in frames[: args.event_maps]]
     for k, n_subs in enumerate((0, args.subscribers, 0)):
-        phase = [
-            [run[offset : offset + extra // 3] for run in runs] for runs in frames[: args.maps]
+        fresh = [
+            client.post("/v1/maps", json={"name": f"e{k}{i}", "config": MAP_CONFIG}).json()["id"]
+            for i in range(args.event_maps)
         ]
-        offset += extra // 3
         proc = None
         stop, counts = ctx.Event(), ctx.Queue()
         if n_subs:
-            paths = [f"/v1/maps/{maps[i % len(maps)]}/events" for i in range(n_subs)]
+            paths = [f"/v1/maps/{fresh[i % len(fresh)]}/events" for i in range(n_subs)]
             proc = ctx.Process(target=_subscribers, args=(server.port, paths, stop, counts))
             proc.start()
             time.sleep(3.0)  # let them connect
         name = f"{k + 1}_subscribers_{n_subs}"
-        events[name] = post_all(server.port, maps, phase, args.phase_s)
+        events[name] = post_all(server.port, fresh, phase, limit_s=600)
         if proc is not None:
             stop.set()
             events[name]["frame_events_received"] = counts.get(timeout=60)
             proc.join()
+        for m in fresh:
+            client.delete(f"/v1/maps/{m}").raise_for_status()
     zeros = [events["1_subscribers_0"], events["3_subscribers_0"]]
     many = events[f"2_subscribers_{args.subscribers}"]
     zero_p50 = float(np.mean([z["post_ms"]["p50"] for z in zeros]))
     zero_rate = float(np.mean([z["frames_per_s"] for z in zeros]))
-    # against the mean of the phases before and after (the maps grow from one to the next)
+    # against the mean of the phases before and after (the machine's load drifts)
     events["post_p50_ratio"] = round(many["post_ms"]["p50"] / zero_p50, 3)
     events["throughput_ratio"] = round(many["frames_per_s"] / zero_rate, 3)
     result["events"] = events
@@ -407,7 +415,8 @@ def main() -> None:
     parser.add_argument("--maps", type=int, default=8)
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--frames", type=int, default=60, help="frames per client (phase 1-2)")
-    parser.add_argument("--phase-s", type=float, default=12.0)
+    parser.add_argument("--event-maps", type=int, default=2)
+    parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
     parser.add_argument("--subscribers", type=int, default=200)
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()

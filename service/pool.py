@@ -9,8 +9,9 @@ Placement: a new map goes to the least loaded worker, the maps found at start ar
 out in turn. A map's load is the time-averaged number of its requests in flight (waiting
 or being computed: what its clients ask of a worker, by Little's law their rate times
 the time each takes). Every `workers.balance_interval_s` the pool compares the workers'
-loads; when moving one map from the busiest to the least busy worker brings them closer,
-it moves it: new calls for the map wait in the API process, the old worker answers what
+loads; when they differ clearly and moving one map from the busiest to the least busy
+worker at least halves the difference, it moves it (then lets the loads settle for a
+few intervals): new calls for the map wait in the API process, the old worker answers what
 it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
 from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged frame
 is in the map's log either way; a move that fails leaves the map where it was.
@@ -112,8 +113,12 @@ class _WorkerDied(Exception):
 
 MOVE_COOLDOWN_S = 10.0
 """A map that moved stays where it is for at least this long (no ping-pong)."""
+SETTLE_INTERVALS = 3
+"""After a move, the balancer waits this many intervals (the loads it measures settle)."""
 MIN_LOAD_GAP = 1.0
-"""Loads (requests in flight, time-averaged) two workers may differ by without a move."""
+"""Loads (requests in flight, time-averaged) two workers may differ by without a move..."""
+MIN_RELATIVE_GAP = 0.2
+"""...or by this fraction of the busiest worker's load."""
 
 
 @dataclass
@@ -146,20 +151,22 @@ def choose_move(
 ) -> tuple[str, int, int] | None:
     """(map, from worker, to worker) that best evens out the busiest and the least busy
     worker, or None. `totals`: each worker's load; `movable`: per worker, the loads of
-    the maps that may move. Moving a map of load l narrows a gap g between the two
-    when 0 < l < g; the best leaves |g - 2l| smallest."""
+    the maps that may move. Only a gap g of at least `min_gap` and MIN_RELATIVE_GAP of
+    the busiest's load counts (measured loads are noisy), and only a move that at least
+    halves it: a map of load l leaves a gap |g - 2l|; the smallest wins."""
     if len(totals) < 2:
         return None
     busiest = max(totals, key=lambda w: totals[w])
     idlest = min(totals, key=lambda w: totals[w])
     gap = totals[busiest] - totals[idlest]
-    if gap < min_gap:
+    if gap < max(min_gap, MIN_RELATIVE_GAP * totals[busiest]):
         return None
     maps = movable.get(busiest, {})
-    candidates = [(abs(gap - 2 * load), m) for m, load in maps.items() if 0 < load < gap]
-    if not candidates:
+    candidates = [(abs(gap - 2 * load), m) for m, load in maps.items() if load > 0]
+    best = min(candidates, default=None)
+    if best is None or best[0] > gap / 2:
         return None
-    return min(candidates)[1], busiest, idlest
+    return best[1], busiest, idlest
 
 
 @dataclass
@@ -365,16 +372,21 @@ class WorkerPool(EngineBase):
 
     # ------------------------------------------------------------ balance
     async def _balance_every(self, interval_s: float) -> None:
+        settle = 0
         while True:
             await asyncio.sleep(interval_s)
             try:
-                await self.balance(interval_s)
+                if settle > 0:  # sample only: the loads after the last move settle
+                    settle -= 1
+                    self._sample(interval_s)
+                elif await self.balance(interval_s) is not None:
+                    settle = SETTLE_INTERVALS
             except Exception:
                 log.exception("balancing the maps over the workers failed")
 
-    async def balance(self, interval_s: float) -> tuple[str, int, int] | None:
-        """Sample the maps' loads and move at most one map (see `choose_move`); the move
-        made, or None."""
+    def _sample(self, interval_s: float) -> tuple[dict[int, float], dict[int, dict[str, float]]]:
+        """Fold the last interval into every map's load: (each worker's load, the loads
+        of the maps that may move, per worker)."""
         now = time.monotonic()
         totals = {s.index: 0.0 for s in self._slots}
         movable: dict[int, dict[str, float]] = {s.index: {} for s in self._slots}
@@ -386,7 +398,12 @@ class WorkerPool(EngineBase):
             totals[owner] += level
             if now - load.moved >= MOVE_COOLDOWN_S:
                 movable[owner][map_id] = level
-        choice = choose_move(totals, movable)
+        return totals, movable
+
+    async def balance(self, interval_s: float) -> tuple[str, int, int] | None:
+        """Sample the maps' loads and move at most one map (see `choose_move`); the move
+        made, or None."""
+        choice = choose_move(*self._sample(interval_s))
         if choice is None:
             return None
         map_id, _, target = choice

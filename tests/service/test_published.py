@@ -1,0 +1,106 @@
+"""A map's published view answers its reads as the map itself does; the event feed
+hands out what the store holds; the balancer picks the move that evens workers out."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from service.frames_io import frame_to_dict
+from service.maps import Notifier
+from service.pool import choose_move
+from service.published import build_view
+from service.queries import Landmarks, Places, Pose, Summary, Trajectory
+from service.session import MapSession
+from service.settings import StoreSettings
+from service.store import MapRecord, Store
+from service.views import final_before_held
+from tests.graph._world import circle_frames
+
+
+@pytest.fixture
+def session(store: Store) -> MapSession:
+    """A map with enough frames that the estimator made rows final."""
+    config = {"landmark_cap": 6, "pose_window": 10}  # poses retire: rows become final
+    record = MapRecord("viewmap", "m", "mapping", config, time.time())
+    s = MapSession.create(store.place("viewmap"), record, StoreSettings())
+    for frame in circle_frames(120, seed=2)[0]:
+        s.submit(frame_to_dict(frame))
+    yield s
+    s.close()
+
+
+def test_view_answers_every_read_as_the_map(session: MapSession, store: Store) -> None:
+    view = build_view(session, landmarks=True)
+    assert view.log_id == session.last_log_id
+    assert store.read_poses("viewmap"), "no final rows: the merge with the store is untested"
+    for query in (
+        Pose(),
+        Summary(),
+        Places(),
+        Landmarks(),
+        Trajectory(),
+        Trajectory(robot="r1"),
+    ):
+        assert query.from_view(view, store) == query.answer(session), query
+
+
+def test_what_the_view_cannot_answer_goes_to_the_worker(session: MapSession, store: Store) -> None:
+    view = build_view(session, landmarks=False)
+    assert Landmarks().from_view(view, store) is None  # not refreshed with this view
+    assert Landmarks("archived").from_view(view, store) is None
+    assert Trajectory(stats_every=5).from_view(view, store) is None
+    assert Trajectory(robot="nobody").from_view(view, store) is None
+
+
+def test_a_view_without_landmarks_keeps_the_previous_ones(session: MapSession) -> None:
+    first = build_view(session, landmarks=True)
+    session.submit(frame_to_dict(circle_frames(121, seed=2)[0][120]))
+    second = build_view(session, landmarks=False).updated(first)
+    assert second.log_id > first.log_id
+    assert second.landmarks == first.landmarks
+    assert second.landmarks_log_id == first.log_id
+
+
+def test_final_rows_the_view_still_holds_are_not_doubled() -> None:
+    final = np.array([[s, s, 0, 0, 0] for s in range(6)], dtype=np.float64)
+    held = np.array([[s, s, 1, 1, 1] for s in range(4, 9)], dtype=np.float64)
+    rows = final_before_held(final, held)
+    assert rows[:, 0].tolist() == list(range(9))
+    assert rows[4:, 2].tolist() == [1.0] * 5  # the held (view's) rows win
+
+
+def test_the_feed_hands_out_events_after_an_id_or_sends_to_the_store() -> None:
+    feed = Notifier(feed_size=3)
+    assert feed.fed_after("m", 0) is None  # nothing fed: the store
+    feed.publish("m", [(1, "frame", "a"), (2, "frame", "b")])
+    assert feed.fed_after("m", 0) == [(1, "frame", "a"), (2, "frame", "b")]
+    assert feed.fed_after("m", 1) == [(2, "frame", "b")]
+    assert feed.fed_after("m", 2) == []
+    feed.publish("m", [(3, "frame", "c"), (4, "frame", "d")])  # the oldest falls out
+    assert feed.fed_after("m", 0) is None
+    assert feed.fed_after("m", 1) == [(2, "frame", "b"), (3, "frame", "c"), (4, "frame", "d")]
+    feed.publish("m", [(7, "frame", "g")])  # a gap (events stored elsewhere): restart
+    assert feed.fed_after("m", 4) is None
+    assert feed.fed_after("m", 6) == [(7, "frame", "g")]
+
+
+def test_publish_wakes_the_waiters() -> None:
+    feed = Notifier()
+    wake = feed.handle("m")
+    feed.publish("m", [(1, "frame", "a")])
+    assert wake.is_set()
+
+
+def test_the_balancer_moves_the_map_that_evens_out_the_workers() -> None:
+    totals = {0: 24.0, 1: 8.0}
+    movable = {0: {"a": 4.0, "b": 4.0, "c": 12.0, "d": 4.0}, 1: {"e": 4.0, "f": 4.0}}
+    assert choose_move(totals, movable) == ("a", 0, 1)  # 20:12 (c would give 12:20)
+    assert choose_move({0: 16.0, 1: 16.0}, movable) is None
+    assert choose_move({0: 10.0, 1: 0.0}, {0: {"big": 10.0}}) is None  # would only swap
+    assert choose_move({0: 10.0, 1: 0.0}, {0: {"small": 1.0}}) is None  # gap 10 -> 8
+    assert choose_move({0: 10.0, 1: 0.0}, {0: {}}) is None  # nothing may move
+    assert choose_move({0: 1.5, 1: 1.0}, {0: {"a": 0.3}}) is None  # within the margin
+    assert choose_move({0: 17.0, 1: 14.0}, {0: {"a": 1.5}}) is None  # noise, not load
