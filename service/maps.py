@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import builtins
+import itertools
 import logging
 import secrets
 import time
@@ -45,7 +46,8 @@ class Notifier:
 
     def __init__(self, feed_size: int = 1000) -> None:
         self._events: dict[str, asyncio.Event] = {}
-        self._feeds: dict[str, deque[tuple[int, str, str]]] = {}
+        self._feeds: dict[str, deque[tuple[int, str, str, bytes]]] = {}
+        """Per map: (id, kind, data, the event as SSE bytes), ids consecutive."""
         self._feed_size = feed_size
 
     def handle(self, map_id: str) -> asyncio.Event:
@@ -64,22 +66,37 @@ class Notifier:
             feed = self._feeds.get(map_id)
             if feed is None or not feed or feed[-1][0] + 1 != rows[0][0]:
                 feed = self._feeds[map_id] = deque(maxlen=self._feed_size)
-            feed.extend(rows)
+            feed.extend((*row, sse_bytes([row])) for row in rows)  # encoded once for all
         self.notify(map_id)
 
     def forget(self, map_id: str) -> None:
         self._feeds.pop(map_id, None)
         self.notify(map_id)
 
-    def fed_after(self, map_id: str, after: int) -> EventRows | None:
-        """The fed events with id > `after`, or None when the feed does not reach back to
-        `after` (read the store)."""
+    def _fed(self, map_id: str, after: int) -> list[tuple[int, str, str, bytes]] | None:
         feed = self._feeds.get(map_id)
         if not feed or feed[0][0] > after + 1:
             return None
-        if feed[-1][0] <= after:
-            return []
-        return [row for row in feed if row[0] > after]
+        return list(itertools.islice(feed, max(0, after + 1 - feed[0][0]), None))
+
+    def fed_after(self, map_id: str, after: int) -> EventRows | None:
+        """The fed events with id > `after`, or None when the feed does not reach back to
+        `after` (read the store)."""
+        fed = self._fed(map_id, after)
+        return None if fed is None else [(i, kind, data) for i, kind, data, _ in fed]
+
+    def fed_sse(self, map_id: str, after: int) -> tuple[int, bytes] | None:
+        """(the last id, the SSE bytes) of the fed events with id > `after` ((`after`,
+        b"") if none), or None when the feed does not reach back to `after`."""
+        fed = self._fed(map_id, after)
+        if fed is None:
+            return None
+        return (fed[-1][0], b"".join(row[3] for row in fed)) if fed else (after, b"")
+
+
+def sse_bytes(rows: EventRows) -> bytes:
+    """Events as server-sent events (`id`, `event`, `data` lines each)."""
+    return "".join(f"id: {i}\nevent: {kind}\ndata: {data}\n\n" for i, kind, data in rows).encode()
 
 
 def _imported_record(reply: dict[str, Any]) -> MapRecord:
@@ -261,13 +278,21 @@ class MapService:
         """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""
         return self.store.read_events(map_id, after)
 
-    async def events_after(self, map_id: str, after: int) -> EventRows:
-        """A map's events after id `after`: from its feed in memory, or (a stream that
-        starts or fell behind) from the store."""
-        rows = self.notifier.fed_after(map_id, after)
-        if rows is None:
-            rows = await asyncio.to_thread(self.read_events, map_id, after)
-        return rows
+    async def events_after(self, map_id: str, after: int) -> tuple[int, bytes]:
+        """A map's events after id `after` as server-sent events: (the last id, bytes;
+        (`after`, b"") when there are none). From the map's feed in memory, or (a stream
+        that starts or fell behind) from the store."""
+        fed = self.notifier.fed_sse(map_id, after)
+        if fed is not None:
+            return fed
+        rows = await asyncio.to_thread(self.read_events, map_id, after)
+        return (rows[-1][0], sse_bytes(rows)) if rows else (after, b"")
+
+    def exists(self, map_id: str) -> bool:
+        """The map is in the catalogue (with a shared engine: read again)."""
+        if self.pool.shared:
+            return map_id in {r.id for r in self.list()}
+        return map_id in self._records
 
     def latest_event_id(self, map_id: str) -> int:
         """The id of the map's newest stored event, 0 if none (blocking I/O)."""

@@ -10,9 +10,10 @@ out in turn. A map's load is the time-averaged number of its requests in flight 
 or being computed: what its clients ask of a worker, by Little's law their rate times
 the time each takes). Every `workers.balance_interval_s` the pool compares the workers'
 loads; when they differ clearly and moving one map from the busiest to the least busy
-worker at least halves the difference, it moves it (then lets the loads settle for a
-few intervals): new calls for the map wait in the API process, the old worker answers what
-it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
+worker narrows the difference by a quarter or more, it moves it (then lets the loads
+settle for a few intervals): new calls for the map wait in the API process, the old
+worker answers what it already had, snapshots the map and closes it (`CloseMap`), the
+new worker opens it
 from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged frame
 is in the map's log either way; a move that fails leaves the map where it was.
 
@@ -119,6 +120,9 @@ MIN_LOAD_GAP = 1.0
 """Loads (requests in flight, time-averaged) two workers may differ by without a move..."""
 MIN_RELATIVE_GAP = 0.2
 """...or by this fraction of the busiest worker's load."""
+MOVE_GAIN = 0.75
+"""A move must leave at most this fraction of the gap it closes (6:2 equal maps -> 5:3
+leaves 1/2; a move that mostly swaps the roles of the two workers is no gain)."""
 
 
 @dataclass
@@ -152,8 +156,9 @@ def choose_move(
     """(map, from worker, to worker) that best evens out the busiest and the least busy
     worker, or None. `totals`: each worker's load; `movable`: per worker, the loads of
     the maps that may move. Only a gap g of at least `min_gap` and MIN_RELATIVE_GAP of
-    the busiest's load counts (measured loads are noisy), and only a move that at least
-    halves it: a map of load l leaves a gap |g - 2l|; the smallest wins."""
+    the busiest's load counts (measured loads are noisy), and only a move that narrows
+    it to MOVE_GAIN of itself or less: a map of load l leaves a gap |g - 2l|; the
+    smallest wins."""
     if len(totals) < 2:
         return None
     busiest = max(totals, key=lambda w: totals[w])
@@ -164,7 +169,7 @@ def choose_move(
     maps = movable.get(busiest, {})
     candidates = [(abs(gap - 2 * load), m) for m, load in maps.items() if load > 0]
     best = min(candidates, default=None)
-    if best is None or best[0] > gap / 2:
+    if best is None or best[0] > MOVE_GAIN * gap:
         return None
     return best[1], busiest, idlest
 

@@ -143,6 +143,15 @@ class RaySettings(BaseModel):
 class ApiSettings(BaseModel):
     """Limits of the HTTP front."""
 
+    event_batch_s: float = Field(
+        0.2,
+        ge=0,
+        le=10,
+        description="an event stream writes at most once per this many seconds, "
+        "everything since its last write at once (many streams cost the API process "
+        "writes, not frames; 0 = a write per wake)",
+    )
+
     max_body_bytes: int = Field(
         1 << 20, ge=1024, description="largest request body except imports, bytes (413 above)"
     )

@@ -87,6 +87,17 @@ def test_the_feed_hands_out_events_after_an_id_or_sends_to_the_store() -> None:
     assert feed.fed_after("m", 6) == [(7, "frame", "g")]
 
 
+def test_the_feed_hands_out_sse_bytes_encoded_once() -> None:
+    feed = Notifier()
+    feed.publish("m", [(1, "frame", '{"a": 1}'), (2, "landmark_added", "{}")])
+    assert feed.fed_sse("m", 0) == (
+        2,
+        b'id: 1\nevent: frame\ndata: {"a": 1}\n\nid: 2\nevent: landmark_added\ndata: {}\n\n',
+    )
+    assert feed.fed_sse("m", 2) == (2, b"")
+    assert feed.fed_sse("other", 0) is None
+
+
 def test_publish_wakes_the_waiters() -> None:
     feed = Notifier()
     wake = feed.handle("m")
