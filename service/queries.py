@@ -102,18 +102,23 @@ class Pose(MapRequest[Doc]):
     one: see PlaceLocaliser.robot_poses."""
 
     def answer(self, session: MapSession) -> Doc:
-        localiser, robots = _localiser(session), session.pipeline.robots
-        doc = pose_doc(session.slam, session.record.id)
-        for name, robot in doc["robots"].items():
-            robot["localisation"] = localiser.localisation(name, robots.get(name))
-        for name, off in localiser.robot_poses(robots).items():
-            if off["pose"] is None and name in doc["robots"]:
-                continue
-            doc["robots"][name] = off
-        return doc
+        return pose_answer(session)
 
     def from_view(self, view: MapView, store: Store) -> Doc:
         return view.pose
+
+
+def pose_answer(session: MapSession, only: str | None = None) -> Doc:
+    """`Pose`'s answer; `only`: with that robot's entry only (if it has one)."""
+    localiser, robots = _localiser(session), session.pipeline.robots
+    doc = pose_doc(session.slam, session.record.id, only)
+    for name, robot in doc["robots"].items():
+        robot["localisation"] = localiser.localisation(name, robots.get(name))
+    for name, off in localiser.robot_poses(robots).items():
+        if (only is not None and name != only) or (off["pose"] is None and name in doc["robots"]):
+            continue
+        doc["robots"][name] = off
+    return doc
 
 
 @dataclass(frozen=True)

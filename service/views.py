@@ -26,11 +26,14 @@ from service.store_sql import MapStore
 from service.tum import Trajectory, write_tum
 
 
-def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
-    """Latest pose of each robot with its (3, 3) covariance."""
+def pose_doc(slam: BearingSlam, map_id: str, only: str | None = None) -> dict[str, Any]:
+    """Latest pose of each robot (`only`: of that robot, if it has one) with its (3, 3)
+    covariance."""
     last = last_accepted(slam)
     robots = {}
     for name in slam.robots:
+        if only is not None and name != only:
+            continue
         p = slam.latest_pose(name)
         cov = slam.latest_pose_covariance(name)
         robots[name] = {

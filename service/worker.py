@@ -56,6 +56,8 @@ _publish = False
 """Build published views (the local pool's workers; a Ray actor is asked directly)."""
 _stale_landmarks: dict[str, int] = {}
 """Frames each open map took since its published landmarks were last refreshed."""
+_views: dict[str, MapView] = {}
+"""The latest view published of each open map."""
 
 _CHANGES = (SubmitFrame, SetMode, LearnPlace, OpenMap, CreateMap, ImportMap)
 """Requests after which a map's published view is rebuilt."""
@@ -130,6 +132,7 @@ def _create(map_id: str, request: CreateMap) -> dict[str, Any]:
 def _delete(map_id: str) -> None:
     session = _sessions.pop(map_id, None)
     _stale_landmarks.pop(map_id, None)
+    _views.pop(map_id, None)
     if session is not None:
         session.close()
     _place(map_id).remove()
@@ -139,6 +142,7 @@ def close_map(map_id: str) -> None:
     """Snapshot an open map if it took frames since its last snapshot, then close it."""
     session = _sessions.pop(map_id, None)
     _stale_landmarks.pop(map_id, None)
+    _views.pop(map_id, None)
     if session is None:
         return
     try:
@@ -283,18 +287,21 @@ def _idle_work(inbox: queue.Queue[Message | None], conn: Connection) -> None:
         snapshot_if_due(map_id)
 
 
-def _view(map_id: str, *, landmarks: bool) -> MapView | None:
-    """The open map's published view now (None: not open, or it failed: logged)."""
+def _view(map_id: str, *, landmarks: bool, robot: str | None = None) -> MapView | None:
+    """The open map's published view now (None: not open, or it failed: logged);
+    `robot`: the only robot that sent a frame since the last one (see build_view)."""
     session = _sessions.get(map_id)
     if session is None:
         return None
     try:
-        view = build_view(session, landmarks=landmarks)
+        previous = _views.get(map_id)
+        view = build_view(session, landmarks=landmarks, robot=robot, previous=previous)
     except Exception:
         log.exception("the published view of map %s failed", map_id)
         return None
     if landmarks:
         _stale_landmarks[map_id] = 0
+    _views[map_id] = view.updated(previous)
     return view
 
 
@@ -307,7 +314,9 @@ def _published(map_id: str, request: Request[Any], value: Any) -> MapView | None
             return None
         stale = _stale_landmarks.get(map_id, 0) + 1
         _stale_landmarks[map_id] = stale
-        return _view(map_id, landmarks=stale >= _cfg().workers.landmarks_every)
+        robot = request.frame.get("robot")
+        every = _cfg().workers.landmarks_every
+        return _view(map_id, landmarks=stale >= every, robot=robot)
     return _view(map_id, landmarks=True)
 
 

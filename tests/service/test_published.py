@@ -10,6 +10,7 @@ import pytest
 
 from service.frames_io import frame_to_dict
 from service.maps import Notifier
+from service.offline.datasets.indoor_sim import make_world, simulate
 from service.pool import choose_move
 from service.published import build_view
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
@@ -62,6 +63,30 @@ def test_a_view_without_landmarks_keeps_the_previous_ones(session: MapSession) -
     assert second.log_id > first.log_id
     assert second.landmarks == first.landmarks
     assert second.landmarks_log_id == first.log_id
+
+
+def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
+    """A frame of r1 renews r1's entry of the published poses; r2's stays as of r2's own
+    latest frame (its covariance would cost another marginal)."""
+    rng = np.random.default_rng(4)
+    world = make_world(rooms=(1, 2), landmarks=30, rng=rng)
+    runs = [simulate(world, frames=12, rng=rng, robot=r).frames for r in ("r1", "r2")]
+    record = MapRecord("two", "m", "mapping", {"landmark_cap": 20}, time.time())
+    session = MapSession.create(store.place("two"), record, StoreSettings())
+    try:
+        for a, b in zip(*runs, strict=True):
+            session.submit(frame_to_dict(a))
+            session.submit(frame_to_dict(b))
+        before = build_view(session, landmarks=False)
+        assert before.pose == Pose().answer(session)
+        session.submit(frame_to_dict(simulate(world, frames=13, rng=rng).frames[12]))
+        after = build_view(session, landmarks=False, robot="r1", previous=before)
+        now = Pose().answer(session)["robots"]
+        assert set(after.pose["robots"]) == set(now) == {"r1", "r2"}
+        assert after.pose["robots"]["r1"] == now["r1"]
+        assert after.pose["robots"]["r2"] == before.pose["robots"]["r2"]
+    finally:
+        session.close()
 
 
 def test_final_rows_the_view_still_holds_are_not_doubled() -> None:
