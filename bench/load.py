@@ -4,7 +4,7 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 (the one-minute load average is recorded with every phase). Run from the repository
 root, niced (2 cores, shared)::
 
-    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 60]
+    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 150] [--load-s 30]
                                     [--event-maps 2] [--event-frames 40]
                                     [--subscribers 200] [--out bench/results]
 
@@ -12,18 +12,20 @@ Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmark
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
 same world. Map config: landmark cap 50, the default policy.
 
-1. ``cpu_bound``: the frames of every map through ``MapSession.submit`` in-process,
-   the maps dealt to two processes (one per core, at a worker's niceness), each map's
-   robots interleaved frame by frame: frames/s = all frames / the slower process's
-   wall time.
-2. ``http``: a ``covslam serve --workers 2`` (uvicorn in a subprocess, SQLite,
+1. ``http``: a ``covslam serve --workers 2`` (uvicorn in a subprocess, SQLite,
    synchronous NORMAL); 12 maps are created (placed 6:6) and 4 of worker 1's deleted, so
    the load maps start placed 6:2 on the workers, as a placement by id did. M maps x C
-   clients post the same frames (one keep-alive http.client connection per client,
-   closed loop): frames/s, POST p50/p99, per-map frames/s in the first and the last
-   third of the phase (the balancer's effect), the moves the pool made. Meanwhile a
-   reader process GETs pose, landmarks, trajectory and the summary of an idle map
-   and of a busy map, one after the other: p50/p99 per target.
+   clients post their frames for `load-s` seconds (one keep-alive http.client
+   connection per client, closed loop; no client runs out of frames): frames/s, POST
+   p50/p99, per-map frames/s in the first and the last third of the phase (the
+   balancer's effect), the moves the pool made. Meanwhile a reader process GETs pose,
+   landmarks, trajectory and the summary of an idle map and of a busy map, a round
+   every 0.25 s: p50/p99 per target.
+2. ``cpu_bound``: exactly the frames the clients posted, through ``MapSession.submit``
+   in-process, the maps dealt to two processes (one per core, at a worker's
+   niceness), each map's robots interleaved frame by frame, while the server idles:
+   frames/s = all frames / (the processes' wall times summed / 2), every core busy.
+   ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this.
 3. ``events``: three times `event-maps` fresh maps take the same frames from C clients
    each (`event-frames` per client): with no event stream open, with `subscribers` SSE
    streams open on them (read by one asyncio process), and with none again: frames/s
@@ -132,9 +134,12 @@ def cpu_bound(frames: list[list[list[dict[str, Any]]]], cores: int = 2) -> dict[
     with ProcessPoolExecutor(cores, mp_context=ctx) as pool:
         results = list(pool.map(_in_process, shares))
     n = sum(r[0] for r in results)
-    wall = max(r[1] for r in results)
-    return {"frames": n, "wall_s": round(wall, 2), "frames_per_s": round(n / wall, 1),
-            "processes": cores, "loadavg": [load0, _loadavg()]}  # fmt: skip
+    busy = sum(r[1] for r in results)
+    # the bound: every core busy all the time (the processes' wall times summed, shared
+    # out over the cores; their frames differ in number, so one finishes first)
+    return {"frames": n, "process_wall_s": [round(r[1], 2) for r in results],
+            "frames_per_s": round(n / (busy / cores), 1), "processes": cores,
+            "loadavg": [load0, _loadavg()]}  # fmt: skip
 
 
 # ------------------------------------------------------------------ the server
@@ -184,11 +189,10 @@ class Server:
 
 
 def _post_loop(port: int, map_id: str, frames: list[dict[str, Any]], until: float,
-               out: list[tuple[float, float, str]]) -> int:  # fmt: skip
-    """Post frames in order until done or `until` (monotonic); (end time, ms, map) each.
-    Returns how many frames were posted."""
+               out: list[tuple[float, float, str, int]], client: int) -> None:  # fmt: skip
+    """Post frames in order until done or `until` (monotonic); (end time, ms, map,
+    client) each."""
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=120)
-    n = 0
     for frame in frames:
         if time.monotonic() >= until:
             break
@@ -200,22 +204,21 @@ def _post_loop(port: int, map_id: str, frames: list[dict[str, Any]], until: floa
         response.read()
         if response.status != 200:
             raise RuntimeError(f"POST {map_id}: {response.status}")
-        out.append((time.monotonic(), 1e3 * (time.perf_counter() - t0), map_id))
-        n += 1
+        out.append((time.monotonic(), 1e3 * (time.perf_counter() - t0), map_id, client))
     conn.close()
-    return n
 
 
 def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]],
-             limit_s: float) -> dict[str, Any]:  # fmt: skip
-    """Every client posts its frames (at most `limit_s`): frames/s, POST latency."""
-    rows: list[tuple[float, float, str]] = []
+             limit_s: float) -> tuple[dict[str, Any], list[list[int]]]:  # fmt: skip
+    """Every client posts its frames (at most `limit_s`): (frames/s, POST latency, ...;
+    the frames each client of each map posted)."""
+    rows: list[tuple[float, float, str, int]] = []
     until = time.monotonic() + limit_s
     t0 = time.monotonic()
     threads = [
-        threading.Thread(target=_post_loop, args=(port, m, run, until, rows))
+        threading.Thread(target=_post_loop, args=(port, m, run, until, rows, c))
         for m, runs in zip(maps, frames, strict=True)
-        for run in runs
+        for c, run in enumerate(runs)
     ]
     load0 = _loadavg()
     for t in threads:
@@ -228,6 +231,10 @@ def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]
         a, b = t0 + lo * wall, t0 + hi * wall
         per_map = [sum(1 for r in rows if r[2] == m and a <= r[0] < b) / (b - a) for m in maps]
         thirds.append({"min": round(min(per_map), 2), "max": round(max(per_map), 2)})
+    posted = [
+        [sum(1 for r in rows if r[2] == m and r[3] == c) for c in range(len(runs))]
+        for m, runs in zip(maps, frames, strict=True)
+    ]
     return {
         "frames": len(rows),
         "wall_s": round(wall, 2),
@@ -236,7 +243,7 @@ def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]
         "per_map_frames_per_s_first_third": thirds[0],
         "per_map_frames_per_s_last_third": thirds[1],
         "loadavg": [load0, _loadavg()],
-    }
+    }, posted
 
 
 def _reader(url: str, targets: dict[str, str], stop: Any, queue: Any) -> None:
@@ -296,7 +303,7 @@ def _unreplayed(data: Path) -> dict[str, int]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     frames = make_frames(args.maps + 1, args.clients, max(args.frames, args.event_frames, 100))
-    main = [[run[: args.frames] for run in runs] for runs in frames[: args.maps]]
+    main = frames[: args.maps]
     result: dict[str, Any] = {
         "command": "nice -n 10 python -m bench.load " + " ".join(sys.argv[1:]),
         "cpu_count": os.cpu_count(),
@@ -305,8 +312,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "frames_per_client": args.frames,
         "map_config": MAP_CONFIG,
     }
-    result["cpu_bound"] = cpu_bound(main)
-    print("cpu bound", result["cpu_bound"], flush=True)
 
     work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
     server = Server(work / "data", work / "server.log")
@@ -336,7 +341,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     reader = ctx.Process(target=_reader, args=(server.url, {"idle": idle, "busy": maps[0]},
                                                stop, queue))  # fmt: skip
     reader.start()
-    http_run = post_all(server.port, maps, main, limit_s=600)
+    http_run, posted = post_all(server.port, maps, main, limit_s=args.load_s)
     stop.set()
     reads = queue.get(timeout=60)
     reader.join()
@@ -348,11 +353,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     ]
     http_run["reads_ms"] = {name: _stats(ms) for name, ms in reads.items()}
     http_run["reads_ms"]["all"] = _stats([v for ms in reads.values() for v in ms])
+    print("http", http_run, flush=True)
+    # 2. the CPU bound of the frames the clients posted (the server is idle meanwhile)
+    done = [
+        [run[:n] for run, n in zip(runs, ns, strict=True)]
+        for runs, ns in zip(main, posted, strict=True)
+    ]
+    result["cpu_bound"] = cpu_bound(done)
+    print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
         http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3
     )
     result["http"] = http_run
-    print("http", http_run, flush=True)
 
     # 3. events: fresh maps, the same frames, 0 subscribers, then `subscribers`, then 0
     events: dict[str, Any] = {}
@@ -370,7 +382,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             proc.start()
             time.sleep(3.0)  # let them connect
         name = f"{k + 1}_subscribers_{n_subs}"
-        events[name] = post_all(server.port, fresh, phase, limit_s=600)
+        events[name] = post_all(server.port, fresh, phase, limit_s=600)[0]
         if proc is not None:
             stop.set()
             events[name]["frame_events_received"] = counts.get(timeout=60)
@@ -414,7 +426,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
     parser.add_argument("--clients", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=60, help="frames per client (phase 1-2)")
+    parser.add_argument("--frames", type=int, default=150, help="at most, per client (1-2)")
+    parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 2")
     parser.add_argument("--event-maps", type=int, default=2)
     parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
     parser.add_argument("--subscribers", type=int, default=200)
