@@ -25,7 +25,10 @@ same world. Map config: landmark cap 50, the default policy.
    in-process, the maps dealt to two processes (one per core, at a worker's
    niceness), each map's robots interleaved frame by frame, while the server idles:
    frames/s = all frames / (the processes' wall times summed / 2), every core busy.
-   ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this.
+   ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this. CPU time per frame
+   (from /proc, so other work on the machine is not in it): the workers', the API
+   process's and the bench's own client threads' in phase 1, and the in-process
+   sessions' here; ``worker_cpu_to_in_process`` compares the first with the last.
 3. ``events``: three times `event-maps` fresh maps take the same frames from C clients
    each (`event-frames` per client): with no event stream open, with `subscribers` SSE
    streams open on them (read by one asyncio process), and with none again: frames/s
@@ -103,8 +106,9 @@ def make_frames(maps: int, clients: int, frames: int) -> list[list[list[dict[str
 
 
 # ------------------------------------------------------------------ 1. CPU bound
-def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float]:
-    """(frames, wall s) of these maps' frames through MapSession.submit, one process."""
+def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, float]:
+    """(frames, wall s, CPU s) of these maps' frames through MapSession.submit, one
+    process."""
     from service.session import MapSession
     from service.settings import StoreSettings, WorkerSettings
     from service.store import MapRecord
@@ -116,7 +120,7 @@ def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float]:
     for i, _ in enumerate(maps):
         record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(MAP_CONFIG), time.time())
         sessions.append(MapSession.create(work / f"m{i}.sqlite", record, StoreSettings()))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     n = 0
     for k in range(max(len(r) for runs in maps for r in runs)):
         for session, runs in zip(sessions, maps, strict=True):
@@ -124,7 +128,7 @@ def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float]:
                 if k < len(run):
                     session.submit(run[k])
                     n += 1
-    return n, time.perf_counter() - t0
+    return n, time.perf_counter() - t0, time.process_time() - c0
 
 
 def cpu_bound(frames: list[list[list[dict[str, Any]]]], cores: int = 2) -> dict[str, Any]:
@@ -137,8 +141,10 @@ def cpu_bound(frames: list[list[list[dict[str, Any]]]], cores: int = 2) -> dict[
     busy = sum(r[1] for r in results)
     # the bound: every core busy all the time (the processes' wall times summed, shared
     # out over the cores; their frames differ in number, so one finishes first)
+    cpu = sum(r[2] for r in results)
     return {"frames": n, "process_wall_s": [round(r[1], 2) for r in results],
             "frames_per_s": round(n / (busy / cores), 1), "processes": cores,
+            "cpu_ms_per_frame": round(1e3 * cpu / n, 2),
             "loadavg": [load0, _loadavg()]}  # fmt: skip
 
 
@@ -289,6 +295,19 @@ def _subscribers(port: int, paths: list[str], stop: Any, counts: Any) -> None:
     asyncio.run(_subscribe(port, paths, stop, counts))
 
 
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
+    """CPU seconds so far of the API process and of the workers (summed)."""
+    assert server.proc is not None
+    pids = [w["pid"] for w in client.get("/v1/workers").json()["workers"]]
+    return {"api": _cpu_s(server.proc.pid), "workers": sum(_cpu_s(p) for p in pids)}
+
+
 def _unreplayed(data: Path) -> dict[str, int]:
     """Per map file: log frames after its latest snapshot (a start replays them)."""
     out = {}
@@ -341,7 +360,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     reader = ctx.Process(target=_reader, args=(server.url, {"idle": idle, "busy": maps[0]},
                                                stop, queue))  # fmt: skip
     reader.start()
+    cpu0, bench0 = _server_cpu(server, client), time.process_time()
     http_run, posted = post_all(server.port, maps, main, limit_s=args.load_s)
+    cpu1, bench1 = _server_cpu(server, client), time.process_time()
     stop.set()
     reads = queue.get(timeout=60)
     reader.join()
@@ -363,6 +384,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
         http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3
+    )
+    n = http_run["frames"]
+    http_run["cpu_ms_per_frame"] = {
+        "workers": round(1e3 * (cpu1["workers"] - cpu0["workers"]) / n, 2),
+        "api_process": round(1e3 * (cpu1["api"] - cpu0["api"]) / n, 2),
+        "bench_clients": round(1e3 * (bench1 - bench0) / n, 2),
+    }
+    # the same frames' CPU in a worker against in-process (no other load in the figure)
+    http_run["worker_cpu_to_in_process"] = round(
+        http_run["cpu_ms_per_frame"]["workers"] / result["cpu_bound"]["cpu_ms_per_frame"], 3
     )
     result["http"] = http_run
 

@@ -26,8 +26,15 @@ from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
 from service.published import MapView
-from service.queries import SetMode, Summary
-from service.requests import CreateMap, DeleteMap, ImportMap, MapRequest, SubmitFrame
+from service.queries import Landmarks, SetMode, Summary
+from service.requests import (
+    CreateMap,
+    DeleteMap,
+    ImportMap,
+    MapRequest,
+    RefreshView,
+    SubmitFrame,
+)
 from service.settings import Settings
 from service.store import KeyRecord, MapRecord
 
@@ -116,11 +123,15 @@ class MapService:
         self.pool: Engine = make_engine(settings, on_restart=on_worker_restart)
         self.pool.on_view = self._publish_view
         self._views: dict[str, MapView] = {}
+        self._new_ids: set[str] = set()
+        self._refreshing: set[str] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
+        """Maps being created or imported (their first view comes before their record)."""
         self.notifier = Notifier()
         self.started = False
 
     def _publish_view(self, view: MapView) -> None:
-        if view.map_id in self._records:
+        if view.map_id in self._records or view.map_id in self._new_ids:
             self._views[view.map_id] = view.updated(self._views.get(view.map_id))
 
     async def start(self) -> None:
@@ -196,6 +207,7 @@ class MapService:
         `record_of(reply)` is the new map's MapRecord."""
         self._check_room()
         self._creating += 1
+        self._new_ids.add(map_id)
         try:
             timeout = None if isinstance(request, CreateMap) else self._long_timeout_s
             reply = await self.pool.call(map_id, request, timeout_s=timeout)
@@ -206,9 +218,12 @@ class MapService:
                 await self.pool.call(map_id, DeleteMap())
             except Exception:
                 log.exception("could not remove the files of the failed new map %s", map_id)
+            self.pool.untrack(map_id)
+            self._views.pop(map_id, None)
             raise
         finally:
             self._creating -= 1
+            self._new_ids.discard(map_id)
         self._records[record.id] = record
         self.pool.track(record.id)
         return reply
@@ -228,10 +243,12 @@ class MapService:
         self._catalog.remove(map_id)  # and its keys
         del self._records[map_id]
         self._keys = {h: k for h, k in self._keys.items() if k.map_id != map_id}
-        self.pool.untrack(map_id)
         self._views.pop(map_id, None)
         self.notifier.forget(map_id)
-        await self.pool.call(map_id, DeleteMap())
+        try:  # on the worker that has the map open
+            await self.pool.call(map_id, DeleteMap())
+        finally:
+            self.pool.untrack(map_id)
 
     async def set_mode(self, map_id: str, mode: Mode) -> dict[str, Any]:
         record = self.record(map_id)
@@ -271,8 +288,29 @@ class MapService:
             else:
                 answer = request.from_view(view, self.store)
             if answer is not None:
+                if isinstance(request, Landmarks) and view.landmarks_log_id < view.log_id:
+                    self._refresh(map_id)
                 return answer
         return await self.pool.call(map_id, request)
+
+    def _refresh(self, map_id: str) -> None:
+        """Ask the map's worker for its live landmarks now (one request at a time); the
+        view it publishes answers the next reads."""
+        if map_id in self._refreshing:
+            return
+        self._refreshing.add(map_id)
+
+        async def refresh() -> None:
+            try:
+                await self.pool.call(map_id, RefreshView())
+            except Exception:
+                log.warning("refreshing the landmarks of map %s failed", map_id, exc_info=True)
+            finally:
+                self._refreshing.discard(map_id)
+
+        task = asyncio.get_running_loop().create_task(refresh())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def read_events(self, map_id: str, after: int) -> EventRows:
         """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""

@@ -10,9 +10,10 @@ landmarks, per-frame statistics, a robot known only to the place localiser) stil
 to the worker.
 
 The live landmarks' marginal covariances cost a joint marginal of every live landmark
-(~5 ms for 50 landmarks, a third of a frame): the view refreshes that document every
-`landmarks_every` frames of the map and whenever the worker is idle, and keeps the last
-one in between (`landmarks_log_id` says which frame it is of).
+(~5 ms for 50 landmarks, half a frame): the view keeps the last landmark document it
+had, and the worker computes a new one only when a read found it behind the map (the
+API process then asks for it with `RefreshView`, once at a time) or when it is idle
+(`landmarks_log_id` says which frame the document is of).
 """
 
 from __future__ import annotations
@@ -63,8 +64,10 @@ def build_view(
     landmarks: bool,
     robot: str | None = None,
     previous: MapView | None = None,
+    poses: bool = True,
 ) -> MapView:
-    """The view of an open map now; `landmarks`: with the live landmarks' document.
+    """The view of an open map now; `landmarks`: with the live landmarks' document;
+    `poses` False (with `previous`): the poses as they were published (nothing moved).
 
     `robot` (with the map's `previous` view): only that robot sent a frame since, so
     only its entry of the poses is new and the other robots keep theirs: as of their
@@ -73,7 +76,9 @@ def build_view(
     frame's time for a map of four robots.)"""
     pipeline = session.pipeline
     has_off_graph = bool(pipeline.off_graph_robots())
-    if robot is None or previous is None:
+    if previous is not None and not poses:
+        pose = previous.pose
+    elif robot is None or previous is None:
         pose = pose_answer(session)
     else:
         fresh = pose_answer(session, robot)

@@ -64,7 +64,7 @@ class Summary(MapRequest[Doc]):
                 "robots": len(robots),
                 "live_landmarks": len(session.slam.landmarks),
                 "candidates": session.slam.candidate_count,
-                "removals": session.store.removal_count(),
+                "removals": session.removal_count(),
                 "graph_variables": session.slam.graph.num_variables,
                 "graph_factors": session.slam.graph.num_factors,
                 "replay_errors": session.replay_errors,

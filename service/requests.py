@@ -71,6 +71,12 @@ class OpenMap(WorkerRequest[Doc]):
 
 
 @dataclass(frozen=True)
+class RefreshView(WorkerRequest[None]):
+    """Publish the map's view with its live landmarks computed now (a read found the
+    published ones behind the map)."""
+
+
+@dataclass(frozen=True)
 class CloseMap(WorkerRequest[None]):
     """Snapshot the map if frames came since its last snapshot and close it (it moves to
     another worker, which opens it from that snapshot)."""

@@ -109,6 +109,7 @@ class MapSession:
         self.replay_errors = 0
         self.loaded_from_snapshot = 0
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
+        self._removal_count: int | None = None
         self.vision = MapVision.for_config(self.record.config)
         """The front end of a map with a camera (image frames); None without one."""
         self.pipeline, self._last_log_id, self._since_snapshot = self._load()
@@ -426,6 +427,7 @@ class MapSession:
         self.store.delete_frame(log_id)
         self._removals.take()
         self._poses.take()
+        self._removal_count = None
         self.pipeline, self._last_log_id, self._since_snapshot = self._load()
 
     def _check_image_frame(self, frame: Any) -> None:
@@ -472,7 +474,16 @@ class MapSession:
             archived=archived,
             restored=restored,
         )
+        if self._removal_count is not None:
+            self._removal_count += len(rows)
         return [(i, kind, data) for i, (kind, data) in zip(ids, events, strict=True)]
+
+    def removal_count(self) -> int:
+        """Rows of the map's removal log (counted once, then kept: a summary is
+        published with every frame, and counting grows with the log)."""
+        if self._removal_count is None:
+            self._removal_count = self.store.removal_count()
+        return self._removal_count
 
     def seed(self) -> int:
         """The map's seed (its config's)."""

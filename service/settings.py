@@ -91,14 +91,6 @@ class WorkerSettings(BaseModel):
         description="niceness added to worker processes, so the API process (probes, "
         "routing) wins the CPU when workers compute",
     )
-    landmarks_every: int = Field(
-        10,
-        ge=1,
-        le=100_000,
-        description="frames of a map between two refreshes of its published live "
-        "landmarks (GET /landmarks; their marginal covariances cost ~5 ms for 50 "
-        "landmarks); an idle worker refreshes them at once",
-    )
     balance_interval_s: float = Field(
         2.0,
         ge=0,

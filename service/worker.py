@@ -40,6 +40,7 @@ from service.requests import (
     MapRequest,
     OpenMap,
     Ping,
+    RefreshView,
     Request,
     SubmitFrame,
 )
@@ -59,7 +60,7 @@ _stale_landmarks: dict[str, int] = {}
 _views: dict[str, MapView] = {}
 """The latest view published of each open map."""
 
-_CHANGES = (SubmitFrame, SetMode, LearnPlace, OpenMap, CreateMap, ImportMap)
+_CHANGES = (SubmitFrame, SetMode, LearnPlace, OpenMap, CreateMap, ImportMap, RefreshView)
 """Requests after which a map's published view is rebuilt."""
 
 
@@ -199,6 +200,9 @@ def carry_out(map_id: str, request: Request[Any]) -> Any:
     if isinstance(request, CloseMap):
         close_map(map_id)
         return None
+    if isinstance(request, RefreshView):
+        _session(map_id)  # its view follows with the answer
+        return None
     if isinstance(request, DeleteMap):
         _delete(map_id)
         return None
@@ -287,15 +291,17 @@ def _idle_work(inbox: queue.Queue[Message | None], conn: Connection) -> None:
         snapshot_if_due(map_id)
 
 
-def _view(map_id: str, *, landmarks: bool, robot: str | None = None) -> MapView | None:
+def _view(
+    map_id: str, *, landmarks: bool, robot: str | None = None, poses: bool = True
+) -> MapView | None:
     """The open map's published view now (None: not open, or it failed: logged);
-    `robot`: the only robot that sent a frame since the last one (see build_view)."""
+    `robot`, `poses`: see build_view."""
     session = _sessions.get(map_id)
     if session is None:
         return None
     try:
         previous = _views.get(map_id)
-        view = build_view(session, landmarks=landmarks, robot=robot, previous=previous)
+        view = build_view(session, landmarks=landmarks, robot=robot, previous=previous, poses=poses)
     except Exception:
         log.exception("the published view of map %s failed", map_id)
         return None
@@ -312,11 +318,10 @@ def _published(map_id: str, request: Request[Any], value: Any) -> MapView | None
     if isinstance(request, SubmitFrame):
         if value.replayed:
             return None
-        stale = _stale_landmarks.get(map_id, 0) + 1
-        _stale_landmarks[map_id] = stale
-        robot = request.frame.get("robot")
-        every = _cfg().workers.landmarks_every
-        return _view(map_id, landmarks=stale >= every, robot=robot)
+        _stale_landmarks[map_id] = _stale_landmarks.get(map_id, 0) + 1
+        return _view(map_id, landmarks=False, robot=request.frame.get("robot"))
+    if isinstance(request, RefreshView):
+        return _view(map_id, landmarks=True, poses=False)
     return _view(map_id, landmarks=True)
 
 

@@ -84,6 +84,7 @@ def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
     async def body(service: MapService) -> None:
         busy = await _new_map(service, FRAMES[:20])
         idle = await _new_map(service, FRAMES[:10])
+        fresh = await _new_map(service, [])  # no frame yet: the view of its creation
         started, release = tmp_path / "started", tmp_path / "release"
         hold = asyncio.create_task(service.query(busy, Hold(str(started), str(release))))
         await _until(started)
@@ -92,7 +93,9 @@ def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
         for map_id in (busy, idle):
             for query in (Pose(), Landmarks(), Summary(), Places(), Trajectory()):
                 answers[map_id, type(query).__name__] = await service.query(map_id, query)
+        fresh_summary = await service.summary(fresh)
         assert not hold.done() and not frame.done()  # every read came past them
+        assert fresh_summary["counts"]["frames"] == 0
         assert answers[busy, "Pose"]["robots"]["r1"]["seq"] == 19
         assert answers[busy, "Summary"]["counts"]["frames"] == 20
         assert len(answers[idle, "Trajectory"]["r1"]) == 10
@@ -141,6 +144,18 @@ def test_a_map_moves_between_workers_without_losing_a_frame(tmp_path: Path) -> N
         owner = service.pool.worker_of(map_id)
         assert map_id in await _open_on(service, owner)
         assert map_id not in await _open_on(service, 1 - owner)  # one writer only
+
+    _run(tmp_path, 2, body)
+
+
+def test_a_moved_map_is_deleted_where_it_is_open(tmp_path: Path) -> None:
+    async def body(service: MapService) -> None:
+        map_id = await _new_map(service, FRAMES[:5])
+        assert await service.pool.move(map_id, 1 - service.pool.worker_of(map_id))  # type: ignore[attr-defined]
+        await service.delete(map_id)
+        for worker in (0, 1):
+            assert map_id not in await _open_on(service, worker)
+        assert not (tmp_path / "data" / "maps" / f"{map_id}.sqlite").exists()
 
     _run(tmp_path, 2, body)
 
