@@ -51,7 +51,6 @@ import json
 import multiprocessing
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -67,6 +66,7 @@ import numpy as np
 from service.frames_io import frame_to_dict
 from service.offline.datasets.indoor_sim import make_world, simulate
 from tests.support.clusters import free_port
+from tests.support.snapshots import unsnapshotted
 
 MAP_CONFIG = {"landmark_cap": 50}
 READ_PATHS = ("pose", "landmarks", "trajectory", "")
@@ -176,6 +176,12 @@ class Server:
                 pass
             time.sleep(0.02)
         raise TimeoutError(self.log.read_text()[-2000:])
+
+    def kill(self) -> None:
+        """SIGKILL the process group if it still runs (a failed run leaves nothing)."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=30)
 
     def stop(self) -> float:
         """SIGTERM; seconds until the process group ended."""
@@ -310,19 +316,11 @@ def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
 
 def _unreplayed(data: Path) -> dict[str, int]:
     """Per map file: log frames after its latest snapshot (a start replays them)."""
-    out = {}
-    for path in sorted((data / "maps").glob("*.sqlite")):
-        conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        last = conn.execute("SELECT coalesce(max(id), 0) FROM frames").fetchone()[0]
-        upto = conn.execute("SELECT coalesce(max(upto), 0) FROM snapshots").fetchone()[0]
-        conn.close()
-        out[path.stem] = int(last - upto)
-    return out
+    return {p.stem: unsnapshotted(p) for p in sorted((data / "maps").glob("*.sqlite"))}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     frames = make_frames(args.maps + 1, args.clients, max(args.frames, args.event_frames, 100))
-    main = frames[: args.maps]
     result: dict[str, Any] = {
         "command": "nice -n 10 python -m bench.load " + " ".join(sys.argv[1:]),
         "cpu_count": os.cpu_count(),
@@ -335,6 +333,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
     server = Server(work / "data", work / "server.log")
     server.start()
+    try:
+        return _measure(args, frames, server, result)
+    finally:
+        server.kill()
+
+
+def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
+             server: Server, result: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """Phases 1-4 against the started `server`; `result` filled in and returned."""
+    main = frames[: args.maps]
+    work = server.data.parent
     client = httpx.Client(base_url=server.url, timeout=120)
     ids = [client.post("/v1/maps", json={"name": f"m{i}", "config": MAP_CONFIG}).json()["id"]
            for i in range(12)]  # fmt: skip

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import json
 import socket
-import sqlite3
 from pathlib import Path
 
 import httpx
 
 from tests.e2e.conftest import Server, create_map, frame_dicts, post_all, sim_frames
+from tests.support.snapshots import unsnapshotted
 
 FRAMES = frame_dicts(sim_frames(30))
 
@@ -55,16 +55,6 @@ def test_streams_that_do_not_read_hold_no_frame_up(server: Server, client: httpx
             sock.close()
 
 
-def _unsnapshotted(path: Path) -> int:
-    conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-    try:
-        last = conn.execute("SELECT coalesce(max(id), 0) FROM frames").fetchone()[0]
-        upto = conn.execute("SELECT coalesce(max(upto), 0) FROM snapshots").fetchone()[0]
-    finally:
-        conn.close()
-    return int(last - upto)
-
-
 def test_sigterm_snapshots_every_map_and_a_start_replays_nothing(tmp_path: Path) -> None:
     server = Server(tmp_path / "data")
     server.start()
@@ -77,7 +67,7 @@ def test_sigterm_snapshots_every_map_and_a_start_replays_nothing(tmp_path: Path)
     finally:
         server.stop()  # SIGTERM
     for map_id in ids:
-        assert _unsnapshotted(tmp_path / "data" / "maps" / f"{map_id}.sqlite") == 0
+        assert unsnapshotted(tmp_path / "data" / "maps" / f"{map_id}.sqlite") == 0
     server.start()
     try:
         with httpx.Client(base_url=server.url, timeout=60) as c:

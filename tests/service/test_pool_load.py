@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import sqlite3
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from service.requests import MapRequest, Ping
 from service.session import MapSession
 from service.settings import Settings, StoreSettings
 from tests.graph._world import circle_frames
+from tests.support.snapshots import unsnapshotted
 
 FRAMES = [frame_to_dict(f) for f in circle_frames(60, seed=2)[0]]
 CONFIG = MapConfig.model_validate({"landmark_cap": 8})
@@ -187,16 +187,6 @@ def test_the_balancer_moves_a_map_off_the_busier_worker(tmp_path: Path) -> None:
     _run(tmp_path, 2, body)
 
 
-def _unsnapshotted(path: Path) -> int:
-    conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-    try:
-        last = conn.execute("SELECT coalesce(max(id), 0) FROM frames").fetchone()[0]
-        upto = conn.execute("SELECT coalesce(max(upto), 0) FROM snapshots").fetchone()[0]
-    finally:
-        conn.close()
-    return int(last - upto)
-
-
 def test_stopping_snapshots_every_map_so_a_start_replays_nothing(tmp_path: Path) -> None:
     ids: list[str] = []
     poses: list[Any] = []
@@ -209,7 +199,7 @@ def test_stopping_snapshots_every_map_so_a_start_replays_nothing(tmp_path: Path)
     _run(tmp_path, 2, body)
     for map_id, pose in zip(ids, poses, strict=True):
         path = tmp_path / "data" / "maps" / f"{map_id}.sqlite"
-        assert _unsnapshotted(path) == 0
+        assert unsnapshotted(path) == 0
         session = MapSession(path, StoreSettings())
         try:
             assert session.loaded_from_snapshot == session.last_log_id > 0
