@@ -278,17 +278,19 @@ class MapService:
 
     async def query(self, map_id: str, request: MapRequest[T]) -> T:
         """A query (service.queries) on a map; its answer: from the map's published view
-        when the query can be answered from it (no wait for the worker), else the
+        when the query can be answered from it (no wait for the worker; a part of the
+        view that lags behind the map only while the worker is busy), else the
         worker's."""
         self.record(map_id)
         view = self._views.get(map_id)
-        if view is not None:
+        behind = view is not None and request.view_behind(view)
+        if view is not None and not (behind and not self.pool.busy(map_id)):
             if request.view_reads_store:
                 answer = await asyncio.to_thread(request.from_view, view, self.store)
             else:
                 answer = request.from_view(view, self.store)
             if answer is not None:
-                if isinstance(request, Landmarks) and view.landmarks_log_id < view.log_id:
+                if behind and isinstance(request, Landmarks):
                     self._refresh(map_id)
                 return answer
         return await self.pool.call(map_id, request)

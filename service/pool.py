@@ -81,6 +81,10 @@ class Engine(Protocol):
     def ready(self) -> bool: ...
     def status(self) -> list[dict[str, Any]]: ...
     def worker_of(self, map_id: str) -> int | None: ...
+    def busy(self, map_id: str) -> bool:
+        """The map's worker has requests in flight (a call would wait)."""
+        ...
+
     def track(self, map_id: str) -> None: ...
     def untrack(self, map_id: str) -> None: ...
     async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
@@ -365,6 +369,9 @@ class WorkerPool(EngineBase):
             owner = min(range(len(totals)), key=lambda w: (totals[w], counts[w], w))
             self._owner[map_id] = owner
         return owner
+
+    def busy(self, map_id: str) -> bool:
+        return map_id in self._moving or bool(self._slots[self.worker_of(map_id)].pending)
 
     def track(self, map_id: str) -> None:
         super().track(map_id)

@@ -9,6 +9,11 @@ latest view it holds, so a read never waits behind the frames the worker is busy
 landmarks, per-frame statistics, a robot known only to the place localiser) still goes
 to the worker.
 
+Two parts of a view may lag behind the map: the poses of the robots that did not send
+the last frame, and the live landmarks. A read of such a part goes to the worker when
+it has nothing else to do (so a client reads its own writes), and is answered from the
+view while the worker is busy.
+
 The live landmarks' marginal covariances cost a joint marginal of every live landmark
 (~5 ms for 50 landmarks, half a frame): the view keeps the last landmark document it
 had, and the worker computes a new one only when a read found it behind the map (the
@@ -48,6 +53,9 @@ class MapView:
     """The live landmarks (GET /landmarks), of frame `landmarks_log_id`; None: not
     refreshed with this view (the previous view's stand)."""
     landmarks_log_id: int = 0
+    poses_log_id: int = 0
+    """The frame after which every robot's pose was computed (`pose` renews only the
+    robot of each frame after it)."""
 
     def updated(self, previous: MapView | None) -> MapView:
         """This view, with `previous`'s landmarks when it carries none."""
@@ -77,12 +85,14 @@ def build_view(
     pipeline = session.pipeline
     has_off_graph = bool(pipeline.off_graph_robots())
     if previous is not None and not poses:
-        pose = previous.pose
+        pose, poses_log_id = previous.pose, previous.poses_log_id
     elif robot is None or previous is None:
-        pose = pose_answer(session)
+        pose, poses_log_id = pose_answer(session), session.last_log_id
     else:
         fresh = pose_answer(session, robot)
         pose = {**fresh, "robots": {**previous.pose["robots"], **fresh["robots"]}}
+        alone = set(pose["robots"]) <= {robot}  # no other robot's pose to lag
+        poses_log_id = session.last_log_id if alone else previous.poses_log_id
     return MapView(
         map_id=session.record.id,
         log_id=session.last_log_id,
@@ -92,4 +102,5 @@ def build_view(
         held=None if has_off_graph else session.slam.trajectory(),
         landmarks=Landmarks().answer(session) if landmarks else None,
         landmarks_log_id=session.last_log_id if landmarks else 0,
+        poses_log_id=poses_log_id,
     )

@@ -107,6 +107,9 @@ class Pose(MapRequest[Doc]):
     def from_view(self, view: MapView, store: Store) -> Doc:
         return view.pose
 
+    def view_behind(self, view: MapView) -> bool:
+        return view.poses_log_id < view.log_id
+
 
 def pose_answer(session: MapSession, only: str | None = None) -> Doc:
     """`Pose`'s answer; `only`: with that robot's entry only (if it has one)."""
@@ -230,6 +233,9 @@ class Landmarks(MapRequest[list[Doc]]):
 
     def from_view(self, view: MapView, store: Store) -> list[Doc] | None:
         return view.landmarks if self.state == "live" else None
+
+    def view_behind(self, view: MapView) -> bool:
+        return view.landmarks_log_id < view.log_id
 
 
 @dataclass(frozen=True)

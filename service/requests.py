@@ -47,6 +47,10 @@ class MapRequest(Request[T]):
         (read only, may block), in the API process; None: only the worker can answer."""
         return None
 
+    def view_behind(self, view: MapView) -> bool:
+        """The view's answer lags behind the map (the worker's is exact)."""
+        return False
+
 
 class WorkerRequest(Request[T]):
     """An operation on the worker's set of maps (service.worker carries it out)."""

@@ -63,6 +63,8 @@ def test_a_view_without_landmarks_keeps_the_previous_ones(session: MapSession) -
     assert second.log_id > first.log_id
     assert second.landmarks == first.landmarks
     assert second.landmarks_log_id == first.log_id
+    assert Landmarks().view_behind(second) and not Landmarks().view_behind(first)
+    assert not Pose().view_behind(second)  # one robot: its pose is all there is
 
 
 def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
@@ -85,6 +87,7 @@ def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
         assert set(after.pose["robots"]) == set(now) == {"r1", "r2"}
         assert after.pose["robots"]["r1"] == now["r1"]
         assert after.pose["robots"]["r2"] == before.pose["robots"]["r2"]
+        assert Pose().view_behind(after) and not Pose().view_behind(before)  # r2 lags
     finally:
         session.close()
 
