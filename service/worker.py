@@ -211,6 +211,10 @@ def carry_out(map_id: str, request: Request[Any]) -> Any:
 
 Message = tuple[Any, str, Request[Any]]
 """(message id, map id, request) as the API process sends it."""
+IDLE_AFTER_S = 0.05
+"""A worker with no request for this long is idle: it refreshes published views and
+takes due snapshots (a client posting frame after frame sends its next one sooner)."""
+_NOTHING = object()
 
 
 def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
@@ -230,18 +234,23 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
         target=_reader, args=(conn, inbox, limit > 0), name="covslam-reader", daemon=True
     )
     reader.start()
+    waiting: object = _NOTHING
     try:
         while True:
-            request = inbox.get()
+            request = inbox.get() if waiting is _NOTHING else waiting
+            waiting = _NOTHING
             if request is None:  # end of the connection
                 return
+            assert isinstance(request, tuple)
             request_id, map_id, what = request
             reply = call(map_id, what)
             try:
                 conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
             except (BrokenPipeError, OSError):
                 return
-            if inbox.empty():
+            try:  # a client that sends one request after the other is not idle
+                waiting = inbox.get(timeout=IDLE_AFTER_S)
+            except queue.Empty:
                 _idle_work(inbox, conn)
     finally:
         close_all()
