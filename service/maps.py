@@ -139,6 +139,8 @@ class MapService:
         self.started = True
 
     async def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
         await self.pool.stop()
         self._catalog.close()
         self.store.close()

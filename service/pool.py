@@ -6,16 +6,18 @@ worker takes its requests strictly in order, so a map's frames are applied in ar
 order while maps on different workers proceed in parallel.
 
 Placement: a new map goes to the least loaded worker, the maps found at start are dealt
-out in turn. A map's load is the time-averaged number of its requests in flight (waiting
-or being computed: what its clients ask of a worker, by Little's law their rate times
-the time each takes). Every `workers.balance_interval_s` the pool compares the workers'
-loads; when they differ clearly and moving one map from the busiest to the least busy
-worker narrows the difference by a quarter or more, it moves it (then lets the loads
-settle for a few intervals): new calls for the map wait in the API process, the old
-worker answers what it already had, snapshots the map and closes it (`CloseMap`), the
-new worker opens it
-from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged frame
-is in the map's log either way; a move that fails leaves the map where it was.
+out in turn. A map's load is the work it keeps in flight: the time-averaged number of
+its requests waiting or being computed (by Little's law its clients' rate times the
+time each request spends) times the worker time one of its requests takes. A worker
+serves its requests in turn, so equal loads give the maps of all workers the same
+rate. Every `workers.balance_interval_s` the pool compares the workers' loads; when
+they differ clearly and moving one map from the busiest to the least busy worker
+narrows the difference by a quarter or more, it moves it (then lets the loads settle
+for a few intervals): new calls for the map wait in the API process, the old worker
+answers what it already had, snapshots the map and closes it (`CloseMap`), the new
+worker opens it from that snapshot (`OpenMap`), and the waiting calls go there. Every
+acknowledged frame is in the map's log either way; a move that fails leaves the map
+where it was.
 
 Transport: one socket pair per worker (``multiprocessing.Pipe``). The worker
 blocks on ``Connection.recv_bytes``; the API side never blocks: it writes the
@@ -120,8 +122,9 @@ MOVE_COOLDOWN_S = 10.0
 """A map that moved stays where it is for at least this long (no ping-pong)."""
 SETTLE_INTERVALS = 3
 """After a move, the balancer waits this many intervals (the loads it measures settle)."""
-MIN_LOAD_GAP = 1.0
-"""Loads (requests in flight, time-averaged) two workers may differ by without a move..."""
+MIN_LOAD_GAP = 0.005
+"""Loads (seconds of work in flight, time-averaged) two workers may differ by without a
+move..."""
 MIN_RELATIVE_GAP = 0.2
 """...or by this fraction of the busiest worker's load."""
 MOVE_GAIN = 0.75
@@ -131,26 +134,37 @@ leaves 1/2; a move that mostly swaps the roles of the two workers is no gain).""
 
 @dataclass
 class MapLoad:
-    """A map's requests in flight, integrated over time (the balancer's measure)."""
+    """A map's requests in flight integrated over time, and the worker time each takes:
+    the balancer's measure."""
 
     inflight: int = 0
     area: float = 0.0
     """Integral of `inflight` over time since the last `sample`, request-seconds."""
     since: float = field(default_factory=time.monotonic)
-    load: float = 0.0
+    waiting: float = 0.0
     """Smoothed time-averaged requests in flight."""
+    service_s: float = 0.0
+    """Smoothed worker time of one request, seconds."""
+    load: float = 0.0
+    """`waiting` x `service_s`: the work the map keeps in flight, seconds."""
     moved: float = -MOVE_COOLDOWN_S
+    born: float = field(default_factory=time.monotonic)
 
     def change(self, delta: int, now: float) -> None:
         self.area += self.inflight * (now - self.since)
         self.since = now
         self.inflight += delta
 
+    def served(self, seconds: float) -> None:
+        """A request of the map took the worker `seconds`."""
+        self.service_s = seconds if not self.service_s else 0.9 * self.service_s + 0.1 * seconds
+
     def sample(self, now: float, interval_s: float) -> float:
         """Fold the time since the last sample into `load` (half old, half new)."""
         self.change(0, now)
-        self.load = 0.5 * self.load + 0.5 * self.area / max(interval_s, 1e-9)
+        self.waiting = 0.5 * self.waiting + 0.5 * self.area / max(interval_s, 1e-9)
         self.area = 0.0
+        self.load = self.waiting * self.service_s
         return self.load
 
 
@@ -252,6 +266,7 @@ class WorkerPool(EngineBase):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping = False
         self._owner: dict[str, int] = {}
+        self._next_owner = 0
         self._load: dict[str, MapLoad] = {}
         self._moving: dict[str, asyncio.Future[None]] = {}
 
@@ -358,16 +373,30 @@ class WorkerPool(EngineBase):
         ]
 
     def worker_of(self, map_id: str) -> int:
-        """The worker running the map; a map new to the pool goes to the least loaded."""
+        """The worker running the map; a map new to the pool goes to the least loaded
+        (loads within MIN_LOAD_GAP count as equal: then the next one in turn; a map
+        younger than MOVE_COOLDOWN_S counts at least as much as the mean map)."""
         owner = self._owner.get(map_id)
         if owner is None:
-            totals = [0.0] * self._settings.workers.count
-            counts = [0] * self._settings.workers.count
+            count = self._settings.workers.count
+            totals = [0.0] * count
+            now = time.monotonic()
+            measured = [m.load for m in self._load.values() if m.load > 0]
+            # a map too new to be measured weighs as a typical one (maps created in a
+            # row spread over the workers)
+            typical = max(MIN_LOAD_GAP, sum(measured) / len(measured) if measured else 0.0)
             for m, w in self._owner.items():
-                totals[w] += self._load[m].load if m in self._load else 0.0
-                counts[w] += 1
-            owner = min(range(len(totals)), key=lambda w: (totals[w], counts[w], w))
+                load = self._load.get(m)
+                young = load is None or now - load.born < MOVE_COOLDOWN_S
+                totals[w] += max(0.0 if load is None else load.load, typical if young else 0.0)
+            turn = self._next_owner
+
+            def rank(w: int) -> tuple[int, int]:
+                return int(totals[w] / MIN_LOAD_GAP), (w - turn) % count
+
+            owner = min(range(count), key=rank)
             self._owner[map_id] = owner
+            self._next_owner = (owner + 1) % count
         return owner
 
     def busy(self, map_id: str) -> bool:
@@ -574,4 +603,5 @@ class WorkerPool(EngineBase):
             ) from exc
         finally:
             load.change(-1, time.monotonic())
+        load.served(reply.get("busy_s", 0.0))
         return reply_value(reply, retry_after_s=retry_after)

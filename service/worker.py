@@ -21,6 +21,7 @@ import pickle
 import queue
 import signal
 import threading
+import time
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -346,12 +347,14 @@ def snapshot_if_due(map_id: str) -> None:
 
 def call(map_id: str, request: Request[Any]) -> dict[str, Any]:
     """Carry out one request on one map; never raises (errors come back as data)."""
+    t0 = time.perf_counter()
     try:
         value = carry_out(map_id, request)
         reply = {"ok": True, "value": value}
         view = _published(map_id, request, value)
         if view is not None:
             reply["view"] = view
+        reply["busy_s"] = time.perf_counter() - t0  # the pool's measure of load
         return reply
     except ServiceError as exc:
         return {"ok": False, "error": exc.as_dict()}

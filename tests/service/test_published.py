@@ -141,5 +141,6 @@ def test_the_balancer_moves_the_map_that_evens_out_the_workers() -> None:
     assert choose_move({0: 10.0, 1: 0.0}, {0: {"big": 10.0}}) is None  # would only swap
     assert choose_move({0: 10.0, 1: 0.0}, {0: {"small": 1.0}}) is None  # gap 10 -> 8
     assert choose_move({0: 10.0, 1: 0.0}, {0: {}}) is None  # nothing may move
-    assert choose_move({0: 1.5, 1: 1.0}, {0: {"a": 0.3}}) is None  # within the margin
+    assert choose_move({0: 1.1, 1: 1.0}, {0: {"a": 0.05}}) is None  # within the margin
+    assert choose_move({0: 0.004, 1: 0.0}, {0: {"a": 0.002}}) is None  # 4 ms of work
     assert choose_move({0: 17.0, 1: 14.0}, {0: {"a": 1.5}}) is None  # noise, not load
