@@ -5,19 +5,18 @@ API's event loop only awaits their answers. A map is run by one worker at a time
 worker takes its requests strictly in order, so a map's frames are applied in arrival
 order while maps on different workers proceed in parallel.
 
-Placement: a new map goes to the least loaded worker, the maps found at start are dealt
-out in turn. A map's load is the work it keeps in flight: the time-averaged number of
-its requests waiting or being computed (by Little's law its clients' rate times the
-time each request spends) times the worker time one of its requests takes. A worker
-serves its requests in turn, so equal loads give the maps of all workers the same
-rate. Every `workers.balance_interval_s` the pool compares the workers' loads; when
-they differ clearly and moving one map from the busiest to the least busy worker
-narrows the difference by a quarter or more, it moves it (then lets the loads settle
-for a few intervals): new calls for the map wait in the API process, the old worker
-answers what it already had, snapshots the map and closes it (`CloseMap`), the new
-worker opens it from that snapshot (`OpenMap`), and the waiting calls go there. Every
-acknowledged frame is in the map's log either way; a move that fails leaves the map
-where it was.
+Placement: new maps and the maps found at start are dealt out to the workers in turn.
+A map's load is the work it keeps in flight: the time-averaged number of its requests
+waiting or being computed (by Little's law its clients' rate times the time each
+request spends) times the worker time one of its requests takes. A worker serves its
+requests in turn, so equal loads give the maps of all workers the same rate. Every
+`workers.balance_interval_s` the pool compares the workers' loads; when they differ
+clearly and moving one map from the busiest to the least busy worker narrows the
+difference by a quarter or more, it moves it (then lets the loads settle for a few
+intervals): new calls for the map wait in the API process, the old worker answers what
+it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
+from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged
+frame is in the map's log either way; a move that fails leaves the map where it was.
 
 Transport: one socket pair per worker (``multiprocessing.Pipe``). The worker
 blocks on ``Connection.recv_bytes``; the API side never blocks: it writes the
@@ -148,7 +147,6 @@ class MapLoad:
     load: float = 0.0
     """`waiting` x `service_s`: the work the map keeps in flight, seconds."""
     moved: float = -MOVE_COOLDOWN_S
-    born: float = field(default_factory=time.monotonic)
 
     def change(self, delta: int, now: float) -> None:
         self.area += self.inflight * (now - self.since)
@@ -373,30 +371,13 @@ class WorkerPool(EngineBase):
         ]
 
     def worker_of(self, map_id: str) -> int:
-        """The worker running the map; a map new to the pool goes to the least loaded
-        (loads within MIN_LOAD_GAP count as equal: then the next one in turn; a map
-        younger than MOVE_COOLDOWN_S counts at least as much as the mean map)."""
+        """The worker running the map; a map new to the pool goes to the next worker in
+        turn (a new map has no load to go by yet, and maps created together land on
+        different workers; the balancer moves it if its worker turns out busier)."""
         owner = self._owner.get(map_id)
         if owner is None:
-            count = self._settings.workers.count
-            totals = [0.0] * count
-            now = time.monotonic()
-            measured = [m.load for m in self._load.values() if m.load > 0]
-            # a map too new to be measured weighs as a typical one (maps created in a
-            # row spread over the workers)
-            typical = max(MIN_LOAD_GAP, sum(measured) / len(measured) if measured else 0.0)
-            for m, w in self._owner.items():
-                load = self._load.get(m)
-                young = load is None or now - load.born < MOVE_COOLDOWN_S
-                totals[w] += max(0.0 if load is None else load.load, typical if young else 0.0)
-            turn = self._next_owner
-
-            def rank(w: int) -> tuple[int, int]:
-                return int(totals[w] / MIN_LOAD_GAP), (w - turn) % count
-
-            owner = min(range(count), key=rank)
-            self._owner[map_id] = owner
-            self._next_owner = (owner + 1) % count
+            owner = self._owner[map_id] = self._next_owner
+            self._next_owner = (owner + 1) % self._settings.workers.count
         return owner
 
     def busy(self, map_id: str) -> bool:
