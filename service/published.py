@@ -9,10 +9,10 @@ latest view it holds, so a read never waits behind the frames the worker is busy
 landmarks, per-frame statistics, a robot known only to the place localiser) still goes
 to the worker.
 
-Two parts of a view may lag behind the map: the poses of the robots that did not send
-the last frame, and the live landmarks. A read of such a part goes to the worker when
-it has nothing else to do (so a client reads its own writes), and is answered from the
-view while the worker is busy.
+Two parts of a view may lag behind the map: the poses and held trajectory rows of the
+robots that did not send the last frame, and the live landmarks. A read of such a part
+goes to the worker when it has nothing else to do (so a client reads its own writes),
+and is answered from the view while the worker is busy.
 
 The live landmarks' marginal covariances cost a joint marginal of every live landmark
 (~5 ms for 50 landmarks, half a frame): the view keeps the last landmark document it
@@ -54,8 +54,8 @@ class MapView:
     refreshed with this view (the previous view's stand)."""
     landmarks_log_id: int = 0
     poses_log_id: int = 0
-    """The frame after which every robot's pose was computed (`pose` renews only the
-    robot of each frame after it)."""
+    """The frame after which every robot's pose and held rows were computed (`pose`
+    and `held` renew only the robot of each frame after it)."""
 
     def updated(self, previous: MapView | None) -> MapView:
         """This view, with `previous`'s landmarks when it carries none."""
@@ -78,28 +78,34 @@ def build_view(
     `poses` False (with `previous`): the poses as they were published (nothing moved).
 
     `robot` (with the map's `previous` view): only that robot sent a frame since, so
-    only its entry of the poses is new and the other robots keep theirs: as of their
-    own latest frame. (Their poses moved a little with this frame's update, but each
-    one's covariance would cost a marginal of the graph: ~1.5 ms a robot, half a
-    frame's time for a map of four robots.)"""
+    only its entries of the poses and the held trajectory rows are new and the other
+    robots keep theirs: as of their own latest frame. (Their poses moved a little with
+    this frame's update, but each one's covariance would cost a marginal of the graph,
+    ~1.5 ms a robot, half a frame's time for a map of four robots; all robots' rows
+    ~0.5 ms.) `poses_log_id` says which frame every robot's entries are of."""
     pipeline = session.pipeline
-    has_off_graph = bool(pipeline.off_graph_robots())
+    held: dict[str, NDArray[np.float64]] | None = None
     if previous is not None and not poses:
-        pose, poses_log_id = previous.pose, previous.poses_log_id
-    elif robot is None or previous is None:
+        pose, held, poses_log_id = previous.pose, previous.held, previous.poses_log_id
+    elif robot is None or previous is None or previous.held is None:
         pose, poses_log_id = pose_answer(session), session.last_log_id
     else:
         fresh = pose_answer(session, robot)
         pose = {**fresh, "robots": {**previous.pose["robots"], **fresh["robots"]}}
+        held = {**previous.held, **session.slam.trajectory(robot)}
         alone = set(pose["robots"]) <= {robot}  # no other robot's pose to lag
         poses_log_id = session.last_log_id if alone else previous.poses_log_id
+    if pipeline.off_graph_robots():
+        held = None
+    elif held is None:
+        held = session.slam.trajectory()
     return MapView(
         map_id=session.record.id,
         log_id=session.last_log_id,
         summary=Summary().answer(session),
         pose=pose,
         places=None if pipeline.localiser is None else Places().answer(session),
-        held=None if has_off_graph else session.slam.trajectory(),
+        held=held,
         landmarks=Landmarks().answer(session) if landmarks else None,
         landmarks_log_id=session.last_log_id if landmarks else 0,
         poses_log_id=poses_log_id,

@@ -208,6 +208,9 @@ class Trajectory(MapRequest[dict[str, list[Doc]]]):
             attach_frame_stats(rows, session.store.frame_stats(), labels, every=self.stats_every)
         return rows
 
+    def view_behind(self, view: MapView) -> bool:
+        return view.poses_log_id < view.log_id
+
     def from_view(self, view: MapView, store: Store) -> dict[str, list[Doc]] | None:
         robot = self.robot
         if self.stats_every or view.held is None or (robot is not None and robot not in view.held):

@@ -88,6 +88,10 @@ def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
         assert after.pose["robots"]["r1"] == now["r1"]
         assert after.pose["robots"]["r2"] == before.pose["robots"]["r2"]
         assert Pose().view_behind(after) and not Pose().view_behind(before)  # r2 lags
+        assert after.held is not None and before.held is not None
+        assert np.array_equal(after.held["r1"], session.slam.trajectory("r1")["r1"])
+        assert np.array_equal(after.held["r2"], before.held["r2"])
+        assert Trajectory().view_behind(after) and not Trajectory().view_behind(before)
     finally:
         session.close()
 
