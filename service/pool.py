@@ -12,7 +12,7 @@ request spends) times the worker time one of its requests takes. A worker serves
 requests in turn, so equal loads give the maps of all workers the same rate. Every
 `workers.balance_interval_s` the pool compares the workers' loads; when they differ
 clearly and moving one map from the busiest to the least busy worker narrows the
-difference by a quarter or more, it moves it (then lets the loads settle for a few
+difference to 60 % or less, it moves it (then lets the loads settle for a few
 intervals): new calls for the map wait in the API process, the old worker answers what
 it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
 from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged
@@ -119,14 +119,14 @@ class _WorkerDied(Exception):
 
 MOVE_COOLDOWN_S = 10.0
 """A map that moved stays where it is for at least this long (no ping-pong)."""
-SETTLE_INTERVALS = 3
+SETTLE_INTERVALS = 4
 """After a move, the balancer waits this many intervals (the loads it measures settle)."""
 MIN_LOAD_GAP = 0.005
 """Loads (seconds of work in flight, time-averaged) two workers may differ by without a
 move..."""
-MIN_RELATIVE_GAP = 0.2
+MIN_RELATIVE_GAP = 0.25
 """...or by this fraction of the busiest worker's load."""
-MOVE_GAIN = 0.75
+MOVE_GAIN = 0.6
 """A move must leave at most this fraction of the gap it closes (6:2 equal maps -> 5:3
 leaves 1/2; a move that mostly swaps the roles of the two workers is no gain)."""
 
