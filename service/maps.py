@@ -26,7 +26,7 @@ from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
 from service.published import MapView
-from service.queries import Landmarks, SetMode, Summary
+from service.queries import Landmarks, SetMode, Summary, Trajectory
 from service.requests import (
     CreateMap,
     DeleteMap,
@@ -132,7 +132,7 @@ class MapService:
 
     def _publish_view(self, view: MapView) -> None:
         if view.map_id in self._records or view.map_id in self._new_ids:
-            self._views[view.map_id] = view.updated(self._views.get(view.map_id))
+            self._views[view.map_id] = view
 
     async def start(self) -> None:
         await self.pool.start(self._records)
@@ -292,14 +292,14 @@ class MapService:
             else:
                 answer = request.from_view(view, self.store)
             if answer is not None:
-                if behind and isinstance(request, Landmarks):
+                if behind and isinstance(request, Landmarks | Trajectory):
                     self._refresh(map_id)
                 return answer
         return await self.pool.call(map_id, request)
 
     def _refresh(self, map_id: str) -> None:
-        """Ask the map's worker for its live landmarks now (one request at a time); the
-        view it publishes answers the next reads."""
+        """Ask the map's worker for its live landmarks and held trajectory rows now (one
+        request at a time); the view it publishes answers the next reads."""
         if map_id in self._refreshing:
             return
         self._refreshing.add(map_id)

@@ -76,8 +76,8 @@ class OpenMap(WorkerRequest[Doc]):
 
 @dataclass(frozen=True)
 class RefreshView(WorkerRequest[None]):
-    """Publish the map's view with its live landmarks computed now (a read found the
-    published ones behind the map)."""
+    """Publish the map's view with its live landmarks and held trajectory rows computed
+    now (a read found the published ones behind the map)."""
 
 
 @dataclass(frozen=True)

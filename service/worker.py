@@ -56,8 +56,8 @@ _store: Store | None = None
 _sessions: dict[str, MapSession] = {}
 _publish = False
 """Build published views (the local pool's workers; a Ray actor is asked directly)."""
-_stale_landmarks: dict[str, int] = {}
-"""Frames each open map took since its published landmarks were last refreshed."""
+_stale: set[str] = set()
+"""Open maps whose published view has parts that lag behind the map."""
 _views: dict[str, MapView] = {}
 """The latest view published of each open map."""
 
@@ -133,7 +133,7 @@ def _create(map_id: str, request: CreateMap) -> dict[str, Any]:
 
 def _delete(map_id: str) -> None:
     session = _sessions.pop(map_id, None)
-    _stale_landmarks.pop(map_id, None)
+    _stale.discard(map_id)
     _views.pop(map_id, None)
     if session is not None:
         session.close()
@@ -143,7 +143,7 @@ def _delete(map_id: str) -> None:
 def close_map(map_id: str) -> None:
     """Snapshot an open map if it took frames since its last snapshot, then close it."""
     session = _sessions.pop(map_id, None)
-    _stale_landmarks.pop(map_id, None)
+    _stale.discard(map_id)
     _views.pop(map_id, None)
     if session is None:
         return
@@ -284,12 +284,12 @@ def _prefetch(request: Message) -> None:
 
 
 def _idle_work(inbox: queue.Queue[Message | None], conn: Connection) -> None:
-    """While no request is waiting, one map at a time: published landmarks that are
-    behind their map (sent unasked), then snapshots that are due."""
-    for map_id in [m for m, n in _stale_landmarks.items() if n > 0]:
+    """While no request is waiting, one map at a time: published views with parts that
+    lag behind their map, renewed (sent unasked), then snapshots that are due."""
+    for map_id in list(_stale):
         if not inbox.empty():
             return
-        view = _view(map_id, landmarks=True)
+        view = _view(map_id)
         if view is not None:
             try:
                 conn.send_bytes(pickle.dumps((0, {"ok": True, "value": None, "view": view})))
@@ -301,38 +301,36 @@ def _idle_work(inbox: queue.Queue[Message | None], conn: Connection) -> None:
         snapshot_if_due(map_id)
 
 
-def _view(
-    map_id: str, *, landmarks: bool, robot: str | None = None, poses: bool = True
-) -> MapView | None:
+def _view(map_id: str, *, robot: str | None = None, refresh: bool = False) -> MapView | None:
     """The open map's published view now (None: not open, or it failed: logged);
-    `robot`, `poses`: see build_view."""
+    `robot`, `refresh`: see build_view (neither: all new)."""
     session = _sessions.get(map_id)
     if session is None:
         return None
     try:
-        previous = _views.get(map_id)
-        view = build_view(session, landmarks=landmarks, robot=robot, previous=previous, poses=poses)
+        view = build_view(session, previous=_views.get(map_id), robot=robot, refresh=refresh)
     except Exception:
         log.exception("the published view of map %s failed", map_id)
         return None
-    if landmarks:
-        _stale_landmarks[map_id] = 0
-    _views[map_id] = view.updated(previous)
+    _views[map_id] = view
+    if robot is None and not refresh:
+        _stale.discard(map_id)
+    else:
+        _stale.add(map_id)
     return view
 
 
 def _published(map_id: str, request: Request[Any], value: Any) -> MapView | None:
     """The view to publish after `request` answered `value` (None: nothing changed)."""
-    if not _publish or not isinstance(request, _CHANGES):
+    if not isinstance(request, _CHANGES):
         return None
     if isinstance(request, SubmitFrame):
         if value.replayed:
             return None
-        _stale_landmarks[map_id] = _stale_landmarks.get(map_id, 0) + 1
-        return _view(map_id, landmarks=False, robot=request.frame.get("robot"))
+        return _view(map_id, robot=request.frame.get("robot"))
     if isinstance(request, RefreshView):
-        return _view(map_id, landmarks=True, poses=False)
-    return _view(map_id, landmarks=True)
+        return _view(map_id, refresh=True)
+    return _view(map_id)
 
 
 def snapshot_if_due(map_id: str) -> None:
@@ -351,10 +349,11 @@ def call(map_id: str, request: Request[Any]) -> dict[str, Any]:
     try:
         value = carry_out(map_id, request)
         reply = {"ok": True, "value": value}
-        view = _published(map_id, request, value)
-        if view is not None:
-            reply["view"] = view
-        reply["busy_s"] = time.perf_counter() - t0  # the pool's measure of load
+        if _publish:  # a pool's worker: the view to publish and the pool's measure of load
+            view = _published(map_id, request, value)
+            if view is not None:
+                reply["view"] = view
+            reply["busy_s"] = time.perf_counter() - t0
         return reply
     except ServiceError as exc:
         return {"ok": False, "error": exc.as_dict()}

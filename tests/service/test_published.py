@@ -34,7 +34,7 @@ def session(store: Store) -> MapSession:
 
 
 def test_view_answers_every_read_as_the_map(session: MapSession, store: Store) -> None:
-    view = build_view(session, landmarks=True)
+    view = build_view(session)
     assert view.log_id == session.last_log_id
     assert store.read_poses("viewmap"), "no final rows: the merge with the store is untested"
     for query in (
@@ -49,27 +49,34 @@ def test_view_answers_every_read_as_the_map(session: MapSession, store: Store) -
 
 
 def test_what_the_view_cannot_answer_goes_to_the_worker(session: MapSession, store: Store) -> None:
-    view = build_view(session, landmarks=False)
-    assert Landmarks().from_view(view, store) is None  # not refreshed with this view
+    view = build_view(session)
     assert Landmarks("archived").from_view(view, store) is None
     assert Trajectory(stats_every=5).from_view(view, store) is None
     assert Trajectory(robot="nobody").from_view(view, store) is None
 
 
-def test_a_view_without_landmarks_keeps_the_previous_ones(session: MapSession) -> None:
-    first = build_view(session, landmarks=True)
+def test_after_a_frame_the_costly_parts_lag_until_refreshed(
+    session: MapSession, store: Store
+) -> None:
+    first = build_view(session)
     session.submit(frame_to_dict(circle_frames(121, seed=2)[0][120]))
-    second = build_view(session, landmarks=False).updated(first)
+    second = build_view(session, previous=first, robot="r1")
     assert second.log_id > first.log_id
-    assert second.landmarks == first.landmarks
-    assert second.landmarks_log_id == first.log_id
+    assert second.summary == Summary().answer(session)
+    assert second.landmarks == first.landmarks and second.landmarks_log_id == first.log_id
+    assert second.held is first.held and second.held_log_id == first.log_id
     assert Landmarks().view_behind(second) and not Landmarks().view_behind(first)
+    assert Trajectory().view_behind(second) and not Trajectory().view_behind(first)
     assert not Pose().view_behind(second)  # one robot: its pose is all there is
+    third = build_view(session, previous=second, refresh=True)
+    assert not Landmarks().view_behind(third) and not Trajectory().view_behind(third)
+    assert Landmarks().from_view(third, store) == Landmarks().answer(session)
+    assert Trajectory().from_view(third, store) == Trajectory().answer(session)
 
 
 def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
     """A frame of r1 renews r1's entry of the published poses; r2's stays as of r2's own
-    latest frame (its covariance would cost another marginal)."""
+    latest frame (its covariance would cost another marginal), and the held rows lag."""
     rng = np.random.default_rng(4)
     world = make_world(rooms=(1, 2), landmarks=30, rng=rng)
     runs = [simulate(world, frames=12, rng=rng, robot=r).frames for r in ("r1", "r2")]
@@ -79,18 +86,15 @@ def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
         for a, b in zip(*runs, strict=True):
             session.submit(frame_to_dict(a))
             session.submit(frame_to_dict(b))
-        before = build_view(session, landmarks=False)
+        before = build_view(session)
         assert before.pose == Pose().answer(session)
         session.submit(frame_to_dict(simulate(world, frames=13, rng=rng).frames[12]))
-        after = build_view(session, landmarks=False, robot="r1", previous=before)
+        after = build_view(session, robot="r1", previous=before)
         now = Pose().answer(session)["robots"]
         assert set(after.pose["robots"]) == set(now) == {"r1", "r2"}
         assert after.pose["robots"]["r1"] == now["r1"]
         assert after.pose["robots"]["r2"] == before.pose["robots"]["r2"]
         assert Pose().view_behind(after) and not Pose().view_behind(before)  # r2 lags
-        assert after.held is not None and before.held is not None
-        assert np.array_equal(after.held["r1"], session.slam.trajectory("r1")["r1"])
-        assert np.array_equal(after.held["r2"], before.held["r2"])
         assert Trajectory().view_behind(after) and not Trajectory().view_behind(before)
     finally:
         session.close()
