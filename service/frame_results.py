@@ -92,8 +92,9 @@ class FrameReply:
     as stored: an idempotent retry answers these bytes."""
     replayed: bool = False
     """An idempotent retry, answered from the log."""
-    event_ids: list[int] = field(default_factory=list)
-    """Ids of the events the frame stored (the event streams wake for them)."""
+    events: list[tuple[int, str, str]] = field(default_factory=list)
+    """The events the frame stored: (id, kind, data JSON), oldest first (the event
+    streams send them)."""
     timing_ms: dict[str, float] = field(default_factory=dict)
     """The result's worker timings, ms (empty for a retry)."""
     store_ms: float = 0.0

@@ -1,18 +1,21 @@
-"""The service as the API sees it: one method per use case, all routed to workers.
+"""The service as the API sees it: one method per use case, routed to workers.
 
 `MapService` lives in the API process. It keeps the catalogue of maps (the store's),
-the engine that runs the maps (local worker processes, or Ray actors), and a notifier
-that wakes the event streams of a map when its worker reported something new.
-Everything heavy happens in the workers.
+the engine that runs the maps (local worker processes, or Ray actors), each map's
+latest published view (service.published: reads are answered from it, never queued
+behind frames), and each map's event feed, which the frame answers fill and the event
+streams read from memory. Everything heavy happens in the workers.
 """
 
 from __future__ import annotations
 
 import asyncio
 import builtins
+import itertools
 import logging
 import secrets
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -22,8 +25,16 @@ from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
-from service.queries import SetMode, Summary
-from service.requests import CreateMap, DeleteMap, ImportMap, MapRequest, SubmitFrame
+from service.published import MapView
+from service.queries import Landmarks, SetMode, Summary, Trajectory
+from service.requests import (
+    CreateMap,
+    DeleteMap,
+    ImportMap,
+    MapRequest,
+    RefreshView,
+    SubmitFrame,
+)
 from service.settings import Settings
 from service.store import KeyRecord, MapRecord
 
@@ -36,19 +47,63 @@ EventRows = list[tuple[int, str, str]]
 
 
 class Notifier:
-    """Wakes the waiters of a map when new events were stored for it."""
+    """Wakes the waiters of a map when new events were stored for it, and keeps each
+    map's latest events in memory (a feed), so that any number of event streams read
+    them without a store query each."""
 
-    def __init__(self) -> None:
+    def __init__(self, feed_size: int = 1000) -> None:
         self._events: dict[str, asyncio.Event] = {}
+        self._feeds: dict[str, deque[tuple[int, str, str, bytes]]] = {}
+        """Per map: (id, kind, data, the event as SSE bytes), ids consecutive."""
+        self._feed_size = feed_size
 
     def handle(self, map_id: str) -> asyncio.Event:
-        """An event set at the next `notify(map_id)`; take it *before* reading the store."""
+        """An event set at the next `notify(map_id)`; take it *before* reading the events."""
         return self._events.setdefault(map_id, asyncio.Event())
 
     def notify(self, map_id: str) -> None:
         event = self._events.pop(map_id, None)
         if event is not None:
             event.set()
+
+    def publish(self, map_id: str, rows: EventRows) -> None:
+        """Events a frame stored (ids consecutive and after those fed before, else the
+        feed restarts with them), then wake the map's waiters."""
+        if rows:
+            feed = self._feeds.get(map_id)
+            if feed is None or not feed or feed[-1][0] + 1 != rows[0][0]:
+                feed = self._feeds[map_id] = deque(maxlen=self._feed_size)
+            feed.extend((*row, sse_bytes([row])) for row in rows)  # encoded once for all
+        self.notify(map_id)
+
+    def forget(self, map_id: str) -> None:
+        self._feeds.pop(map_id, None)
+        self.notify(map_id)
+
+    def _fed(self, map_id: str, after: int) -> list[tuple[int, str, str, bytes]] | None:
+        feed = self._feeds.get(map_id)
+        if not feed or feed[0][0] > after + 1:
+            return None
+        return list(itertools.islice(feed, max(0, after + 1 - feed[0][0]), None))
+
+    def fed_after(self, map_id: str, after: int) -> EventRows | None:
+        """The fed events with id > `after`, or None when the feed does not reach back to
+        `after` (read the store)."""
+        fed = self._fed(map_id, after)
+        return None if fed is None else [(i, kind, data) for i, kind, data, _ in fed]
+
+    def fed_sse(self, map_id: str, after: int) -> tuple[int, bytes] | None:
+        """(the last id, the SSE bytes) of the fed events with id > `after` ((`after`,
+        b"") if none), or None when the feed does not reach back to `after`."""
+        fed = self._fed(map_id, after)
+        if fed is None:
+            return None
+        return (fed[-1][0], b"".join(row[3] for row in fed)) if fed else (after, b"")
+
+
+def sse_bytes(rows: EventRows) -> bytes:
+    """Events as server-sent events (`id`, `event`, `data` lines each)."""
+    return "".join(f"id: {i}\nevent: {kind}\ndata: {data}\n\n" for i, kind, data in rows).encode()
 
 
 def _imported_record(reply: dict[str, Any]) -> MapRecord:
@@ -66,14 +121,26 @@ class MapService:
         self._keys: dict[str, KeyRecord] = {k.hash: k for k in self._catalog.keys()}
         self._creating = 0
         self.pool: Engine = make_engine(settings, on_restart=on_worker_restart)
+        self.pool.on_view = self._publish_view
+        self._views: dict[str, MapView] = {}
+        self._new_ids: set[str] = set()
+        self._refreshing: set[str] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
+        """Maps being created or imported (their first view comes before their record)."""
         self.notifier = Notifier()
         self.started = False
+
+    def _publish_view(self, view: MapView) -> None:
+        if view.map_id in self._records or view.map_id in self._new_ids:
+            self._views[view.map_id] = view
 
     async def start(self) -> None:
         await self.pool.start(self._records)
         self.started = True
 
     async def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
         await self.pool.stop()
         self._catalog.close()
         self.store.close()
@@ -142,6 +209,7 @@ class MapService:
         `record_of(reply)` is the new map's MapRecord."""
         self._check_room()
         self._creating += 1
+        self._new_ids.add(map_id)
         try:
             timeout = None if isinstance(request, CreateMap) else self._long_timeout_s
             reply = await self.pool.call(map_id, request, timeout_s=timeout)
@@ -152,9 +220,12 @@ class MapService:
                 await self.pool.call(map_id, DeleteMap())
             except Exception:
                 log.exception("could not remove the files of the failed new map %s", map_id)
+            self.pool.untrack(map_id)
+            self._views.pop(map_id, None)
             raise
         finally:
             self._creating -= 1
+            self._new_ids.discard(map_id)
         self._records[record.id] = record
         self.pool.track(record.id)
         return reply
@@ -166,8 +237,7 @@ class MapService:
         return {**summary, "worker": self.pool.worker_of(record.id)}
 
     async def summary(self, map_id: str) -> dict[str, Any]:
-        self.record(map_id)
-        summary = await self.pool.call(map_id, Summary())
+        summary = await self.query(map_id, Summary())
         return {**summary, "worker": self.pool.worker_of(map_id)}
 
     async def delete(self, map_id: str) -> None:
@@ -175,9 +245,12 @@ class MapService:
         self._catalog.remove(map_id)  # and its keys
         del self._records[map_id]
         self._keys = {h: k for h, k in self._keys.items() if k.map_id != map_id}
-        self.pool.untrack(map_id)
-        self.notifier.notify(map_id)
-        await self.pool.call(map_id, DeleteMap())
+        self._views.pop(map_id, None)
+        self.notifier.forget(map_id)
+        try:  # on the worker that has the map open
+            await self.pool.call(map_id, DeleteMap())
+        finally:
+            self.pool.untrack(map_id)
 
     async def set_mode(self, map_id: str, mode: Mode) -> dict[str, Any]:
         record = self.record(map_id)
@@ -198,18 +271,70 @@ class MapService:
         the map's worker)."""
         self.record(map_id)
         reply = await self.pool.call(map_id, SubmitFrame(frame, image))
-        if reply.event_ids:
-            self.notifier.notify(map_id)
+        if reply.events:
+            if self.pool.shared:  # other API processes feed the store too: read it
+                self.notifier.notify(map_id)
+            else:
+                self.notifier.publish(map_id, reply.events)
         return reply
 
     async def query(self, map_id: str, request: MapRequest[T]) -> T:
-        """A query (service.queries) on a map; its answer."""
+        """A query (service.queries) on a map; its answer: from the map's published view
+        when the query can be answered from it (no wait for the worker; a part of the
+        view that lags behind the map only while the worker is busy), else the
+        worker's."""
         self.record(map_id)
+        view = self._views.get(map_id)
+        behind = view is not None and request.view_behind(view)
+        if view is not None and not (behind and not self.pool.busy(map_id)):
+            if request.view_reads_store:
+                answer = await asyncio.to_thread(request.from_view, view, self.store)
+            else:
+                answer = request.from_view(view, self.store)
+            if answer is not None:
+                if behind and isinstance(request, Landmarks | Trajectory):
+                    self._refresh(map_id)
+                return answer
         return await self.pool.call(map_id, request)
+
+    def _refresh(self, map_id: str) -> None:
+        """Ask the map's worker for its live landmarks and held trajectory rows now (one
+        request at a time); the view it publishes answers the next reads."""
+        if map_id in self._refreshing:
+            return
+        self._refreshing.add(map_id)
+
+        async def refresh() -> None:
+            try:
+                await self.pool.call(map_id, RefreshView())
+            except Exception:
+                log.warning("refreshing the landmarks of map %s failed", map_id, exc_info=True)
+            finally:
+                self._refreshing.discard(map_id)
+
+        task = asyncio.get_running_loop().create_task(refresh())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def read_events(self, map_id: str, after: int) -> EventRows:
         """Stored events of a map after id `after`: (id, kind, data JSON) (blocking I/O)."""
         return self.store.read_events(map_id, after)
+
+    async def events_after(self, map_id: str, after: int) -> tuple[int, bytes]:
+        """A map's events after id `after` as server-sent events: (the last id, bytes;
+        (`after`, b"") when there are none). From the map's feed in memory, or (a stream
+        that starts or fell behind) from the store."""
+        fed = self.notifier.fed_sse(map_id, after)
+        if fed is not None:
+            return fed
+        rows = await asyncio.to_thread(self.read_events, map_id, after)
+        return (rows[-1][0], sse_bytes(rows)) if rows else (after, b"")
+
+    def exists(self, map_id: str) -> bool:
+        """The map is in the catalogue (with a shared engine: read again)."""
+        if self.pool.shared:
+            return map_id in {r.id for r in self.list()}
+        return map_id in self._records
 
     def latest_event_id(self, map_id: str) -> int:
         """The id of the map's newest stored event, 0 if none (blocking I/O)."""

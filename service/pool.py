@@ -1,23 +1,37 @@
-"""The worker pool: one process per worker, maps pinned by id, answers on the event loop.
+"""The worker pool: one process per worker, maps placed by load, answers on the event loop.
 
 GTSAM holds the GIL for each call, so the maps live in worker processes and the
-API's event loop only awaits their answers. A map always goes to the same worker
-(``crc32(id) % count``); a worker takes its requests strictly in order, so a
-map's frames are applied in arrival order while maps on different workers
-proceed in parallel.
+API's event loop only awaits their answers. A map is run by one worker at a time; a
+worker takes its requests strictly in order, so a map's frames are applied in arrival
+order while maps on different workers proceed in parallel.
+
+Placement: new maps and the maps found at start are dealt out to the workers in turn.
+A map's load is the work it keeps in flight: the time-averaged number of its requests
+waiting or being computed (by Little's law its clients' rate times the time each
+request spends) times the worker time one of its requests takes. A worker serves its
+requests in turn, so equal loads give the maps of all workers the same rate. Every
+`workers.balance_interval_s` the pool compares the workers' loads; when they differ
+clearly and moving one map from the busiest to the least busy worker narrows the
+difference to 60 % or less, it moves it (then lets the loads settle for a few
+intervals): new calls for the map wait in the API process, the old worker answers what
+it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
+from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged
+frame is in the map's log either way; a move that fails leaves the map where it was.
 
 Transport: one socket pair per worker (``multiprocessing.Pipe``). The worker
 blocks on ``Connection.recv_bytes``; the API side never blocks: it writes the
 same length-prefixed frames non-blockingly (``loop.add_writer`` when the pipe is
 full, e.g. a large import while the worker computes) and reads answers in a
 ``loop.add_reader`` callback. No helper threads, so a request costs two process
-hand-offs and nothing more.
+hand-offs and nothing more. An answer may carry the map's new published view
+(service.published), handed to `on_view`; message id 0 is a view sent unasked.
 
 A worker that dies shows as end-of-file on its socket: the requests in flight get
 `WorkerUnavailable` (the API answers 503 + Retry-After), a new process is started,
 and it first re-opens the worker's maps from the store (snapshot + log tail). A
 request that takes longer than the timeout gets the same 503; the frame log makes
-a client's retry safe either way.
+a client's retry safe either way. At shutdown the pool closes the workers'
+connections and waits (`workers.shutdown_timeout_s`) while each snapshots its maps.
 """
 
 from __future__ import annotations
@@ -30,7 +44,6 @@ import os
 import pickle
 import struct
 import time
-import zlib
 from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -39,7 +52,8 @@ from typing import Any, Protocol, TypeVar
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
-from service.requests import OpenMap, Ping, Request
+from service.published import MapView
+from service.requests import CloseMap, OpenMap, Ping, Request
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -55,8 +69,12 @@ class Engine(Protocol):
 
     restarts: int
     """Workers (or actors) seen to stop and come back."""
+    moves: int
+    """Maps moved from one worker to another (balancing)."""
     shared: bool
     """Other API processes may run maps of the same store (look maps up in the catalogue)."""
+    on_view: Callable[[MapView], None] | None
+    """Called with each published view of a map (engines whose workers publish them)."""
 
     async def start(self, maps: Iterable[str]) -> None: ...
     async def stop(self) -> None: ...
@@ -64,6 +82,10 @@ class Engine(Protocol):
     def ready(self) -> bool: ...
     def status(self) -> list[dict[str, Any]]: ...
     def worker_of(self, map_id: str) -> int | None: ...
+    def busy(self, map_id: str) -> bool:
+        """The map's worker has requests in flight (a call would wait)."""
+        ...
+
     def track(self, map_id: str) -> None: ...
     def untrack(self, map_id: str) -> None: ...
     async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
@@ -93,6 +115,79 @@ def reply_value(reply: dict[str, Any], *, retry_after_s: int) -> Any:
 
 class _WorkerDied(Exception):
     pass
+
+
+MOVE_COOLDOWN_S = 10.0
+"""A map that moved stays where it is for at least this long (no ping-pong)."""
+SETTLE_INTERVALS = 4
+"""After a move, the balancer waits this many intervals (the loads it measures settle)."""
+MIN_LOAD_GAP = 0.005
+"""Loads (seconds of work in flight, time-averaged) two workers may differ by without a
+move..."""
+MIN_RELATIVE_GAP = 0.25
+"""...or by this fraction of the busiest worker's load."""
+MOVE_GAIN = 0.6
+"""A move must leave at most this fraction of the gap it closes (6:2 equal maps -> 5:3
+leaves 1/2; a move that mostly swaps the roles of the two workers is no gain)."""
+
+
+@dataclass
+class MapLoad:
+    """A map's requests in flight integrated over time, and the worker time each takes:
+    the balancer's measure."""
+
+    inflight: int = 0
+    area: float = 0.0
+    """Integral of `inflight` over time since the last `sample`, request-seconds."""
+    since: float = field(default_factory=time.monotonic)
+    waiting: float = 0.0
+    """Smoothed time-averaged requests in flight."""
+    service_s: float = 0.0
+    """Smoothed worker time of one request, seconds."""
+    load: float = 0.0
+    """`waiting` x `service_s`: the work the map keeps in flight, seconds."""
+    moved: float = -MOVE_COOLDOWN_S
+
+    def change(self, delta: int, now: float) -> None:
+        self.area += self.inflight * (now - self.since)
+        self.since = now
+        self.inflight += delta
+
+    def served(self, seconds: float) -> None:
+        """A request of the map took the worker `seconds`."""
+        self.service_s = seconds if not self.service_s else 0.9 * self.service_s + 0.1 * seconds
+
+    def sample(self, now: float, interval_s: float) -> float:
+        """Fold the time since the last sample into `load` (half old, half new)."""
+        self.change(0, now)
+        self.waiting = 0.5 * self.waiting + 0.5 * self.area / max(interval_s, 1e-9)
+        self.area = 0.0
+        self.load = self.waiting * self.service_s
+        return self.load
+
+
+def choose_move(
+    totals: dict[int, float], movable: dict[int, dict[str, float]], *, min_gap: float = MIN_LOAD_GAP
+) -> tuple[str, int, int] | None:
+    """(map, from worker, to worker) that best evens out the busiest and the least busy
+    worker, or None. `totals`: each worker's load; `movable`: per worker, the loads of
+    the maps that may move. Only a gap g of at least `min_gap` and MIN_RELATIVE_GAP of
+    the busiest's load counts (measured loads are noisy), and only a move that narrows
+    it to MOVE_GAIN of itself or less: a map of load l leaves a gap |g - 2l|; the
+    smallest wins."""
+    if len(totals) < 2:
+        return None
+    busiest = max(totals, key=lambda w: totals[w])
+    idlest = min(totals, key=lambda w: totals[w])
+    gap = totals[busiest] - totals[idlest]
+    if gap < max(min_gap, MIN_RELATIVE_GAP * totals[busiest]):
+        return None
+    maps = movable.get(busiest, {})
+    candidates = [(abs(gap - 2 * load), m) for m, load in maps.items() if load > 0]
+    best = min(candidates, default=None)
+    if best is None or best[0] > MOVE_GAIN * gap:
+        return None
+    return best[1], busiest, idlest
 
 
 @dataclass
@@ -127,6 +222,10 @@ class EngineBase:
         self._on_restart = on_restart
         self._tasks: set[asyncio.Task[None]] = set()
         self.restarts = 0
+        self.moves = 0
+        """Maps moved from one worker to another (balancing)."""
+        self.on_view: Callable[[MapView], None] | None = None
+        """Called with every published view a worker sends (the local pool's workers)."""
 
     def track(self, map_id: str) -> None:
         self._maps.add(map_id)
@@ -164,6 +263,10 @@ class WorkerPool(EngineBase):
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping = False
+        self._owner: dict[str, int] = {}
+        self._next_owner = 0
+        self._load: dict[str, MapLoad] = {}
+        self._moving: dict[str, asyncio.Future[None]] = {}
 
     # ------------------------------------------------------------ lifecycle
     async def start(self, maps: Iterable[str]) -> None:
@@ -171,9 +274,14 @@ class WorkerPool(EngineBase):
         (`ready` turns true when all are loaded; calls meanwhile queue behind the loads)."""
         self._loop = asyncio.get_running_loop()
         self._maps = set(maps)
-        self._slots = [self._spawn(i) for i in range(self._settings.workers.count)]
+        count = self._settings.workers.count
+        self._owner = {m: i % count for i, m in enumerate(sorted(self._maps))}
+        self._slots = [self._spawn(i) for i in range(count)]
         for slot in self._slots:
             self._spawn_load(slot)
+        interval = self._settings.workers.balance_interval_s
+        if interval > 0 and count > 1:
+            self._background(self._balance_every(interval))
 
     def _spawn(self, index: int, generation: int = 0) -> _Slot:
         assert self._loop is not None
@@ -192,7 +300,7 @@ class WorkerPool(EngineBase):
         return slot
 
     def _spawn_load(self, slot: _Slot) -> None:
-        mine = [m for m in self._maps if self.worker_of(m) == slot.index]
+        mine = [m for m in self._maps if self._owner.get(m) == slot.index]
         slot.loading = len(mine)
 
         async def load() -> None:
@@ -219,9 +327,12 @@ class WorkerPool(EngineBase):
         self._cancel_background()
         for slot in self._slots:
             self._close(slot)
+        # each worker snapshots its maps when its connection closes, then ends
+        deadline = time.monotonic() + self._settings.workers.shutdown_timeout_s
         for slot in self._slots:
-            slot.process.join(timeout=5)
+            await asyncio.to_thread(slot.process.join, max(0.0, deadline - time.monotonic()))
             if slot.process.is_alive():
+                log.warning("worker %d did not end in time; killed", slot.index)
                 slot.process.kill()
 
     def _close(self, slot: _Slot) -> None:
@@ -246,13 +357,119 @@ class WorkerPool(EngineBase):
                 "up": s.up,
                 "generation": s.generation,
                 "loading": s.loading,
-                "maps": sorted(m for m in self._maps if self.worker_of(m) == s.index),
+                "maps": sorted(m for m in self._maps if self._owner.get(m) == s.index),
+                "load": round(
+                    sum(
+                        self._load[m].load
+                        for m, w in self._owner.items()
+                        if w == s.index and m in self._load
+                    ),
+                    3,
+                ),
             }
             for s in self._slots
         ]
 
     def worker_of(self, map_id: str) -> int:
-        return zlib.crc32(map_id.encode()) % self._settings.workers.count
+        """The worker running the map; a map new to the pool goes to the next worker in
+        turn (a new map has no load to go by yet, and maps created together land on
+        different workers; the balancer moves it if its worker turns out busier)."""
+        owner = self._owner.get(map_id)
+        if owner is None:
+            owner = self._owner[map_id] = self._next_owner
+            self._next_owner = (owner + 1) % self._settings.workers.count
+        return owner
+
+    def busy(self, map_id: str) -> bool:
+        return map_id in self._moving or bool(self._slots[self.worker_of(map_id)].pending)
+
+    def track(self, map_id: str) -> None:
+        super().track(map_id)
+        self.worker_of(map_id)
+
+    def untrack(self, map_id: str) -> None:
+        super().untrack(map_id)
+        self._load.pop(map_id, None)
+        self._owner.pop(map_id, None)
+
+    # ------------------------------------------------------------ balance
+    async def _balance_every(self, interval_s: float) -> None:
+        settle = 0
+        while True:
+            await asyncio.sleep(interval_s)
+            try:
+                if settle > 0:  # sample only: the loads after the last move settle
+                    settle -= 1
+                    self._sample(interval_s)
+                elif await self.balance(interval_s) is not None:
+                    settle = SETTLE_INTERVALS
+            except Exception:
+                log.exception("balancing the maps over the workers failed")
+
+    def _sample(self, interval_s: float) -> tuple[dict[int, float], dict[int, dict[str, float]]]:
+        """Fold the last interval into every map's load: (each worker's load, the loads
+        of the maps that may move, per worker)."""
+        now = time.monotonic()
+        totals = {s.index: 0.0 for s in self._slots}
+        movable: dict[int, dict[str, float]] = {s.index: {} for s in self._slots}
+        for map_id, load in self._load.items():
+            owner = self._owner.get(map_id)
+            level = load.sample(now, interval_s)
+            if owner is None or map_id not in self._maps:
+                continue
+            totals[owner] += level
+            if now - load.moved >= MOVE_COOLDOWN_S:
+                movable[owner][map_id] = level
+        return totals, movable
+
+    async def balance(self, interval_s: float) -> tuple[str, int, int] | None:
+        """Sample the maps' loads and move at most one map (see `choose_move`); the move
+        made, or None."""
+        choice = choose_move(*self._sample(interval_s))
+        if choice is None:
+            return None
+        map_id, _, target = choice
+        return choice if await self.move(map_id, target) else None
+
+    async def move(self, map_id: str, target: int) -> bool:
+        """Move a map to worker `target`: calls meanwhile wait; the old worker answers
+        what it has, snapshots and closes the map; the new one opens it. False when the
+        map stays where it was (unknown, already there or moving, the old worker failed)."""
+        source = self._owner.get(map_id)
+        if source is None or source == target or map_id in self._moving:
+            return False
+        assert self._loop is not None
+        gate: asyncio.Future[None] = self._loop.create_future()
+        self._moving[map_id] = gate
+        try:
+            timeout = max(self._settings.workers.request_timeout_s, 600.0)
+            reply = await asyncio.wait_for(
+                self._request(self._slots[source], map_id, CloseMap()), timeout
+            )
+            if not reply["ok"]:
+                log.error("map %s could not leave worker %d: %s", map_id, source, reply)
+                return False
+            self._owner[map_id] = target
+            self._load.setdefault(map_id, MapLoad()).moved = time.monotonic()
+            self.moves += 1
+            log.info("map %s moved from worker %d to worker %d", map_id, source, target)
+            self._background(self._open(self._slots[target], map_id))
+            return True
+        except (_WorkerDied, TimeoutError):
+            log.warning("map %s stays on worker %d (it stopped or did not answer)", map_id, source)
+            return False
+        finally:
+            del self._moving[map_id]
+            gate.set_result(None)
+
+    async def _open(self, slot: _Slot, map_id: str) -> None:
+        """Open a map on its new worker ahead of its calls (they queue behind it)."""
+        try:
+            reply = await self._request(slot, map_id, OpenMap())
+            if not reply["ok"]:
+                log.error("worker %d: map %s did not open: %s", slot.index, map_id, reply)
+        except _WorkerDied:
+            log.warning("worker %d died while opening map %s", slot.index, map_id)
 
     # ------------------------------------------------------------ transport
     def _send(self, slot: _Slot, message: bytes) -> None:
@@ -298,6 +515,12 @@ class WorkerPool(EngineBase):
             payload = bytes(slot.inbox[_HEADER.size : _HEADER.size + size])
             del slot.inbox[: _HEADER.size + size]
             request_id, reply = pickle.loads(payload)
+            view = reply.get("view")
+            if view is not None and self.on_view is not None:
+                try:
+                    self.on_view(view)
+                except Exception:
+                    log.exception("publishing the view of map %s failed", view.map_id)
             future = slot.pending.pop(request_id, None)
             if future is not None and not future.done():
                 future.set_result(reply)
@@ -339,8 +562,12 @@ class WorkerPool(EngineBase):
     async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
         """Carry out `request` on the map's worker; its answer, or raise ServiceError /
         WorkerUnavailable."""
+        while (gate := self._moving.get(map_id)) is not None:
+            await asyncio.shield(gate)  # the map is moving: to its new worker afterwards
         slot = self._slots[self.worker_of(map_id)]
         timeout, retry_after = self._limits(timeout_s)
+        load = self._load.setdefault(map_id, MapLoad())
+        load.change(+1, time.monotonic())
         future = self._request(slot, map_id, request)
         try:
             reply = await asyncio.wait_for(future, timeout)
@@ -355,4 +582,7 @@ class WorkerPool(EngineBase):
                 f"the worker owning map {map_id!r} did not answer within {timeout:g} s",
                 retry_after_s=retry_after,
             ) from exc
+        finally:
+            load.change(-1, time.monotonic())
+        load.served(reply.get("busy_s", 0.0))
         return reply_value(reply, retry_after_s=retry_after)

@@ -6,13 +6,15 @@ A query is one frozen dataclass: its fields are the query's parameters, `answer(
 computes the reply from the map's session (service.session.MapSession) in the worker
 process that owns the map, and its type parameter is the reply's type. The API asks
 ``await service.query(map_id, Pose())``; code in process calls ``Pose().answer(session)``.
-Adding a query: a class here and the route that asks it.
+Adding a query: a class here and the route that asks it. A query that the map's
+published view (service.published) can answer says how in `from_view`: the API process
+then answers it without waiting for the worker.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -21,7 +23,19 @@ from service.pipeline.config import Mode, slam_config_dict
 from service.pipeline.localiser import PlaceLocaliser
 from service.requests import Doc, MapRequest
 from service.session import MapSession
-from service.views import attach_frame_stats, coverage_doc, landmarks_doc, pose_doc, trajectory_doc
+from service.views import (
+    attach_frame_stats,
+    coverage_doc,
+    final_before_held,
+    landmarks_doc,
+    pose_doc,
+    trajectory_doc,
+    trajectory_rows,
+)
+
+if TYPE_CHECKING:
+    from service.published import MapView
+    from service.store import Store
 
 
 def _localiser(session: MapSession) -> PlaceLocaliser:
@@ -50,21 +64,24 @@ class Summary(MapRequest[Doc]):
                 "robots": len(robots),
                 "live_landmarks": len(session.slam.landmarks),
                 "candidates": session.slam.candidate_count,
-                "removals": session.store.removal_count(),
+                "removals": session.removal_count(),
                 "graph_variables": session.slam.graph.num_variables,
                 "graph_factors": session.slam.graph.num_factors,
                 "replay_errors": session.replay_errors,
             },
             "robots": robots,
-            "timing_ms": None
-            if ms is None
-            else {
-                "frames": len(ms),
-                "mean": float(ms.mean()),
-                "p50": float(np.percentile(ms, 50)),
-                "p99": float(np.percentile(ms, 99)),
-            },
+            "timing_ms": None if ms is None else _timing(ms),
         }
+
+    def from_view(self, view: MapView, store: Store) -> Doc:
+        return view.summary
+
+
+def _timing(ms: np.ndarray) -> Doc:
+    """Frames, mean, p50 and p99 of frame times, ms (one sort: a summary is published
+    with every frame)."""
+    p50, p99 = np.percentile(ms, [50, 99])
+    return {"frames": len(ms), "mean": float(ms.mean()), "p50": float(p50), "p99": float(p99)}
 
 
 @dataclass(frozen=True)
@@ -85,15 +102,26 @@ class Pose(MapRequest[Doc]):
     one: see PlaceLocaliser.robot_poses."""
 
     def answer(self, session: MapSession) -> Doc:
-        localiser, robots = _localiser(session), session.pipeline.robots
-        doc = pose_doc(session.slam, session.record.id)
-        for name, robot in doc["robots"].items():
-            robot["localisation"] = localiser.localisation(name, robots.get(name))
-        for name, off in localiser.robot_poses(robots).items():
-            if off["pose"] is None and name in doc["robots"]:
-                continue
-            doc["robots"][name] = off
-        return doc
+        return pose_answer(session)
+
+    def from_view(self, view: MapView, store: Store) -> Doc:
+        return view.pose
+
+    def view_behind(self, view: MapView) -> bool:
+        return view.poses_log_id < view.log_id
+
+
+def pose_answer(session: MapSession, only: str | None = None) -> Doc:
+    """`Pose`'s answer; `only`: with that robot's entry only (if it has one)."""
+    localiser, robots = _localiser(session), session.pipeline.robots
+    doc = pose_doc(session.slam, session.record.id, only)
+    for name, robot in doc["robots"].items():
+        robot["localisation"] = localiser.localisation(name, robots.get(name))
+    for name, off in localiser.robot_poses(robots).items():
+        if (only is not None and name != only) or (off["pose"] is None and name in doc["robots"]):
+            continue
+        doc["robots"][name] = off
+    return doc
 
 
 @dataclass(frozen=True)
@@ -102,6 +130,9 @@ class Places(MapRequest[Doc]):
 
     def answer(self, session: MapSession) -> Doc:
         return {"map_id": session.record.id, **_localiser(session).places_doc()}
+
+    def from_view(self, view: MapView, store: Store) -> Doc | None:
+        return view.places
 
 
 @dataclass(frozen=True)
@@ -161,6 +192,7 @@ class Trajectory(MapRequest[dict[str, list[Doc]]]):
 
     robot: str | None = None
     stats_every: int = 0
+    view_reads_store = True
 
     def answer(self, session: MapSession) -> dict[str, list[Doc]]:
         robot = self.robot
@@ -176,6 +208,20 @@ class Trajectory(MapRequest[dict[str, list[Doc]]]):
             attach_frame_stats(rows, session.store.frame_stats(), labels, every=self.stats_every)
         return rows
 
+    def view_behind(self, view: MapView) -> bool:
+        return view.held_log_id < view.log_id
+
+    def from_view(self, view: MapView, store: Store) -> dict[str, list[Doc]] | None:
+        robot = self.robot
+        if self.stats_every or view.held is None or (robot is not None and robot not in view.held):
+            return None  # frame statistics, off-graph rows, an unknown robot: the worker's
+        final = store.read_poses(view.map_id, robot)
+        return {
+            name: trajectory_rows(final_before_held(final.get(name), held))
+            for name, held in view.held.items()
+            if robot is None or name == robot
+        }
+
 
 @dataclass(frozen=True)
 class Landmarks(MapRequest[list[Doc]]):
@@ -187,6 +233,12 @@ class Landmarks(MapRequest[list[Doc]]):
         if self.state == "archived":
             return session.store.archived()
         return landmarks_doc(session.slam, session.seed())
+
+    def from_view(self, view: MapView, store: Store) -> list[Doc] | None:
+        return view.landmarks if self.state == "live" else None
+
+    def view_behind(self, view: MapView) -> bool:
+        return view.landmarks_log_id < view.log_id
 
 
 @dataclass(frozen=True)

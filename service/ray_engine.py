@@ -163,6 +163,9 @@ class RayEngine(EngineBase):
     def worker_of(self, map_id: str) -> int | None:
         return None
 
+    def busy(self, map_id: str) -> bool:
+        return True  # no published views: reads go to the actor anyway
+
     # ------------------------------------------------------------ actors
     def _create(self, map_id: str) -> Any:
         cfg = self._settings.ray

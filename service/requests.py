@@ -3,7 +3,7 @@
 A request carries its arguments; its type names the operation and, as its type
 parameter, the type of the answer, so ``await engine.call(map_id, Pose())`` is typed
 end to end. A `MapRequest` answers from the map's open session (`answer`); a
-`WorkerRequest` (ping, create, open, delete, import) works on the worker's set of
+`WorkerRequest` (ping, create, open, close, delete, import) works on the worker's set of
 maps and is carried out by service.worker. Requests cross the process boundary
 pickled (a local worker's pipe, or a Ray actor call).
 
@@ -14,10 +14,14 @@ The queries are in service.queries, the export in service.exchange: adding a que
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 from service.frame_results import FrameReply
 from service.session import MapSession
+
+if TYPE_CHECKING:
+    from service.published import MapView
+    from service.store import Store
 
 T = TypeVar("T", covariant=True)
 
@@ -32,8 +36,20 @@ class Request(Generic[T]):
 class MapRequest(Request[T]):
     """An operation on one open map, answered from its session."""
 
+    view_reads_store: ClassVar[bool] = False
+    """`from_view` reads the store (the API process calls it in a thread)."""
+
     def answer(self, session: MapSession) -> T:
         raise NotImplementedError
+
+    def from_view(self, view: MapView, store: Store) -> T | None:
+        """The answer from the map's published view (service.published) and the store
+        (read only, may block), in the API process; None: only the worker can answer."""
+        return None
+
+    def view_behind(self, view: MapView) -> bool:
+        """The view's answer lags behind the map (the worker's is exact)."""
+        return False
 
 
 class WorkerRequest(Request[T]):
@@ -56,6 +72,18 @@ class CreateMap(WorkerRequest[Doc]):
 @dataclass(frozen=True)
 class OpenMap(WorkerRequest[Doc]):
     """Open the map (snapshot + log tail) if it is not open; its frame count."""
+
+
+@dataclass(frozen=True)
+class RefreshView(WorkerRequest[None]):
+    """Publish the map's view with its live landmarks and held trajectory rows computed
+    now (a read found the published ones behind the map)."""
+
+
+@dataclass(frozen=True)
+class CloseMap(WorkerRequest[None]):
+    """Snapshot the map if frames came since its last snapshot and close it (it moves to
+    another worker, which opens it from that snapshot)."""
 
 
 @dataclass(frozen=True)

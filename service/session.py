@@ -109,6 +109,7 @@ class MapSession:
         self.replay_errors = 0
         self.loaded_from_snapshot = 0
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
+        self._removal_count: int | None = None
         self.vision = MapVision.for_config(self.record.config)
         """The front end of a map with a camera (image frames); None without one."""
         self.pipeline, self._last_log_id, self._since_snapshot = self._load()
@@ -286,6 +287,11 @@ class MapSession:
         """
         return self._since_snapshot >= self._settings.snapshot_every
 
+    @property
+    def unsnapshotted(self) -> bool:
+        """Frames came since the last snapshot (a reload would replay them)."""
+        return self._since_snapshot > 0
+
     def _count_frame(self) -> None:
         self._since_snapshot += 1
         if self._since_snapshot >= SNAPSHOT_OVERDUE * self._settings.snapshot_every:
@@ -392,7 +398,7 @@ class MapSession:
         result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
-        event_ids = self._complete(
+        events = self._complete(
             self.slam,
             log_id,
             text,
@@ -407,7 +413,7 @@ class MapSession:
         self._count_frame()
         return FrameReply(
             text,
-            event_ids=event_ids,
+            events=events,
             timing_ms=result["timing_ms"],
             store_ms=store_ms,
             live=len(self.slam.landmarks),
@@ -421,6 +427,7 @@ class MapSession:
         self.store.delete_frame(log_id)
         self._removals.take()
         self._poses.take()
+        self._removal_count = None
         self.pipeline, self._last_log_id, self._since_snapshot = self._load()
 
     def _check_image_frame(self, frame: Any) -> None:
@@ -452,12 +459,12 @@ class MapSession:
         removals: list[RemovalRecord],
         observations: str | None = None,
         poses: list[PoseRow] | None = None,
-    ) -> list[int]:
+    ) -> list[tuple[int, str, str]]:
         """Store the frame's result with its events, removals, archived landmarks and
-        final trajectory rows (one transaction); the events' ids."""
+        final trajectory rows (one transaction); the events as stored (id, kind, data)."""
         events, rows, archived = frame_events(slam, step, result_json, removals, log_id)
         restored = () if step.outcome is None else step.outcome.restored
-        return self.store.complete_frame(
+        ids = self.store.complete_frame(
             log_id,
             result_json,
             events,
@@ -467,6 +474,16 @@ class MapSession:
             archived=archived,
             restored=restored,
         )
+        if self._removal_count is not None:
+            self._removal_count += len(rows)
+        return [(i, kind, data) for i, (kind, data) in zip(ids, events, strict=True)]
+
+    def removal_count(self) -> int:
+        """Rows of the map's removal log (counted once, then kept: a summary is
+        published with every frame, and counting grows with the log)."""
+        if self._removal_count is None:
+            self._removal_count = self.store.removal_count()
+        return self._removal_count
 
     def seed(self) -> int:
         """The map's seed (its config's)."""

@@ -70,7 +70,8 @@ class WorkerSettings(BaseModel):
         default_factory=lambda: max(1, os.cpu_count() or 1),
         ge=1,
         le=64,
-        description="worker processes; each map is pinned to one (default: CPU count)",
+        description="worker processes; each map is run by one at a time, placed and moved "
+        "by load (default: CPU count)",
     )
     request_timeout_s: float = Field(
         60.0, gt=0, description="longest wait for a worker's answer before a 503"
@@ -89,6 +90,17 @@ class WorkerSettings(BaseModel):
         le=19,
         description="niceness added to worker processes, so the API process (probes, "
         "routing) wins the CPU when workers compute",
+    )
+    balance_interval_s: float = Field(
+        2.0,
+        ge=0,
+        description="seconds between two looks at the workers' loads; a map moves from "
+        "the busiest worker to the least busy one when that evens them out (0 = never)",
+    )
+    shutdown_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        description="longest wait at shutdown for a worker to snapshot its maps and end",
     )
     blas_threads: int = Field(
         1,
@@ -122,6 +134,15 @@ class RaySettings(BaseModel):
 
 class ApiSettings(BaseModel):
     """Limits of the HTTP front."""
+
+    event_batch_s: float = Field(
+        0.2,
+        ge=0,
+        le=10,
+        description="an event stream writes at most once per this many seconds, "
+        "everything since its last write at once (many streams cost the API process "
+        "writes, not frames; 0 = a write per wake)",
+    )
 
     max_body_bytes: int = Field(
         1 << 20, ge=1024, description="largest request body except imports, bytes (413 above)"

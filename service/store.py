@@ -165,6 +165,11 @@ class Store(Protocol):
         """The id of a map's newest event (0 if none)."""
         ...
 
+    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
+        """A map's final trajectory rows per robot (`robot`: that one only): (N, 5)
+        arrays seq, stamp, x, y, theta sorted by seq (see MapStore.poses)."""
+        ...
+
     def close(self) -> None: ...
 
 

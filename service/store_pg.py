@@ -23,7 +23,7 @@ from contextlib import AbstractContextManager
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
-from service.store_sql import Args, Catalog, MapStore, event_rows, pyformat
+from service.store_sql import Args, Catalog, MapStore, event_rows, pose_arrays, pyformat
 
 try:
     import psycopg
@@ -331,6 +331,16 @@ class PgStore:
             "SELECT max(id) FROM events WHERE map_id = %s", (map_id,), fetch="one"
         )
         return int(row[0] or 0) if row is not None else 0
+
+    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
+        robot_only = "" if robot is None else " AND robot = %s"
+        rows = self.shared.execute(
+            f"SELECT robot, seq, stamp, x, y, theta FROM poses WHERE map_id = %s{robot_only} "
+            "ORDER BY robot, seq",
+            (map_id,) if robot is None else (map_id, robot),
+            fetch="all",
+        )
+        return pose_arrays(rows)
 
     def close(self) -> None:
         self.shared.close()

@@ -382,11 +382,8 @@ class MapStore:
         """Stored final rows per robot (`robot`: that one only), each an (N, 5) array
         seq, stamp, x, y, theta sorted by seq (as BearingSlam.trajectory)."""
         which = "{only}" if robot is None else " WHERE {m}robot = :robot"
-        out: dict[str, list[tuple[float, ...]]] = {}
         sql = f"SELECT robot, seq, stamp, x, y, theta FROM poses{which} ORDER BY robot, seq"
-        for name, *values in self._get(sql, robot=robot):
-            out.setdefault(str(name), []).append(tuple(values))
-        return {k: np.array(v, dtype=np.float64).reshape(-1, 5) for k, v in out.items()}
+        return pose_arrays(self._get(sql, robot=robot))
 
     def pose_positions(self) -> NDArray[np.float64]:
         """(N, 2) x, y of every stored final row, metres."""
@@ -481,3 +478,12 @@ class MapStore:
 def event_rows(rows: Iterable[Sequence[Any]]) -> list[tuple[int, str, str]]:
     """Stored event rows as (id, kind, data JSON)."""
     return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+
+
+def pose_arrays(rows: Iterable[Sequence[Any]]) -> dict[str, NDArray[np.float64]]:
+    """Stored trajectory rows (robot, seq, stamp, x, y, theta; sorted by robot and seq)
+    per robot as (N, 5) arrays seq, stamp, x, y, theta."""
+    out: dict[str, list[tuple[float, ...]]] = {}
+    for name, *values in rows:
+        out.setdefault(str(name), []).append(tuple(values))
+    return {k: np.array(v, dtype=np.float64).reshape(-1, 5) for k, v in out.items()}

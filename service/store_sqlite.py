@@ -44,7 +44,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-from service.store_sql import Args, Catalog, MapStore, event_rows
+from service.store_sql import Args, Catalog, MapStore, event_rows, pose_arrays
 
 _CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
@@ -263,6 +263,21 @@ def latest_event_id(path: Path) -> int:
     return int(row[0] or 0)
 
 
+def read_poses(path: Path, robot: str | None = None) -> dict[str, Any]:
+    """The final trajectory rows of a map's database per robot (see MapStore.poses)."""
+    if not path.exists():
+        return {}
+    conn = connect(path, synchronous="NORMAL", readonly=True)
+    try:
+        where, args = ("", ()) if robot is None else (" WHERE robot = ?", (robot,))
+        rows = conn.execute(
+            f"SELECT robot, seq, stamp, x, y, theta FROM poses{where} ORDER BY robot, seq", args
+        ).fetchall()
+    finally:
+        conn.close()
+    return pose_arrays(rows)
+
+
 def remove_map_files(path: Path) -> None:
     """Delete a map's database and its WAL/SHM companions."""
     for suffix in ("", "-wal", "-shm"):
@@ -315,6 +330,9 @@ class SqliteStore:
 
     def latest_event_id(self, map_id: str) -> int:
         return latest_event_id(map_db_path(self.data_dir, map_id))
+
+    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
+        return read_poses(map_db_path(self.data_dir, map_id), robot)
 
     def close(self) -> None:
         """Nothing to close: each call opens its own connection."""

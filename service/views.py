@@ -26,11 +26,14 @@ from service.store_sql import MapStore
 from service.tum import Trajectory, write_tum
 
 
-def pose_doc(slam: BearingSlam, map_id: str) -> dict[str, Any]:
-    """Latest pose of each robot with its (3, 3) covariance."""
+def pose_doc(slam: BearingSlam, map_id: str, only: str | None = None) -> dict[str, Any]:
+    """Latest pose of each robot (`only`: of that robot, if it has one) with its (3, 3)
+    covariance."""
     last = last_accepted(slam)
     robots = {}
     for name in slam.robots:
+        if only is not None and name != only:
+            continue
         p = slam.latest_pose(name)
         cov = slam.latest_pose_covariance(name)
         robots[name] = {
@@ -67,13 +70,33 @@ def trajectory_doc(
             f"robot: map {map_id!r} has no robot {robot!r} (GET /pose lists its robots)",
             field="robot",
         )
-    out = {}
-    for name, rows in full_trajectory(slam, store, robot).items():
-        out[name] = [
-            {"seq": int(r[0]), "stamp": float(r[1]), "x": r[2], "y": r[3], "theta": r[4]}
-            for r in rows.tolist()
-        ]
-    return out
+    return {
+        name: trajectory_rows(rows) for name, rows in full_trajectory(slam, store, robot).items()
+    }
+
+
+def final_before_held(
+    final: NDArray[np.float64] | None, held: NDArray[np.float64] | None
+) -> NDArray[np.float64]:
+    """One robot's rows by seq: the stored final rows older than the first held row (the
+    store may already have made final a row a newer frame took from the held ones) and
+    the held rows."""
+    parts = []
+    if final is not None and len(final):
+        parts.append(final if held is None or not len(held) else final[final[:, 0] < held[0, 0]])
+    if held is not None and len(held):
+        parts.append(held)
+    if not parts:
+        return np.zeros((0, 5), dtype=np.float64)
+    return np.concatenate(parts)
+
+
+def trajectory_rows(rows: NDArray[np.float64]) -> list[dict[str, float]]:
+    """(N, 5) rows seq, stamp, x, y, theta as [{seq, stamp, x, y, theta}]."""
+    return [
+        {"seq": int(r[0]), "stamp": float(r[1]), "x": r[2], "y": r[3], "theta": r[4]}
+        for r in rows.tolist()
+    ]
 
 
 def attach_frame_stats(

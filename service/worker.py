@@ -5,7 +5,12 @@ messages (a request of service.requests) from its connection to the API process 
 service.pool) and answers each in turn, strictly in order, so a map's frames are applied in
 the order they arrived. A map is opened on first use
 (latest snapshot + log tail) and kept open. Every answer is a plain dict:
-``{"ok": True, "value": ...}`` or ``{"ok": False, "error": ServiceError.as_dict()}``.
+``{"ok": True, "value": ...}`` or ``{"ok": False, "error": ServiceError.as_dict()}``;
+an answer to a request that changed a map also carries the map's new published view
+(``"view"``, service.published.MapView), and an idle worker sends the views it
+refreshed unasked (message id 0). When the API process goes away (its shutdown closes
+the connection), every open map that took frames since its last snapshot is
+snapshotted before the process ends, so the next start replays no log.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import pickle
 import queue
 import signal
 import threading
+import time
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -25,14 +31,17 @@ from frontend.pipeline import FrontEnd
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import import_frames, parse_export
 from service.pipeline.config import camera_model, slam_config
-from service.queries import Summary
+from service.published import MapView, build_view
+from service.queries import LearnPlace, SetMode, Summary
 from service.requests import (
+    CloseMap,
     CreateMap,
     DeleteMap,
     ImportMap,
     MapRequest,
     OpenMap,
     Ping,
+    RefreshView,
     Request,
     SubmitFrame,
 )
@@ -45,6 +54,15 @@ log = logging.getLogger(__name__)
 _settings: Settings | None = None
 _store: Store | None = None
 _sessions: dict[str, MapSession] = {}
+_publish = False
+"""Build published views (the local pool's workers; a Ray actor is asked directly)."""
+_stale: set[str] = set()
+"""Open maps whose published view has parts that lag behind the map."""
+_views: dict[str, MapView] = {}
+"""The latest view published of each open map."""
+
+_CHANGES = (SubmitFrame, SetMode, LearnPlace, OpenMap, CreateMap, ImportMap, RefreshView)
+"""Requests after which a map's published view is rebuilt."""
 
 
 def init_worker(settings: dict[str, Any], index: int, *, own_signals: bool = True) -> None:
@@ -115,9 +133,34 @@ def _create(map_id: str, request: CreateMap) -> dict[str, Any]:
 
 def _delete(map_id: str) -> None:
     session = _sessions.pop(map_id, None)
+    _stale.discard(map_id)
+    _views.pop(map_id, None)
     if session is not None:
         session.close()
     _place(map_id).remove()
+
+
+def close_map(map_id: str) -> None:
+    """Snapshot an open map if it took frames since its last snapshot, then close it."""
+    session = _sessions.pop(map_id, None)
+    _stale.discard(map_id)
+    _views.pop(map_id, None)
+    if session is None:
+        return
+    try:
+        if session.unsnapshotted:
+            session.snapshot()
+    finally:
+        session.close()
+
+
+def close_all() -> None:
+    """`close_map` for every open map (a failure is logged; the others still close)."""
+    for map_id in list(_sessions):
+        try:
+            close_map(map_id)
+        except Exception:
+            log.exception("final snapshot of map %s failed", map_id)
 
 
 def _import(map_id: str, request: ImportMap) -> dict[str, Any]:
@@ -155,6 +198,12 @@ def carry_out(map_id: str, request: Request[Any]) -> Any:
         return _create(map_id, request)
     if isinstance(request, ImportMap):
         return _import(map_id, request)
+    if isinstance(request, CloseMap):
+        close_map(map_id)
+        return None
+    if isinstance(request, RefreshView):
+        _session(map_id)  # its view follows with the answer
+        return None
     if isinstance(request, DeleteMap):
         _delete(map_id)
         return None
@@ -163,6 +212,10 @@ def carry_out(map_id: str, request: Request[Any]) -> Any:
 
 Message = tuple[Any, str, Request[Any]]
 """(message id, map id, request) as the API process sends it."""
+IDLE_AFTER_S = 0.05
+"""A worker with no request for this long is idle: it refreshes published views and
+takes due snapshots (a client posting frame after frame sends its next one sooner)."""
+_NOTHING = object()
 
 
 def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
@@ -173,25 +226,35 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
     no prefetch) and starts extracting the features of an image frame's image
     right away (OpenCV, without the GIL), while the current request computes.
     """
+    global _publish
     init_worker(settings, index)
+    _publish = True
     limit = _cfg().workers.read_ahead
     inbox: queue.Queue[Message | None] = queue.Queue(maxsize=max(1, limit))
     reader = threading.Thread(
         target=_reader, args=(conn, inbox, limit > 0), name="covslam-reader", daemon=True
     )
     reader.start()
-    while True:
-        request = inbox.get()
-        if request is None:  # end of the connection
-            return
-        request_id, map_id, what = request
-        reply = call(map_id, what)
-        try:
-            conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
-        except (BrokenPipeError, OSError):
-            return
-        if inbox.empty():
-            _idle_work(inbox)
+    waiting: object = _NOTHING
+    try:
+        while True:
+            request = inbox.get() if waiting is _NOTHING else waiting
+            waiting = _NOTHING
+            if request is None:  # end of the connection
+                return
+            assert isinstance(request, tuple)
+            request_id, map_id, what = request
+            reply = call(map_id, what)
+            try:
+                conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
+            except (BrokenPipeError, OSError):
+                return
+            try:  # a client that sends one request after the other is not idle
+                waiting = inbox.get(timeout=IDLE_AFTER_S)
+            except queue.Empty:
+                _idle_work(inbox, conn)
+    finally:
+        close_all()
 
 
 def _reader(conn: Connection, inbox: queue.Queue[Message | None], prefetch: bool) -> None:
@@ -220,12 +283,54 @@ def _prefetch(request: Message) -> None:
         log.debug("no prefetch for map %s (closed)", map_id)
 
 
-def _idle_work(inbox: queue.Queue[Message | None]) -> None:
-    """Snapshots that are due, one map at a time, while no request is waiting."""
+def _idle_work(inbox: queue.Queue[Message | None], conn: Connection) -> None:
+    """While no request is waiting, one map at a time: published views with parts that
+    lag behind their map, renewed (sent unasked), then snapshots that are due."""
+    for map_id in list(_stale):
+        if not inbox.empty():
+            return
+        view = _view(map_id)
+        if view is not None:
+            try:
+                conn.send_bytes(pickle.dumps((0, {"ok": True, "value": None, "view": view})))
+            except (BrokenPipeError, OSError):
+                return
     for map_id in list(_sessions):
         if not inbox.empty():
             return
         snapshot_if_due(map_id)
+
+
+def _view(map_id: str, *, robot: str | None = None, refresh: bool = False) -> MapView | None:
+    """The open map's published view now (None: not open, or it failed: logged);
+    `robot`, `refresh`: see build_view (neither: all new)."""
+    session = _sessions.get(map_id)
+    if session is None:
+        return None
+    try:
+        view = build_view(session, previous=_views.get(map_id), robot=robot, refresh=refresh)
+    except Exception:
+        log.exception("the published view of map %s failed", map_id)
+        return None
+    _views[map_id] = view
+    if robot is None and not refresh:
+        _stale.discard(map_id)
+    else:
+        _stale.add(map_id)
+    return view
+
+
+def _published(map_id: str, request: Request[Any], value: Any) -> MapView | None:
+    """The view to publish after `request` answered `value` (None: nothing changed)."""
+    if not isinstance(request, _CHANGES):
+        return None
+    if isinstance(request, SubmitFrame):
+        if value.replayed:
+            return None
+        return _view(map_id, robot=request.frame.get("robot"))
+    if isinstance(request, RefreshView):
+        return _view(map_id, refresh=True)
+    return _view(map_id)
 
 
 def snapshot_if_due(map_id: str) -> None:
@@ -240,8 +345,16 @@ def snapshot_if_due(map_id: str) -> None:
 
 def call(map_id: str, request: Request[Any]) -> dict[str, Any]:
     """Carry out one request on one map; never raises (errors come back as data)."""
+    t0 = time.perf_counter()
     try:
-        return {"ok": True, "value": carry_out(map_id, request)}
+        value = carry_out(map_id, request)
+        reply = {"ok": True, "value": value}
+        if _publish:  # a pool's worker: the view to publish and the pool's measure of load
+            view = _published(map_id, request, value)
+            if view is not None:
+                reply["view"] = view
+            reply["busy_s"] = time.perf_counter() - t0
+        return reply
     except ServiceError as exc:
         return {"ok": False, "error": exc.as_dict()}
     except Exception as exc:

@@ -25,20 +25,22 @@ async def _stream(
     """The map's events after `after`; ends when the client goes, the map is deleted, or
     the key the stream was opened with is revoked."""
     yield b": covslam events\n\n"
+    batch_s = service.settings.api.event_batch_s
     while True:
         if who.key is not None and not service.key_alive(who.key):
             return
         wake = service.notifier.handle(map_id)
-        rows = await asyncio.to_thread(service.read_events, map_id, after)
-        for event_id, kind, data in rows:
-            after = event_id
-            yield f"id: {event_id}\nevent: {kind}\ndata: {data}\n\n".encode()
-        if rows:
+        after, chunk = await service.events_after(map_id, after)
+        if chunk:  # one write for everything since the last one
+            yield chunk
+            if batch_s > 0:
+                await asyncio.sleep(batch_s)
             continue
-        if await request.is_disconnected() or map_id not in {r.id for r in service.list()}:
+        if await request.is_disconnected() or not service.exists(map_id):
             return
         try:
-            await asyncio.wait_for(wake.wait(), KEEPALIVE_S)
+            async with asyncio.timeout(KEEPALIVE_S):
+                await wake.wait()
         except TimeoutError:
             yield b": keepalive\n\n"
 

@@ -39,8 +39,13 @@ async def readyz(service: ServiceDep) -> Any:
 @router.get("/v1/workers", responses=AUTH_ERRORS, dependencies=[AdminOnly])
 async def workers(service: ServiceDep) -> Any:
     """The worker processes (admin key): index, process id, up, generation, maps loading,
-    the maps each one owns."""
-    return {"workers": service.pool.status(), "worker_restarts": service.pool.restarts}
+    the maps each one runs and their load (requests in flight, time-averaged); the maps
+    moved between workers to even out their loads."""
+    return {
+        "workers": service.pool.status(),
+        "worker_restarts": service.pool.restarts,
+        "moves": service.pool.moves,
+    }
 
 
 @router.get("/metrics", response_class=Response, responses=AUTH_ERRORS, dependencies=[AdminOnly])

@@ -1,0 +1,482 @@
+"""Under load: throughput, reads during the load, balancing, event streams, restart.
+
+One run, one machine, so the ratios compare phases that shared whatever load it carried
+(the one-minute load average is recorded with every phase). Run from the repository
+root, niced (2 cores, shared)::
+
+    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 150] [--load-s 30]
+                                    [--event-maps 2] [--event-frames 40]
+                                    [--subscribers 200] [--out bench/results]
+
+Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmarks,
+~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
+same world. Map config: landmark cap 50, the default policy.
+
+1. ``http``: a ``covslam serve --workers 2`` (uvicorn in a subprocess, SQLite,
+   synchronous NORMAL); 12 maps are created (placed 6:6) and 4 of worker 1's deleted, so
+   the load maps start placed 6:2 on the workers, as a placement by id did. M maps x C
+   clients post their frames for `load-s` seconds (one keep-alive http.client
+   connection per client, closed loop; no client runs out of frames): frames/s, POST
+   p50/p99, per-map frames/s in the first and the last third of the phase (the
+   balancer's effect), the moves the pool made. Meanwhile a reader process GETs pose,
+   landmarks, trajectory and the summary of an idle map and of a busy map, a round
+   every 0.25 s: p50/p99 per target.
+2. ``cpu_bound``: exactly the frames the clients posted, through ``MapSession.submit``
+   in-process, the maps dealt to two processes (one per core, at a worker's
+   niceness), each map's robots interleaved frame by frame, while the server idles:
+   frames/s = all frames / (the processes' wall times summed / 2), every core busy.
+   ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this. CPU time per frame
+   (from /proc, so other work on the machine is not in it): the workers', the API
+   process's and the bench's own client threads' in phase 1, and the in-process
+   sessions' here; ``worker_cpu_to_in_process`` compares the first with the last.
+3. ``events``: three times `event-maps` fresh maps take the same frames from C clients
+   each (`event-frames` per client): with no event stream open, with `subscribers` SSE
+   streams open on them (read by one asyncio process), and with none again: frames/s
+   and POST p50, the middle phase against the mean of the other two. The maps are
+   deleted afterwards.
+4. ``restart``: SIGTERM (seconds until the process group ended), the frames each map's
+   log holds beyond its latest snapshot (what a start would replay), then a start on
+   the same data: seconds until /readyz answered 200 with every map loaded, and the
+   same for a start with no maps (the process and import cost alone).
+
+Writes ``<out>/load.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import http.client
+import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from service.frames_io import frame_to_dict
+from service.offline.datasets.indoor_sim import make_world, simulate
+from tests.support.clusters import free_port
+from tests.support.snapshots import unsnapshotted
+
+MAP_CONFIG = {"landmark_cap": 50}
+READ_PATHS = ("pose", "landmarks", "trajectory", "")
+READ_PAUSE_S = 0.25
+"""Between two rounds of reads (a dashboard's polling, not a second load)."""
+
+
+def _loadavg() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def _stats(ms: list[float]) -> dict[str, float]:
+    if not ms:
+        return {"n": 0}
+    a = np.asarray(ms)
+    return {
+        "n": len(a),
+        "p50": round(float(np.percentile(a, 50)), 1),
+        "p99": round(float(np.percentile(a, 99)), 1),
+        "max": round(float(a.max()), 1),
+    }
+
+
+def make_frames(maps: int, clients: int, frames: int) -> list[list[list[dict[str, Any]]]]:
+    """Per map, per client (robot r1..): `frames` frame dicts of one simulated run."""
+    out = []
+    for m in range(maps):
+        rng = np.random.default_rng(100 + m)
+        world = make_world(rooms=(2, 2), landmarks=100, rng=rng)
+        runs = []
+        for c in range(clients):
+            run = simulate(world, frames=frames, rng=np.random.default_rng(1000 * m + c),
+                           robot=f"r{c + 1}")  # fmt: skip
+            runs.append([frame_to_dict(f) for f in run.frames])
+        out.append(runs)
+    return out
+
+
+# ------------------------------------------------------------------ 1. CPU bound
+def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, float]:
+    """(frames, wall s, CPU s) of these maps' frames through MapSession.submit, one
+    process."""
+    from service.session import MapSession
+    from service.settings import StoreSettings, WorkerSettings
+    from service.store import MapRecord
+
+    os.nice(WorkerSettings().nice)  # as a worker process: the same share of the cores
+
+    work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
+    sessions = []
+    for i, _ in enumerate(maps):
+        record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(MAP_CONFIG), time.time())
+        sessions.append(MapSession.create(work / f"m{i}.sqlite", record, StoreSettings()))
+    t0, c0 = time.perf_counter(), time.process_time()
+    n = 0
+    for k in range(max(len(r) for runs in maps for r in runs)):
+        for session, runs in zip(sessions, maps, strict=True):
+            for run in runs:
+                if k < len(run):
+                    session.submit(run[k])
+                    n += 1
+    return n, time.perf_counter() - t0, time.process_time() - c0
+
+
+def cpu_bound(frames: list[list[list[dict[str, Any]]]], cores: int = 2) -> dict[str, Any]:
+    load0 = _loadavg()
+    shares = [frames[i::cores] for i in range(cores)]
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(cores, mp_context=ctx) as pool:
+        results = list(pool.map(_in_process, shares))
+    n = sum(r[0] for r in results)
+    busy = sum(r[1] for r in results)
+    # the bound: every core busy all the time (the processes' wall times summed, shared
+    # out over the cores; their frames differ in number, so one finishes first)
+    cpu = sum(r[2] for r in results)
+    return {"frames": n, "process_wall_s": [round(r[1], 2) for r in results],
+            "frames_per_s": round(n / (busy / cores), 1), "processes": cores,
+            "cpu_ms_per_frame": round(1e3 * cpu / n, 2),
+            "loadavg": [load0, _loadavg()]}  # fmt: skip
+
+
+# ------------------------------------------------------------------ the server
+class Server:
+    def __init__(self, data: Path, log: Path) -> None:
+        self.data, self.log = data, log
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> float:
+        """Seconds until /readyz answered 200."""
+        env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning"}
+        t0 = time.monotonic()
+        with self.log.open("ab") as out:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "api.cli", "serve", "--port", str(self.port),
+                 "--data-dir", str(self.data), "--workers", "2"],
+                env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+        while time.monotonic() - t0 < 120:
+            if self.proc.poll() is not None:
+                raise RuntimeError(self.log.read_text()[-2000:])
+            try:
+                if httpx.get(self.url + "/readyz", timeout=1).status_code == 200:
+                    return time.monotonic() - t0
+            except httpx.TransportError:
+                pass
+            time.sleep(0.02)
+        raise TimeoutError(self.log.read_text()[-2000:])
+
+    def kill(self) -> None:
+        """SIGKILL the process group if it still runs (a failed run leaves nothing)."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=30)
+
+    def stop(self) -> float:
+        """SIGTERM; seconds until the process group ended."""
+        assert self.proc is not None
+        t0 = time.monotonic()
+        os.killpg(self.proc.pid, signal.SIGTERM)
+        self.proc.wait(timeout=120)
+        while True:  # the workers end after the API process
+            try:
+                os.killpg(self.proc.pid, 0)
+            except ProcessLookupError:
+                return time.monotonic() - t0
+            if time.monotonic() - t0 > 120:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                return time.monotonic() - t0
+            time.sleep(0.02)
+
+
+def _post_loop(port: int, map_id: str, frames: list[dict[str, Any]], until: float,
+               out: list[tuple[float, float, str, int]], client: int) -> None:  # fmt: skip
+    """Post frames in order until done or `until` (monotonic); (end time, ms, map,
+    client) each."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=120)
+    for frame in frames:
+        if time.monotonic() >= until:
+            break
+        body = json.dumps(frame)
+        t0 = time.perf_counter()
+        conn.request("POST", f"/v1/maps/{map_id}/frames", body,
+                     {"Content-Type": "application/json"})  # fmt: skip
+        response = conn.getresponse()
+        response.read()
+        if response.status != 200:
+            raise RuntimeError(f"POST {map_id}: {response.status}")
+        out.append((time.monotonic(), 1e3 * (time.perf_counter() - t0), map_id, client))
+    conn.close()
+
+
+def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]],
+             limit_s: float) -> tuple[dict[str, Any], list[list[int]]]:  # fmt: skip
+    """Every client posts its frames (at most `limit_s`): (frames/s, POST latency, ...;
+    the frames each client of each map posted)."""
+    rows: list[tuple[float, float, str, int]] = []
+    until = time.monotonic() + limit_s
+    t0 = time.monotonic()
+    threads = [
+        threading.Thread(target=_post_loop, args=(port, m, run, until, rows, c))
+        for m, runs in zip(maps, frames, strict=True)
+        for c, run in enumerate(runs)
+    ]
+    load0 = _loadavg()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.monotonic() - t0
+    thirds = []
+    for lo, hi in ((0.0, 1 / 3), (2 / 3, 1.0)):
+        a, b = t0 + lo * wall, t0 + hi * wall
+        per_map = [sum(1 for r in rows if r[2] == m and a <= r[0] < b) / (b - a) for m in maps]
+        thirds.append({"min": round(min(per_map), 2), "max": round(max(per_map), 2)})
+    posted = [
+        [sum(1 for r in rows if r[2] == m and r[3] == c) for c in range(len(runs))]
+        for m, runs in zip(maps, frames, strict=True)
+    ]
+    return {
+        "frames": len(rows),
+        "wall_s": round(wall, 2),
+        "frames_per_s": round(len(rows) / wall, 1),
+        "post_ms": _stats([r[1] for r in rows]),
+        "per_map_frames_per_s_first_third": thirds[0],
+        "per_map_frames_per_s_last_third": thirds[1],
+        "loadavg": [load0, _loadavg()],
+    }, posted
+
+
+def _reader(url: str, targets: dict[str, str], stop: Any, queue: Any) -> None:
+    """Process: GET each read path of each target map in turn until `stop` is set."""
+    out: dict[str, list[float]] = {name: [] for name in targets}
+    with httpx.Client(base_url=url, timeout=60) as client:
+        while not stop.is_set():
+            for name, map_id in targets.items():
+                for path in READ_PATHS:
+                    t0 = time.perf_counter()
+                    r = client.get(f"/v1/maps/{map_id}" + (f"/{path}" if path else ""))
+                    out[name].append(1e3 * (time.perf_counter() - t0))
+                    if r.status_code != 200:
+                        raise RuntimeError(f"GET {path}: {r.status_code} {r.text}")
+            time.sleep(READ_PAUSE_S)
+    queue.put(out)
+
+
+async def _subscribe(port: int, paths: list[str], stop: Any, counts: Any) -> None:
+    async def one(path: str) -> int:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(
+            f"GET {path} HTTP/1.1\r\nHost: x\r\nAccept: text/event-stream\r\n\r\n".encode()
+        )
+        await writer.drain()
+        seen = 0
+        while not stop.is_set():
+            try:
+                chunk = await asyncio.wait_for(reader.read(1 << 16), 0.5)
+            except TimeoutError:
+                continue
+            if not chunk:
+                break
+            seen += chunk.count(b"\nevent: frame\n")
+        writer.close()
+        return seen
+
+    results = await asyncio.gather(*(one(p) for p in paths))
+    counts.put(sum(results))
+
+
+def _subscribers(port: int, paths: list[str], stop: Any, counts: Any) -> None:
+    asyncio.run(_subscribe(port, paths, stop, counts))
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
+    """CPU seconds so far of the API process and of the workers (summed)."""
+    assert server.proc is not None
+    pids = [w["pid"] for w in client.get("/v1/workers").json()["workers"]]
+    return {"api": _cpu_s(server.proc.pid), "workers": sum(_cpu_s(p) for p in pids)}
+
+
+def _unreplayed(data: Path) -> dict[str, int]:
+    """Per map file: log frames after its latest snapshot (a start replays them)."""
+    return {p.stem: unsnapshotted(p) for p in sorted((data / "maps").glob("*.sqlite"))}
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    frames = make_frames(args.maps + 1, args.clients, max(args.frames, args.event_frames, 100))
+    result: dict[str, Any] = {
+        "command": "nice -n 10 python -m bench.load " + " ".join(sys.argv[1:]),
+        "cpu_count": os.cpu_count(),
+        "maps": args.maps,
+        "clients_per_map": args.clients,
+        "frames_per_client": args.frames,
+        "map_config": MAP_CONFIG,
+    }
+
+    work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
+    server = Server(work / "data", work / "server.log")
+    server.start()
+    try:
+        return _measure(args, frames, server, result)
+    finally:
+        server.kill()
+
+
+def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
+             server: Server, result: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """Phases 1-4 against the started `server`; `result` filled in and returned."""
+    main = frames[: args.maps]
+    work = server.data.parent
+    client = httpx.Client(base_url=server.url, timeout=120)
+    ids = [client.post("/v1/maps", json={"name": f"m{i}", "config": MAP_CONFIG}).json()["id"]
+           for i in range(12)]  # fmt: skip
+    worker = {m: client.get(f"/v1/maps/{m}").json()["worker"] for m in ids}
+    on_1 = [m for m in ids if worker[m] == 1]
+    for m in on_1[:4]:
+        client.delete(f"/v1/maps/{m}")
+    maps = [m for m in ids if m not in on_1[:4]][: args.maps]
+    placed = [sum(1 for m in maps if worker[m] == w) for w in (0, 1)]
+    # the idle map: the first frames of one more run, and two small maps (11 in all)
+    idle = client.post("/v1/maps", json={"name": "idle", "config": MAP_CONFIG}).json()["id"]
+    for f in frames[-1][0][:100]:
+        client.post(f"/v1/maps/{idle}/frames", json=f).raise_for_status()
+    small = []
+    for k in range(2):
+        m = client.post("/v1/maps", json={"name": f"small{k}", "config": MAP_CONFIG}).json()["id"]
+        for f in frames[-1][(k + 1) % args.clients][:30]:
+            client.post(f"/v1/maps/{m}/frames", json=f).raise_for_status()
+        small.append(m)
+
+    ctx = multiprocessing.get_context("spawn")
+    stop, queue = ctx.Event(), ctx.Queue()
+    reader = ctx.Process(target=_reader, args=(server.url, {"idle": idle, "busy": maps[0]},
+                                               stop, queue))  # fmt: skip
+    reader.start()
+    cpu0, bench0 = _server_cpu(server, client), time.process_time()
+    http_run, posted = post_all(server.port, maps, main, limit_s=args.load_s)
+    cpu1, bench1 = _server_cpu(server, client), time.process_time()
+    stop.set()
+    reads = queue.get(timeout=60)
+    reader.join()
+    http_run["placed_at_start"] = placed
+    status = client.get("/v1/workers").json()
+    http_run["moves"] = status.get("moves")
+    http_run["maps_per_worker_after"] = [
+        sum(1 for m in w["maps"] if m in maps) for w in status["workers"]
+    ]
+    http_run["reads_ms"] = {name: _stats(ms) for name, ms in reads.items()}
+    http_run["reads_ms"]["all"] = _stats([v for ms in reads.values() for v in ms])
+    print("http", http_run, flush=True)
+    # 2. the CPU bound of the frames the clients posted (the server is idle meanwhile)
+    done = [
+        [run[:n] for run, n in zip(runs, ns, strict=True)]
+        for runs, ns in zip(main, posted, strict=True)
+    ]
+    result["cpu_bound"] = cpu_bound(done)
+    print("cpu bound", result["cpu_bound"], flush=True)
+    http_run["ratio_to_cpu_bound"] = round(
+        http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3
+    )
+    n = http_run["frames"]
+    http_run["cpu_ms_per_frame"] = {
+        "workers": round(1e3 * (cpu1["workers"] - cpu0["workers"]) / n, 2),
+        "api_process": round(1e3 * (cpu1["api"] - cpu0["api"]) / n, 2),
+        "bench_clients": round(1e3 * (bench1 - bench0) / n, 2),
+    }
+    # the same frames' CPU in a worker against in-process (no other load in the figure)
+    http_run["worker_cpu_to_in_process"] = round(
+        http_run["cpu_ms_per_frame"]["workers"] / result["cpu_bound"]["cpu_ms_per_frame"], 3
+    )
+    result["http"] = http_run
+
+    # 3. events: fresh maps, the same frames, 0 subscribers, then `subscribers`, then 0
+    events: dict[str, Any] = {}
+    phase = [[run[: args.event_frames] for run in runs] for runs in frames[: args.event_maps]]
+    for k, n_subs in enumerate((0, args.subscribers, 0)):
+        fresh = [
+            client.post("/v1/maps", json={"name": f"e{k}{i}", "config": MAP_CONFIG}).json()["id"]
+            for i in range(args.event_maps)
+        ]
+        proc = None
+        stop, counts = ctx.Event(), ctx.Queue()
+        if n_subs:
+            paths = [f"/v1/maps/{fresh[i % len(fresh)]}/events" for i in range(n_subs)]
+            proc = ctx.Process(target=_subscribers, args=(server.port, paths, stop, counts))
+            proc.start()
+            time.sleep(3.0)  # let them connect
+        name = f"{k + 1}_subscribers_{n_subs}"
+        events[name] = post_all(server.port, fresh, phase, limit_s=600)[0]
+        if proc is not None:
+            stop.set()
+            events[name]["frame_events_received"] = counts.get(timeout=60)
+            proc.join()
+        for m in fresh:
+            client.delete(f"/v1/maps/{m}").raise_for_status()
+    zeros = [events["1_subscribers_0"], events["3_subscribers_0"]]
+    many = events[f"2_subscribers_{args.subscribers}"]
+    zero_p50 = float(np.mean([z["post_ms"]["p50"] for z in zeros]))
+    zero_rate = float(np.mean([z["frames_per_s"] for z in zeros]))
+    # against the mean of the phases before and after (the machine's load drifts)
+    events["post_p50_ratio"] = round(many["post_ms"]["p50"] / zero_p50, 3)
+    events["throughput_ratio"] = round(many["frames_per_s"] / zero_rate, 3)
+    result["events"] = events
+    print("events", events, flush=True)
+    client.close()
+
+    # 4. restart
+    stop_s = server.stop()
+    unreplayed = _unreplayed(work / "data")
+    load0 = _loadavg()
+    ready_s = server.start()
+    n_maps = len(httpx.get(server.url + "/v1/maps").json())
+    server.stop()
+    empty = Server(work / "empty", work / "empty.log")
+    empty_s = empty.start()
+    empty.stop()
+    result["restart"] = {
+        "maps": n_maps,
+        "sigterm_to_exit_s": round(stop_s, 2),
+        "log_frames_after_latest_snapshot": unreplayed,
+        "ready_s": round(ready_s, 2),
+        "ready_s_no_maps": round(empty_s, 2),
+        "loadavg": [load0, _loadavg()],
+    }
+    print("restart", result["restart"], flush=True)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--maps", type=int, default=8)
+    parser.add_argument("--clients", type=int, default=4)
+    parser.add_argument("--frames", type=int, default=150, help="at most, per client (1-2)")
+    parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 2")
+    parser.add_argument("--event-maps", type=int, default=2)
+    parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
+    parser.add_argument("--subscribers", type=int, default=200)
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = parser.parse_args()
+    result = run(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "load.json").write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

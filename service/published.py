@@ -1,0 +1,116 @@
+"""The published view of a map: what its reads are answered from, without its worker.
+
+After every change of a map (a frame, a mode switch, a learnt place, an open) the
+worker that owns it builds a `MapView` — plain, immutable documents of the map's state
+right after that change — and sends it to the API process with its answer. The API
+process answers GET summary, pose, live landmarks, places and trajectory from the
+latest view it holds, so a read never waits behind the frames the worker is busy with
+(its own map's or other maps'). What a view cannot answer (coverage, archived
+landmarks, per-frame statistics, a robot known only to the place localiser) still goes
+to the worker.
+
+After a frame, a view renews what is cheap: the summary, the places and the pose of
+the robot that sent it. Three parts may lag behind the map: the other robots' poses
+(each covariance costs a marginal of the graph), the trajectory rows the estimator
+holds (renewed every HELD_EVERY frames), and the live landmarks (a joint marginal of
+all of them, ~5 ms for 50, half a frame). A read of a lagging part goes to the worker
+when it has nothing else to do (so a client reads its own writes) and is answered from
+the view while the worker is busy; a lagging trajectory or landmark read then asks for
+them anew (`RefreshView`, one at a time per map), and a worker that has been idle for
+a moment renews everything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.queries import Landmarks, Places, Summary, pose_answer
+from service.session import MapSession
+
+Doc = dict[str, Any]
+
+HELD_EVERY = 10
+"""Frames between two renewals of the held trajectory rows after frames."""
+
+
+@dataclass(frozen=True)
+class MapView:
+    """A map's state after the change of log frame `log_id`, as documents."""
+
+    map_id: str
+    log_id: int
+    summary: Doc
+    pose: Doc
+    places: Doc | None
+    """None: the map has no place localiser."""
+    held: dict[str, NDArray[np.float64]] | None
+    """Trajectory rows the estimator held per robot after frame `held_log_id` ((N, 5)
+    seq, stamp, x, y, theta); the final rows before them are in the store. None: the
+    map has off-graph frames, whose rows only the worker can place."""
+    landmarks: list[Doc]
+    """The live landmarks (GET /landmarks) after frame `landmarks_log_id`."""
+    landmarks_log_id: int
+    held_log_id: int
+    poses_log_id: int
+    """The frame after which every robot's pose was computed (each frame after it
+    renewed only its own robot's entry)."""
+
+
+def build_view(
+    session: MapSession,
+    *,
+    previous: MapView | None = None,
+    robot: str | None = None,
+    refresh: bool = False,
+) -> MapView:
+    """The view of an open map now, in one of three ways (with the map's `previous`
+    view; without one, or with neither `robot` nor `refresh`, everything is new):
+
+    - `robot`: after a frame of that robot: the summary, the places and that robot's
+      entry of the poses are new, and every HELD_EVERY frames the held rows; the rest
+      is `previous`'s. (Every other robot's pose moved a little with the frame's update,
+      but its covariance would cost a marginal of the graph, ~1.5 ms a robot; all
+      robots' rows ~0.5 ms; the landmarks ~5 ms.)
+    - `refresh`: the live landmarks and the held rows are new (a read found them
+      behind), the poses are `previous`'s.
+    """
+    pipeline = session.pipeline
+    log_id = session.last_log_id
+    held: dict[str, NDArray[np.float64]] | None
+    if previous is None or (robot is None and not refresh):
+        pose, poses_log_id = pose_answer(session), log_id
+        held, held_log_id = session.slam.trajectory(), log_id
+        landmarks, landmarks_log_id = Landmarks().answer(session), log_id
+    elif robot is not None:
+        fresh = pose_answer(session, robot)
+        pose = {**fresh, "robots": {**previous.pose["robots"], **fresh["robots"]}}
+        alone = set(pose["robots"]) <= {robot}  # no other robot's pose to lag
+        poses_log_id = log_id if alone else previous.poses_log_id
+        held, held_log_id = previous.held, previous.held_log_id
+        if held is None or log_id - held_log_id >= HELD_EVERY:
+            held, held_log_id = None, log_id  # all robots' rows: below
+        landmarks, landmarks_log_id = previous.landmarks, previous.landmarks_log_id
+    else:
+        pose, poses_log_id = previous.pose, previous.poses_log_id
+        held, held_log_id = session.slam.trajectory(), log_id
+        landmarks, landmarks_log_id = Landmarks().answer(session), log_id
+    if pipeline.off_graph_robots():
+        held = None
+    elif held is None:
+        held, held_log_id = session.slam.trajectory(), log_id
+    return MapView(
+        map_id=session.record.id,
+        log_id=log_id,
+        summary=Summary().answer(session),
+        pose=pose,
+        places=None if pipeline.localiser is None else Places().answer(session),
+        held=held,
+        landmarks=landmarks,
+        landmarks_log_id=landmarks_log_id,
+        held_log_id=held_log_id,
+        poses_log_id=poses_log_id,
+    )

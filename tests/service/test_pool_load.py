@@ -1,0 +1,217 @@
+"""The map service under load, with real worker processes: reads are answered while
+the map's worker is busy, a map moves between workers without losing a frame, the
+balancer moves a map off a crowded worker, and stopping snapshots every map."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from service.frames_io import frame_to_dict
+from service.maps import MapService
+from service.pipeline.config import MapConfig
+from service.queries import Landmarks, Places, Pose, Summary, Trajectory
+from service.requests import MapRequest, Ping
+from service.session import MapSession
+from service.settings import Settings, StoreSettings
+from tests.graph._world import circle_frames
+from tests.support.snapshots import unsnapshotted
+
+FRAMES = [frame_to_dict(f) for f in circle_frames(60, seed=2)[0]]
+CONFIG = MapConfig.model_validate({"landmark_cap": 8})
+
+
+@dataclass(frozen=True)
+class Hold(MapRequest[None]):
+    """Keeps the map's worker busy (a long frame) until the file `release` exists;
+    creates `started` when it begins."""
+
+    started: str
+    release: str
+
+    def answer(self, session: MapSession) -> None:
+        Path(self.started).touch()
+        deadline = time.monotonic() + 120
+        while not Path(self.release).exists() and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+
+def _settings(tmp_path: Path, workers: int) -> Settings:
+    return Settings(
+        data_dir=tmp_path / "data",
+        workers={"count": workers, "nice": 0, "balance_interval_s": 0, "read_ahead": 0},
+    )
+
+
+def _run(tmp_path: Path, workers: int, body: Callable[[MapService], Awaitable[None]]) -> None:
+    async def main() -> None:
+        service = MapService(_settings(tmp_path, workers))
+        await service.start()
+        try:
+            while not service.ready:
+                await asyncio.sleep(0.05)
+            await body(service)
+        finally:
+            await service.stop()
+
+    asyncio.run(main())
+
+
+async def _new_map(service: MapService, frames: list[dict[str, Any]]) -> str:
+    map_id = str((await service.create(name="m", config=CONFIG, mode="mapping"))["id"])
+    for f in frames:
+        await service.submit(map_id, f)
+    return map_id
+
+
+async def _until(path: Path) -> None:
+    deadline = time.monotonic() + 60
+    while not path.exists():
+        assert time.monotonic() < deadline, f"{path} never appeared"
+        await asyncio.sleep(0.01)
+
+
+def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
+    """One worker, held by a long request on one map with a frame queued behind it: the
+    reads of that map and of another map on the same worker are answered meanwhile, and
+    the frame's answer brings the new state to the reads."""
+
+    async def body(service: MapService) -> None:
+        busy = await _new_map(service, FRAMES[:20])
+        idle = await _new_map(service, FRAMES[:10])
+        fresh = await _new_map(service, [])  # no frame yet: the view of its creation
+        started, release = tmp_path / "started", tmp_path / "release"
+        hold = asyncio.create_task(service.query(busy, Hold(str(started), str(release))))
+        await _until(started)
+        frame = asyncio.create_task(service.submit(busy, FRAMES[20]))
+        answers = {}
+        for map_id in (busy, idle):
+            for query in (Pose(), Landmarks(), Summary(), Places(), Trajectory()):
+                answers[map_id, type(query).__name__] = await service.query(map_id, query)
+        fresh_summary = await service.summary(fresh)
+        assert not hold.done() and not frame.done()  # every read came past them
+        assert fresh_summary["counts"]["frames"] == 0
+        assert answers[busy, "Pose"]["robots"]["r1"]["seq"] == 19
+        assert answers[busy, "Summary"]["counts"]["frames"] == 20
+        assert answers[idle, "Summary"]["counts"]["frames"] == 10
+        # rows and landmarks may lag behind their map (renewed every few frames, or on
+        # demand): what the view has, a part of what the worker has
+        rows = answers[idle, "Trajectory"].get("r1", [])
+        release.touch()
+        await hold
+        reply = await frame
+        assert json.loads(reply.result_json)["seq"] == 20
+        pose = await service.query(busy, Pose())
+        assert pose["robots"]["r1"]["seq"] == 20
+        # the landmark read during the hold asked for new ones, behind the frame: once
+        # the worker is through, the view has them
+        expected = await service.pool.call(busy, Landmarks())
+        assert expected and await service.query(busy, Landmarks()) == expected
+        exact = await service.query(idle, Trajectory())  # the worker is idle: exact
+        assert len(exact["r1"]) == 10 and exact["r1"][: len(rows)] == rows
+
+    _run(tmp_path, 1, body)
+
+
+async def _open_on(service: MapService, worker: int) -> list[str]:
+    pool: Any = service.pool
+    reply = await pool._request(pool._slots[worker], "", Ping())
+    return list(reply["value"]["maps"])
+
+
+def test_a_map_moves_between_workers_without_losing_a_frame(tmp_path: Path) -> None:
+    """A map moved back and forth while its frames arrive: every frame is answered
+    once, in order, and a retry of each returns the stored result byte for byte."""
+
+    async def body(service: MapService) -> None:
+        map_id = await _new_map(service, [])
+        replies: list[str] = []
+
+        async def post() -> None:
+            for f in FRAMES:
+                replies.append((await service.submit(map_id, f)).result_json)
+
+        posting = asyncio.create_task(post())
+        moves = 0
+        while not posting.done():
+            await asyncio.sleep(0.02)
+            target = 1 - service.pool.worker_of(map_id)
+            moves += await service.pool.move(map_id, target)  # type: ignore[attr-defined]
+        await posting
+        assert moves >= 2
+        assert [json.loads(r)["seq"] for r in replies] == [f["seq"] for f in FRAMES]
+        summary = await service.summary(map_id)
+        assert summary["counts"]["frames"] == len(FRAMES)
+        for f, first in zip(FRAMES, replies, strict=True):
+            again = await service.submit(map_id, f)
+            assert again.replayed and again.result_json == first
+        owner = service.pool.worker_of(map_id)
+        assert map_id in await _open_on(service, owner)
+        assert map_id not in await _open_on(service, 1 - owner)  # one writer only
+
+    _run(tmp_path, 2, body)
+
+
+def test_a_moved_map_is_deleted_where_it_is_open(tmp_path: Path) -> None:
+    async def body(service: MapService) -> None:
+        map_id = await _new_map(service, FRAMES[:5])
+        assert await service.pool.move(map_id, 1 - service.pool.worker_of(map_id))  # type: ignore[attr-defined]
+        await service.delete(map_id)
+        for worker in (0, 1):
+            assert map_id not in await _open_on(service, worker)
+        assert not (tmp_path / "data" / "maps" / f"{map_id}.sqlite").exists()
+
+    _run(tmp_path, 2, body)
+
+
+def test_the_balancer_moves_a_map_off_the_busier_worker(tmp_path: Path) -> None:
+    async def body(service: MapService) -> None:
+        pool: Any = service.pool
+        a = await _new_map(service, [])
+        b = await _new_map(service, [])
+        if pool.worker_of(a) == pool.worker_of(b):
+            pytest_fail = "a new map goes to the less loaded worker"
+            raise AssertionError(pytest_fail)
+        assert await pool.move(b, pool.worker_of(a))  # both on one worker now
+        crowded = pool.worker_of(a)
+
+        async def post(map_id: str) -> None:
+            for f in FRAMES[:40]:
+                await service.submit(map_id, f)
+
+        posting = [asyncio.create_task(post(m)) for m in (a, b)]
+        await asyncio.sleep(1.0)
+        moved = await pool.balance(1.0)
+        await asyncio.gather(*posting)
+        assert moved == (a, crowded, 1 - crowded)  # b moved a moment ago: it stays
+        assert pool.worker_of(a) != pool.worker_of(b)
+        for m in (a, b):
+            assert (await service.summary(m))["counts"]["frames"] == 40
+
+    _run(tmp_path, 2, body)
+
+
+def test_stopping_snapshots_every_map_so_a_start_replays_nothing(tmp_path: Path) -> None:
+    ids: list[str] = []
+    poses: list[Any] = []
+
+    async def body(service: MapService) -> None:
+        for n in (15, 25):  # fewer frames than snapshot_every (200)
+            ids.append(await _new_map(service, FRAMES[:n]))
+        poses.extend([(await service.query(m, Pose()))["robots"] for m in ids])
+
+    _run(tmp_path, 2, body)
+    for map_id, pose in zip(ids, poses, strict=True):
+        path = tmp_path / "data" / "maps" / f"{map_id}.sqlite"
+        assert unsnapshotted(path) == 0
+        session = MapSession(path, StoreSettings())
+        try:
+            assert session.loaded_from_snapshot == session.last_log_id > 0
+            assert Pose().answer(session)["robots"] == pose
+        finally:
+            session.close()
