@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angle
-from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser
+from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
 from tests.graph.test_particles import LANDMARKS, _circle_pose, _observe, _odometry
 
 WORLD = {str(i): xy for i, xy in enumerate(LANDMARKS)}
@@ -182,3 +182,58 @@ def test_a_weak_filter_is_started_again_where_the_graph_explains_the_observation
         est = track.pf.estimate().pose_xytheta
         near = np.hypot(*(est[:2] - graph[:2])) < 0.2 and abs(wrap_angle(est[2] - graph[2])) < 0.1
         assert near == (not weak)
+
+
+def _kidnap_run(kidnap: int | None, config: LocaliserConfig, seed: int = 0) -> list[str]:
+    """A robot tracked along the circle from its true first pose, the graph's pose dead
+    reckoning from the last relocalisation (it never sees a kidnap); carried to another
+    circle at frame `kidnap` (no odometry for the jump) unless None. The statuses."""
+    rng, world = np.random.default_rng(seed), np.random.default_rng(seed + 1)
+    loc = Localiser(config)
+    statuses: list[str] = []
+    previous = graph = None
+    for k in range(120):
+        moved = kidnap is not None and k >= kidnap
+        truth = _circle_pose(k, centre=(4.2, 4.6)) if moved else _circle_pose(k)
+        odo = None
+        if previous is not None:
+            nominal = _circle_pose(k) if k == kidnap else truth
+            odo = _odometry(previous, nominal)
+        if graph is None and not statuses:
+            graph = truth.copy()
+        elif graph is not None and odo is not None:
+            c, s = math.cos(graph[2]), math.sin(graph[2])
+            graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+        labels, z = _frame(truth, world)
+        result = loc.step(
+            "r1",
+            odometry=odo,
+            dt_s=0.2,
+            labels=labels,
+            bearings_rad=z,
+            landmarks=WORLD,
+            graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
+            rng=rng,
+        )
+        statuses.append(result.status)
+        if result.anchor:
+            graph = result.estimate.pose_xytheta.copy()
+        if result.status == LOST:
+            graph = None
+        previous = truth
+    return statuses
+
+
+def test_the_observations_reject_the_tracked_pose_after_a_kidnap() -> None:
+    """With the other `lost` rules out of reach (lost_frames beyond the run), the
+    old-pose test alone finds a kidnapped robot lost within a few frames of the jump, and
+    a robot that was not moved is never lost."""
+    config = LocaliserConfig(lost_frames=10_000)
+    assert math.isfinite(config.kidnap_gate)
+    for seed in range(2):
+        assert LOST not in _kidnap_run(None, config, seed)
+        statuses = _kidnap_run(60, config, seed)
+        assert LOST not in statuses[:60]
+        assert statuses.index(LOST, 60) - 60 <= 5
+    off = LocaliserConfig(lost_frames=10_000, kidnap_window=0)
+    assert LOST not in _kidnap_run(60, off)
