@@ -784,7 +784,8 @@ def frames_until_data_tell(
         lm = np.array([landmarks[o.label] for o in seen], dtype=np.float64).reshape(-1, 2)
         z = np.array([o.bearing_rad for o in seen], dtype=np.float64)
         sig = pf.bearing_sigmas(len(z), np.array([o.sigma_rad or np.nan for o in seen]))
-        window.append(WindowFrame(odo, f.stamp - prev.stamp, lm, z, sig))
+        labels = tuple(o.label for o in seen)
+        window.append(WindowFrame(odo, f.stamp - prev.stamp, lm, z, sig, labels))
         latest = _truth_at(truth, f.stamp)
         if not len(z) or latest is None:
             continue

@@ -411,7 +411,10 @@ class Localiser:
                 )
         rejected = False
         if track.status == TRACKING and graph_pose is not None and q is None:
-            rejected = self._old_pose_test(track, graph_pose, odometry, dt_s, lm_xy, z, sig, est)
+            seen = [labels[i] for i in known]
+            rejected = self._old_pose_test(
+                track, graph_pose, odometry, dt_s, seen, lm_xy, z, sig, est
+            )
         if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
             # The belief no longer explains what the robot sees: search afresh.
             track.status = LOST
@@ -509,6 +512,7 @@ class Localiser:
         graph_pose: tuple[FloatArray, FloatArray],
         odometry: Sequence[float] | None,
         dt_s: float,
+        observed: Sequence[str],
         lm_xy: FloatArray,
         z: FloatArray,
         sig: FloatArray | None,
@@ -526,7 +530,8 @@ class Localiser:
         elif misfit and track.history:
             track.suspect, track.calm = 1, 0
         odo = None if odometry is None else np.asarray(odometry, dtype=np.float64)
-        frame = WindowFrame(odo, dt_s, lm_xy, z, track.pf.bearing_sigmas(len(z), sig))
+        sigmas = track.pf.bearing_sigmas(len(z), sig)
+        frame = WindowFrame(odo, dt_s, lm_xy, z, sigmas, tuple(observed))
         pose = np.asarray(graph_pose[0], dtype=np.float64)
         track.history.append((frame, pose, np.asarray(graph_pose[1], dtype=np.float64)))
         while len(track.history) > cfg.kidnap_window + 1:

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -50,6 +51,16 @@ class WindowFrame:
     bearings_rad: FloatArray
     sigmas_rad: FloatArray
     """(M,) the sensor model's sigma of each bearing."""
+    labels: tuple[str, ...] = ()
+    """(M,) the observed landmarks' labels (empty: a landmark is known by its position,
+    which the graph moves between frames)."""
+
+    def __setstate__(self, state: tuple[Any, ...]) -> None:
+        # A frame pickled before later fields existed: those take their defaults.
+        for f, value in zip(fields(self), state, strict=False):
+            object.__setattr__(self, f.name, value)
+        for f in fields(self)[len(state) :]:
+            object.__setattr__(self, f.name, f.default)
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,9 +302,8 @@ def rejects_old_pose(
     )
     if stat <= gate:
         return False, stat
-    seen = {(float(x), float(y)) for f in frames for x, y in f.landmarks_xy}
-    for xy in sorted(seen):
-        rest = [_without(f, xy) for f in frames]
+    for landmark in sorted({key for f in frames for key in _keys(f)}):
+        rest = [_without(f, landmark) for f in frames]
         if not any(len(f.bearings_rad) for f in rest):
             return False, 0.0
         stat = min(
@@ -311,13 +321,21 @@ def rejects_old_pose(
     return True, stat
 
 
-def _without(frame: WindowFrame, xy: tuple[float, float]) -> WindowFrame:
-    """`frame` without its bearings to the landmark at `xy`."""
-    keep = ~((frame.landmarks_xy[:, 0] == xy[0]) & (frame.landmarks_xy[:, 1] == xy[1]))
+def _keys(frame: WindowFrame) -> list[str]:
+    """Each bearing's landmark: its label, or its position when the frame has none."""
+    if frame.labels:
+        return list(frame.labels)
+    return [f"{x!r},{y!r}" for x, y in frame.landmarks_xy]
+
+
+def _without(frame: WindowFrame, landmark: str) -> WindowFrame:
+    """`frame` without its bearings to `landmark` (see _keys)."""
+    keep = np.array([key != landmark for key in _keys(frame)], dtype=bool)
     return WindowFrame(
         frame.odometry,
         frame.dt_s,
         frame.landmarks_xy[keep],
         frame.bearings_rad[keep],
         frame.sigmas_rad[keep],
+        tuple(label for label, k in zip(frame.labels, keep, strict=False) if k),
     )
