@@ -872,6 +872,10 @@ def online_kidnap(
             at = None if reloc is None else errs[cut + reloc]
             tell = frames_until_data_tell(stream, cut, truth, map_xy, map_localiser_config())
             lost = after["frames_to_lost"]
+            # How soon any estimator could know where the robot is after the jump (2b's
+            # bound on the map's own landmarks, from the jump without a prior).
+            bound = frames_to_information(stream, truth, cut, 150, map_xy, FilterConfig(), None)
+            info = bound[0.25]
             rows.append(
                 {
                     "robot": robot,
@@ -886,6 +890,10 @@ def online_kidnap(
                     "lost_within_20_of_data_tell": None
                     if tell is None
                     else lost is not None and lost <= tell + 20,
+                    "frames_to_information": info,
+                    "relocalised_within_bound_plus_10": None
+                    if info is None
+                    else reloc is not None and reloc <= info + 10,
                     "error_at_relocalised_m": None if at is None else at[0],
                     "error_at_relocalised_deg": None if at is None else math.degrees(at[1]),
                     "held_20_frames": held,

@@ -176,9 +176,14 @@ class RobotTrack:
     rejection: float = 0.0
     """The old-pose test's latest statistic."""
 
-    def end_tracking(self) -> None:
-        """Forget the tracked frames (the robot is lost)."""
+    def lose(self, reason: str) -> None:
+        """The robot is lost: a fresh search, the tracked frames forgotten."""
+        self.status = LOST
+        self.lost_reason = reason
+        self.lost_count += 1
+        self.window.clear()
         self.history.clear()
+        self.converged_frames = self.disagree_frames = self.weak_frames = 0
         self.suspect = self.calm = 0
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -417,12 +422,7 @@ class Localiser:
             )
         if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
             # The belief no longer explains what the robot sees: search afresh.
-            track.status = LOST
-            track.window.clear()
-            track.lost_reason = "observations no longer fit the map"
-            track.converged_frames = track.disagree_frames = track.weak_frames = 0
-            track.lost_count += 1
-            track.end_tracking()
+            track.lose("observations no longer fit the map")
             track.pf = ParticleFilter.from_poses(
                 injector(cfg.filter.max_particles, rng), cfg.filter
             )
@@ -430,12 +430,7 @@ class Localiser:
         elif rejected:
             # The frames since the graph's pose stopped explaining them reject the pose
             # the robot was tracked at: it was moved. The filter keeps its hypotheses.
-            track.status = LOST
-            track.window.clear()
-            track.lost_reason = "the observations reject the tracked pose"
-            track.converged_frames = track.disagree_frames = track.weak_frames = 0
-            track.lost_count += 1
-            track.end_tracking()
+            track.lose("the observations reject the tracked pose")
         elif track.status == TRACKING and graph_pose is not None:
             e = np.asarray(graph_pose[0], dtype=np.float64) - est.pose_xytheta
             e[2] = float(wrap_angles(e[2]))
@@ -451,13 +446,7 @@ class Localiser:
             beyond = d2 > cfg.lost_gate and est.converged
             track.disagree_frames = track.disagree_frames + 1 if beyond else 0
             if track.disagree_frames >= cfg.lost_frames:
-                track.status = LOST
-                track.window.clear()
-                track.end_tracking()
-                track.lost_reason = "graph and filter disagree"
-                track.lost_count += 1
-                track.converged_frames = 0
-                track.disagree_frames = 0
+                track.lose("graph and filter disagree")
         elif track.status in (INITIALISING, LOST):
             # Only frames with observations confirm: without, the belief just drifts.
             if not est.converged:

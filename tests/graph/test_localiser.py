@@ -21,45 +21,9 @@ def _frame(pose: np.ndarray, rng: np.random.Generator) -> tuple[list[str], list[
 
 
 def test_initialising_relocalised_tracking_lost_and_back() -> None:
-    rng, world = np.random.default_rng(0), np.random.default_rng(1)
     loc = Localiser()
-    statuses: list[str] = []
-    previous = None
-    graph = None  # the graph's pose: dead reckoning from the anchor (it never sees the kidnap)
     kidnap = 60
-    errors = []
-    for k in range(140):
-        truth = _circle_pose(k) if k < kidnap else _circle_pose(k, centre=(4.2, 4.6))
-        odo = None
-        if previous is not None:
-            nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
-            odo = _odometry(previous, nominal)
-            if graph is not None:
-                c, s = math.cos(graph[2]), math.sin(graph[2])
-                graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
-        labels, z = _frame(truth, world)
-        result = loc.step(
-            "r1",
-            odometry=odo,
-            dt_s=0.2,
-            labels=labels,
-            bearings_rad=z,
-            landmarks=WORLD,
-            graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
-            rng=rng,
-            frame=k,
-            stamp=0.2 * k,
-        )
-        statuses.append(result.status)
-        if result.anchor:
-            graph = result.estimate.pose_xytheta.copy()
-            est = result.estimate.pose_xytheta
-            errors.append(
-                (k, float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(est[2] - truth[2])))
-            )
-        if result.status == LOST:
-            graph = None
-        previous = truth
+    statuses, errors = _kidnap_run(loc, kidnap, graph_from_start=False, frames=140)
     assert statuses[0] == INITIALISING
     first = statuses.index(RELOCALISED)
     assert first <= 20
@@ -184,26 +148,34 @@ def test_a_weak_filter_is_started_again_where_the_graph_explains_the_observation
         assert near == (not weak)
 
 
-def _kidnap_run(kidnap: int | None, config: LocaliserConfig, seed: int = 0) -> list[str]:
-    """A robot tracked along the circle from its true first pose, the graph's pose dead
-    reckoning from the last relocalisation (it never sees a kidnap); carried to another
-    circle at frame `kidnap` (no odometry for the jump) unless None. The statuses."""
+def _kidnap_run(
+    loc: Localiser,
+    kidnap: int | None,
+    *,
+    graph_from_start: bool,
+    seed: int = 0,
+    frames: int = 120,
+) -> tuple[list[str], list[tuple[int, float, float]]]:
+    """A robot along the circle, carried to another circle at frame `kidnap` (no
+    odometry for the jump) unless None. The graph's pose dead reckons from the last
+    relocalisation, or from the true first pose if `graph_from_start` (it never sees a
+    kidnap). The statuses, and (frame, m, rad) errors of each relocalisation."""
     rng, world = np.random.default_rng(seed), np.random.default_rng(seed + 1)
-    loc = Localiser(config)
     statuses: list[str] = []
+    errors = []
     previous = graph = None
-    for k in range(120):
+    for k in range(frames):
         moved = kidnap is not None and k >= kidnap
         truth = _circle_pose(k, centre=(4.2, 4.6)) if moved else _circle_pose(k)
         odo = None
-        if previous is not None:
-            nominal = _circle_pose(k) if k == kidnap else truth
-            odo = _odometry(previous, nominal)
-        if graph is None and not statuses:
+        if previous is None and graph_from_start:
             graph = truth.copy()
-        elif graph is not None and odo is not None:
-            c, s = math.cos(graph[2]), math.sin(graph[2])
-            graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+        if previous is not None:
+            nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
+            odo = _odometry(previous, nominal)
+            if graph is not None:
+                c, s = math.cos(graph[2]), math.sin(graph[2])
+                graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
         labels, z = _frame(truth, world)
         result = loc.step(
             "r1",
@@ -214,14 +186,20 @@ def _kidnap_run(kidnap: int | None, config: LocaliserConfig, seed: int = 0) -> l
             landmarks=WORLD,
             graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
             rng=rng,
+            frame=k,
+            stamp=0.2 * k,
         )
         statuses.append(result.status)
         if result.anchor:
             graph = result.estimate.pose_xytheta.copy()
+            est = result.estimate.pose_xytheta
+            errors.append(
+                (k, float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(est[2] - truth[2])))
+            )
         if result.status == LOST:
             graph = None
         previous = truth
-    return statuses
+    return statuses, errors
 
 
 def test_the_observations_reject_the_tracked_pose_after_a_kidnap() -> None:
@@ -231,9 +209,10 @@ def test_the_observations_reject_the_tracked_pose_after_a_kidnap() -> None:
     config = LocaliserConfig(lost_frames=10_000)
     assert math.isfinite(config.kidnap_gate)
     for seed in range(2):
-        assert LOST not in _kidnap_run(None, config, seed)
-        statuses = _kidnap_run(60, config, seed)
+        calm, _ = _kidnap_run(Localiser(config), None, graph_from_start=True, seed=seed)
+        assert LOST not in calm
+        statuses, _ = _kidnap_run(Localiser(config), 60, graph_from_start=True, seed=seed)
         assert LOST not in statuses[:60]
         assert statuses.index(LOST, 60) - 60 <= 5
     off = LocaliserConfig(lost_frames=10_000, kidnap_window=0)
-    assert LOST not in _kidnap_run(60, off)
+    assert LOST not in _kidnap_run(Localiser(off), 60, graph_from_start=True)[0]
