@@ -753,7 +753,7 @@ def _spliced_truth(before: Trajectory, after: Trajectory, t_cut: float) -> Traje
 DATA_TELL_PRIOR = (0.15, 0.15, math.radians(3.0))
 """Sigmas (m, m, rad) of the old pose at a kidnap in `frames_until_data_tell`: about
 what a tracked robot's pose is known to in the online map (ATE 0.13-0.38 m before the
-cuts); the localiser's own test adds its kidnap_sigma_floor to the graph's covariance."""
+cuts); the localiser's own test adds kidnap_sigma_floor to the graph's covariance."""
 
 
 def frames_until_data_tell(
