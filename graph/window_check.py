@@ -15,6 +15,10 @@ odometry backwards), with a broad prior on the first pose:
   surer than its data allow;
 - ``confirmed`` otherwise.
 
+The same small pose graph tests a tracked robot's old pose (`rejects_old_pose`): do the
+frames since the graph's pose stopped explaining them reject the pose just before them?
+(The localiser's kidnap test; see docs/localisation.md.)
+
 Pure: GTSAM and numpy only.
 """
 
