@@ -57,11 +57,12 @@ from graph.angles import wrap_angle
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
 from graph.types import FrameInput, Odometry, Pose2D
+from graph.window_check import WindowFrame, rejects_old_pose
 from service.frames_io import frame_to_dict
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.offline.evaluation import Trajectory, align_se2, fit_landmarks, interpolate
 from service.pipeline.config import DEFAULT_LANDMARK_CAP, MapConfig
-from service.pipeline.localiser import landmark_map
+from service.pipeline.localiser import landmark_map, map_localiser_config
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -696,14 +697,229 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
     }
 
 
+def _cut_stream(
+    frames: list[FrameInput], t0: float, before_s: float, cut_s: float, after_s: float
+) -> tuple[list[FrameInput], int]:
+    """A robot's frames with `cut_s` seconds cut out after `before_s`: the first frame
+    after the gap carries zero odometry (the robot jumps). The stream and the cut's index."""
+    pre = [f for f in frames if f.stamp < t0 + before_s]
+    t1 = t0 + before_s + cut_s
+    post = [f for f in frames if t1 <= f.stamp < t1 + after_s]
+    jump = dataclasses.replace(post[0], odometry=Odometry(0.0, 0.0, 0.0))
+    return [*pre, jump, *post[1:]], len(pre)
+
+
+SWAP_MIN_JUMP_M = 1.5
+"""A swap happens at the first frame after `before_s` at which the two robots are at
+least this far apart (MRCLAM's robots often pass close to each other)."""
+
+
+def _swap_time(
+    mine: Trajectory, other: Trajectory, frames: list[FrameInput], after: float
+) -> float:
+    """Stamp of the first of `frames` after `after` at which the robots' true positions
+    are at least SWAP_MIN_JUMP_M apart."""
+    for f in frames:
+        a, b = _truth_at(mine, f.stamp), _truth_at(other, f.stamp)
+        apart = a is not None and b is not None and np.hypot(*(a[:2] - b[:2]))
+        if f.stamp >= after and apart and apart >= SWAP_MIN_JUMP_M:
+            return f.stamp
+    raise ValueError("the robots are never that far apart")
+
+
+def _swap_stream(
+    frames: list[FrameInput], other: list[FrameInput], t1: float, after_s: float
+) -> tuple[list[FrameInput], int]:
+    """A robot's frames until `t1`, then another robot's frames under its name
+    (renumbered): the robot is suddenly where the other one is, and nothing in the
+    odometry says so (the first swapped frame carries the other robot's own motion)."""
+    pre = [f for f in frames if f.stamp < t1]
+    post = [f for f in other if t1 <= f.stamp < t1 + after_s]
+    name = frames[0].robot
+    stream = [*pre, *(dataclasses.replace(f, robot=name) for f in post)]
+    return [dataclasses.replace(f, seq=i) for i, f in enumerate(stream)], len(pre)
+
+
+def _spliced_truth(before: Trajectory, after: Trajectory, t_cut: float) -> Trajectory:
+    """`before`'s samples before `t_cut` and `after`'s from it (the swapped robot's truth)."""
+    a, b = before.stamps < t_cut, after.stamps >= t_cut
+    return Trajectory(
+        np.concatenate([before.stamps[a], after.stamps[b]]),
+        np.vstack([before.xy[a], after.xy[b]]),
+        np.concatenate([before.theta[a], after.theta[b]]),
+    )
+
+
+DATA_TELL_PRIOR = (0.15, 0.15, math.radians(3.0))
+"""Sigmas (m, m, rad) of the old pose at a kidnap in `frames_until_data_tell`: about
+what a tracked robot's pose is known to in the online map (ATE 0.13-0.38 m before the
+cuts); the localiser's own test adds kidnap_sigma_floor to the graph's covariance."""
+
+
+def frames_until_data_tell(
+    stream: list[FrameInput],
+    cut: int,
+    truth: Trajectory,
+    landmarks: dict[str, np.ndarray],
+    config: LocaliserConfig,
+    max_frames: int = 60,
+) -> int | None:
+    """First frame after the cut at which the frames since then reject the old pose as
+    the localiser's test does (graph.window_check.rejects_old_pose at
+    `config.kidnap_gate`), but with what no detector has: the old pose is the truth just
+    before the cut (DATA_TELL_PRIOR), and the free solution starts at the truth. The
+    frames are the service's (the jump's odometry as it receives it), the bearings to
+    `landmarks` with the filter's sigmas. None: not within `max_frames` frames."""
+    before = _truth_at(truth, stream[cut - 1].stamp)
+    if before is None:
+        return None
+    pf = ParticleFilter.from_poses(before[None, :], config.filter)
+    window: list[WindowFrame] = []
+    for k in range(min(max_frames, len(stream) - cut)):
+        f, prev = stream[cut + k], stream[cut + k - 1]
+        odo = None if f.odometry is None else np.array(
+            [f.odometry.dx, f.odometry.dy, f.odometry.dtheta]
+        )  # fmt: skip
+        seen = [o for o in f.observations if o.label in landmarks]
+        lm = np.array([landmarks[o.label] for o in seen], dtype=np.float64).reshape(-1, 2)
+        z = np.array([o.bearing_rad for o in seen], dtype=np.float64)
+        sig = pf.bearing_sigmas(len(z), np.array([o.sigma_rad or np.nan for o in seen]))
+        labels = tuple(o.label for o in seen)
+        window.append(WindowFrame(odo, f.stamp - prev.stamp, lm, z, sig, labels))
+        latest = _truth_at(truth, f.stamp)
+        if not len(z) or latest is None:
+            continue
+        rejected, _ = rejects_old_pose(
+            before,
+            np.diag(np.square(DATA_TELL_PRIOR)),
+            window,
+            config.filter,
+            config.kidnap_gate,
+            latest_xytheta=[latest],
+        )
+        if rejected:
+            return k
+    return None
+
+
 def online_kidnap(
-    directory: Path, mapper: int, before_s: float, cut_s: float, after_s: float
+    directory: Path,
+    mapper: int,
+    before_s: float,
+    cut_s: float,
+    after_s: float,
+    *,
+    swap: bool = False,
 ) -> dict[str, Any]:
     """Kidnapping in the map one robot built (as `online_localisation`): each other robot
     enters a copy of it at its true first pose (moved into the map's frame), tracks for
-    `before_s`, loses `cut_s` of frames (a jump without odometry), then runs `after_s`.
-    Judged in the map's frame: frames from the cut to `lost` and to `relocalised`, the
-    error then, whether the 20 frames after it hold the tolerance; false `lost` before."""
+    `before_s`, then either loses `cut_s` of frames (a jump without odometry) or, with
+    `swap`, goes on with the next robot's frames under its own name (robot 2 gets 3's,
+    ..., 5 gets 2's) from the first frame the two are SWAP_MIN_JUMP_M apart; then runs
+    `after_s`. Judged in the map's frame: frames from the jump to `lost` and to
+    `relocalised`, the error then, whether the 20 frames after it hold the tolerance;
+    false `lost` before; when the data could first tell (`frames_until_data_tell`)."""
+    rows = []
+    others = [r for r in range(1, 6) if r != mapper]
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        where = tmp / "map.sqlite"
+        built = build_online_map(directory, mapper, where, rest_config())
+        rot, trans = built.pop("_rot"), built.pop("_trans")
+        map_xy = {k: np.array(v) for k, v in built["map_landmarks"].items()}
+        runs = {r: mrclam_frames(load_mrclam(directory, r)) for r in others}
+        for i, robot in enumerate(others):
+            frames, gt = runs[robot]
+            gt_map = _map_frame(gt, rot, trans)
+            t0 = frames[0].stamp
+            if swap:
+                source = others[(i + 1) % len(others)]
+                t1 = _swap_time(gt, runs[source][1], frames, t0 + before_s)
+                stream, cut = _swap_stream(frames, runs[source][0], t1, after_s)
+                split = 0.5 * (stream[cut - 1].stamp + stream[cut].stamp)
+                truth = _spliced_truth(gt_map, _map_frame(runs[source][1], rot, trans), split)
+            else:
+                source = robot
+                stream, cut = _cut_stream(frames, t0, before_s, cut_s, after_s)
+                truth = gt_map
+            start = _truth_at(gt_map, t0)
+            assert start is not None
+            stream[0] = dataclasses.replace(
+                stream[0], initial_pose=Pose2D(*(float(v) for v in start))
+            )
+            path = tmp / f"k{robot}.sqlite"
+            _copy_store(where, path)
+            session = MapSession(path, StoreSettings(snapshot_every=100_000))
+            results = [json.loads(session.submit(frame_to_dict(f)).result_json) for f in stream]
+            session.close()
+            errs = []
+            for r in results:
+                at = _truth_at(truth, r["stamp"])
+                pose = r.get("pose")
+                errs.append(
+                    None
+                    if at is None or pose is None
+                    else _errors(np.array([pose["x"], pose["y"], pose["theta"]]), at)
+                )
+            after = _after_cut(results, cut, truth)
+            reloc = after["frames_to_relocalised"]
+            held = None
+            if reloc is not None:
+                window = errs[cut + reloc : cut + reloc + HOLD_FRAMES]
+                held = len(window) == HOLD_FRAMES and all(
+                    e is not None and _within(e) for e in window
+                )
+            at = None if reloc is None else errs[cut + reloc]
+            tell = frames_until_data_tell(stream, cut, truth, map_xy, map_localiser_config())
+            lost = after["frames_to_lost"]
+            # How soon any estimator could know where the robot is after the jump (2b's
+            # bound on the map's own landmarks, from the jump without a prior).
+            bound = frames_to_information(stream, truth, cut, 150, map_xy, FilterConfig(), None)
+            info = bound[0.25]
+            rows.append(
+                {
+                    "robot": robot,
+                    "frames_of": source,
+                    "frames_before": cut,
+                    "jump_m": _jump(truth, stream[cut - 1].stamp, stream[cut].stamp),
+                    "frames_until_observed": next(
+                        (k for k, f in enumerate(stream[cut:]) if f.observations), None
+                    ),
+                    "frames_until_data_tell": tell,
+                    **after,
+                    "lost_within_20_of_data_tell": None
+                    if tell is None
+                    else lost is not None and lost <= tell + 20,
+                    "frames_to_information": info,
+                    "relocalised_within_bound_plus_10": None
+                    if info is None
+                    else reloc is not None and reloc <= info + 10,
+                    "error_at_relocalised_m": None if at is None else at[0],
+                    "error_at_relocalised_deg": None if at is None else math.degrees(at[1]),
+                    "held_20_frames": held,
+                    # Whatever the status said: how far off the reported poses were from
+                    # 20 frames after the jump on (a graph that recovers needs no `lost`).
+                    "ate_from_20_frames_after_cut_m": _ate_of_results(
+                        results[cut + HOLD_FRAMES :], truth
+                    ),
+                }
+            )
+            print(rows[-1], flush=True)
+    return {
+        "map": built,
+        "kind": "swap" if swap else "cut",
+        "before_s": before_s,
+        "cut_s": 0.0 if swap else cut_s,
+        "after_s": after_s,
+        "data_tell_prior_sigmas": [DATA_TELL_PRIOR[0], DATA_TELL_PRIOR[1],
+                                   math.degrees(DATA_TELL_PRIOR[2])],
+        "runs": rows,
+    }  # fmt: skip
+
+
+def online_tracking(directory: Path, mapper: int) -> dict[str, Any]:
+    """Each other robot's whole run, no kidnap, in the map one robot built (as
+    `online_localisation`), from its true first pose: every `lost` is a false alarm."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
@@ -713,57 +929,35 @@ def online_kidnap(
         for robot in (r for r in range(1, 6) if r != mapper):
             frames, gt = mrclam_frames(load_mrclam(directory, robot))
             gt_map = _map_frame(gt, rot, trans)
-            t0 = frames[0].stamp
-            pre = [f for f in frames if f.stamp < t0 + before_s]
-            t1 = t0 + before_s + cut_s
-            post = [f for f in frames if t1 <= f.stamp < t1 + after_s]
-            start = _truth_at(gt_map, t0)
+            start = _truth_at(gt_map, frames[0].stamp)
             assert start is not None
-            first = dataclasses.replace(pre[0], initial_pose=Pose2D(*(float(v) for v in start)))
-            jump = dataclasses.replace(post[0], odometry=Odometry(0.0, 0.0, 0.0))
-            stream = [first, *pre[1:], jump, *post[1:]]
-            path = tmp / f"k{robot}.sqlite"
+            first = dataclasses.replace(frames[0], initial_pose=Pose2D(*(float(v) for v in start)))
+            path = tmp / f"t{robot}.sqlite"
             _copy_store(where, path)
             session = MapSession(path, StoreSettings(snapshot_every=100_000))
-            results = [json.loads(session.submit(frame_to_dict(f)).result_json) for f in stream]
+            results = [
+                json.loads(session.submit(frame_to_dict(f)).result_json)
+                for f in [first, *frames[1:]]
+            ]
             session.close()
-            errs = []
-            for r in results:
-                truth = _truth_at(gt_map, r["stamp"])
-                pose = r.get("pose")
-                errs.append(
-                    None
-                    if truth is None or pose is None
-                    else _errors(np.array([pose["x"], pose["y"], pose["theta"]]), truth)
-                )
-            cut = len(pre)
-            after = _after_cut(results, cut, gt_map)
-            reloc = after["frames_to_relocalised"]
-            held = None
-            if reloc is not None:
-                window = errs[cut + reloc : cut + reloc + HOLD_FRAMES]
-                held = len(window) == HOLD_FRAMES and all(
-                    e is not None and _within(e) for e in window
-                )
-            at = None if reloc is None else errs[cut + reloc]
+            statuses = [r["localisation"]["status"] for r in results]
+            # The frame's time outside the graph's step (localiser, bookkeeping), which
+            # the old-pose test adds to on the frames the graph's pose does not explain.
+            localise = np.array([r["timing_ms"].get("localise", np.nan) for r in results])
             rows.append(
                 {
                     "robot": robot,
-                    "frames_before": cut,
-                    "jump_m": _jump(gt_map, pre[-1].stamp, post[0].stamp),
-                    **after,
-                    "error_at_relocalised_m": None if at is None else at[0],
-                    "error_at_relocalised_deg": None if at is None else math.degrees(at[1]),
-                    "held_20_frames": held,
-                    # Whatever the status said: how far off the reported poses were from
-                    # 20 frames after the cut on (a graph that recovers needs no `lost`).
-                    "ate_from_20_frames_after_cut_m": _ate_of_results(
-                        results[cut + HOLD_FRAMES :], gt_map
-                    ),
+                    "frames": len(frames),
+                    "lost_events": _lost_events(statuses),
+                    "lost_frames": statuses.count("lost"),
+                    "ate_m": _ate_of_results(results, gt_map),
+                    "localise_ms_median": float(np.nanmedian(localise)),
+                    "localise_ms_p99": float(np.nanpercentile(localise, 99)),
+                    "localise_ms_max": float(np.nanmax(localise)),
                 }
             )
             print(rows[-1], flush=True)
-    return {"map": built, "before_s": before_s, "cut_s": cut_s, "after_s": after_s, "runs": rows}
+    return {"map_landmarks": built["landmarks"], "runs": rows}
 
 
 # --------------------------------------------------------------------------- 3. kidnap
@@ -831,6 +1025,11 @@ def _after_cut(results: list[dict], cut: int, gt: Any) -> dict[str, Any]:
     }
 
 
+def _lost_events(statuses: list[str]) -> int:
+    """How often a robot became `lost` (runs of `lost` frames)."""
+    return sum(1 for k in range(1, len(statuses)) if statuses[k] == "lost" != statuses[k - 1])
+
+
 def tracking_service(directory: Path, robot: int) -> dict[str, Any]:
     """One robot's whole run, no kidnap, through a fresh MapSession: a `lost` here is a
     false alarm (the robot was never moved)."""
@@ -840,9 +1039,7 @@ def tracking_service(directory: Path, robot: int) -> dict[str, Any]:
     return {
         "robot": robot,
         "frames": len(frames),
-        "lost_events": sum(
-            1 for k in range(1, len(statuses)) if statuses[k] == "lost" != statuses[k - 1]
-        ),
+        "lost_events": _lost_events(statuses),
         "lost_frames": statuses.count("lost"),
         "ate_m": _ate_of_results(results, gt),
     }
@@ -1035,6 +1232,8 @@ def main() -> None:
             "bound",
             "online",
             "online-kidnap",
+            "online-swap",
+            "online-tracking",
             "kidnap",
             "tracking",
         ],
@@ -1109,6 +1308,12 @@ def main() -> None:
     if "online-kidnap" in args.parts:
         doc["runs_of_parts"]["online_kidnap"] = _stamp()
         doc["online_kidnap"] = online_kidnap(directory, args.mapper, 120.0, 60.0, 120.0)
+    if "online-swap" in args.parts:
+        doc["runs_of_parts"]["online_swap"] = _stamp()
+        doc["online_swap"] = online_kidnap(directory, args.mapper, 120.0, 0.0, 120.0, swap=True)
+    if "online-tracking" in args.parts:
+        doc["runs_of_parts"]["online_tracking"] = _stamp()
+        doc["online_tracking"] = online_tracking(directory, args.mapper)
     if "kidnap" in args.parts:
         doc["runs_of_parts"]["kidnap"] = _stamp()
         doc["kidnap_localiser"] = [

@@ -38,7 +38,13 @@ from graph.angles import wrap_angles
 from graph.particles import FilterConfig, FilterEstimate, Injector, ParticleFilter
 from graph.places import LandmarkCandidate, Place, PlaceConfig, PlaceMap, Recognition
 from graph.types import Pose2D
-from graph.window_check import CONFIRMED, REFUTED, WindowFrame, check_window
+from graph.window_check import (
+    CONFIRMED,
+    REFUTED,
+    WindowFrame,
+    check_window,
+    rejects_old_pose,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -114,6 +120,23 @@ class LocaliserConfig:
     """Frames of a search (labelled bearings and odometry) kept to check a converged
     filter before the robot is relocalised when the caller gives no check of its own
     (see graph.window_check); 0: no check."""
+    kidnap_window: int = 30
+    """Frames the old-pose test looks back at most (labelled maps; 0: no test): once the
+    graph's pose fails to explain a frame's bearings, each frame with observations tests
+    the frames since against the graph's pose just before them; the robot is lost when
+    they reject it, also without any one landmark's bearings
+    (graph.window_check.rejects_old_pose)."""
+    kidnap_gate: float = 20.0
+    """The old-pose test's statistic beyond which the robot is lost (chi^2, 3 dof)."""
+    kidnap_sigma_floor: tuple[float, float, float] = (0.2, 0.2, math.radians(6.0))
+    """Sigmas (m, m, rad) added in quadrature to the graph's covariance of the old pose
+    in the test: the graph is overconfident about where it tracks a robot, and its
+    correcting that is no kidnap. (MRCLAM-6, robot 2 mapping alone: 9 deg of heading
+    drift over ten frames without a bearing, corrected as bearings came back, made it
+    lost with 0.15 m / 3 deg; 0.3 m / 10 deg missed robot 4 running on with robot 5's
+    frames, 1.5 m away.)"""
+    kidnap_calm_frames: int = 10
+    """Frames with observations the graph's poses explain after which the test stops."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
         # A config pickled before later fields existed: those take their defaults.
@@ -146,11 +169,32 @@ class RobotTrack:
     seen: deque[frozenset[str]] = field(default_factory=deque)
     window: deque[WindowFrame] = field(default_factory=deque)
     """The frames of the current search (initialising or lost), for check_window."""
+    graph_fit: float = 1.0
+    """How well the graph's latest pose explains its frame's bearings, relative to the
+    filter's slow likelihood average."""
+    history: deque[tuple[WindowFrame, FloatArray, FloatArray]] = field(default_factory=deque)
+    """The latest tracked frames with the graph's pose (3,) and covariance (3, 3) of each."""
+    suspect: int = 0
+    """Frames since the graph's pose first failed to explain a frame (0: it does)."""
+    calm: int = 0
+    rejection: float = 0.0
+    """The old-pose test's latest statistic."""
+
+    def lose(self, reason: str) -> None:
+        """The robot is lost: a fresh search, the tracked frames forgotten."""
+        self.status = LOST
+        self.lost_reason = reason
+        self.lost_count += 1
+        self.window.clear()
+        self.history.clear()
+        self.converged_frames = self.disagree_frames = self.weak_frames = 0
+        self.suspect = self.calm = 0
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        # A track pickled before `window` existed.
+        # A track pickled before `window` or `history` existed.
         self.__dict__.update(state)
         self.__dict__.setdefault("window", deque())
+        self.__dict__.setdefault("history", deque())
 
 
 def _bounds(landmarks: Mapping[str, FloatArray], margin: float) -> tuple[float, ...]:
@@ -370,17 +414,27 @@ class Localiser:
                 est = track.pf.estimate()
                 weak = False
             track.weak_frames = track.weak_frames + 1 if weak else 0
+            if graph_pose is not None:
+                track.graph_fit = track.pf.fit(graph_pose[0], lm_xy, z, q, sigmas_rad=sig) / max(
+                    track.pf.w_slow, 1e-300
+                )
+        rejected = False
+        if track.status == TRACKING and graph_pose is not None and q is None:
+            seen = [labels[i] for i in known]
+            rejected = self._old_pose_test(
+                track, graph_pose, odometry, dt_s, seen, lm_xy, z, sig, est
+            )
         if track.status == TRACKING and track.weak_frames >= cfg.lost_frames:
             # The belief no longer explains what the robot sees: search afresh.
-            track.status = LOST
-            track.window.clear()
-            track.lost_reason = "observations no longer fit the map"
-            track.converged_frames = track.disagree_frames = track.weak_frames = 0
-            track.lost_count += 1
+            track.lose("observations no longer fit the map")
             track.pf = ParticleFilter.from_poses(
                 injector(cfg.filter.max_particles, rng), cfg.filter
             )
             est = track.pf.estimate()
+        elif rejected:
+            # The frames since the graph's pose stopped explaining them reject the pose
+            # the robot was tracked at: it was moved. The filter keeps its hypotheses.
+            track.lose("the observations reject the tracked pose")
         elif track.status == TRACKING and graph_pose is not None:
             e = np.asarray(graph_pose[0], dtype=np.float64) - est.pose_xytheta
             e[2] = float(wrap_angles(e[2]))
@@ -396,12 +450,7 @@ class Localiser:
             beyond = d2 > cfg.lost_gate and est.converged
             track.disagree_frames = track.disagree_frames + 1 if beyond else 0
             if track.disagree_frames >= cfg.lost_frames:
-                track.status = LOST
-                track.window.clear()
-                track.lost_reason = "graph and filter disagree"
-                track.lost_count += 1
-                track.converged_frames = 0
-                track.disagree_frames = 0
+                track.lose("graph and filter disagree")
         elif track.status in (INITIALISING, LOST):
             # Only frames with observations confirm: without, the belief just drifts.
             if not est.converged:
@@ -449,6 +498,56 @@ class Localiser:
         if track.status in (INITIALISING, LOST):
             confidence = min(confidence, float(est.converged))
         return StepResult(track.status, est, place, confidence, anchor, learnt)
+
+    def _old_pose_test(
+        self,
+        track: RobotTrack,
+        graph_pose: tuple[FloatArray, FloatArray],
+        odometry: Sequence[float] | None,
+        dt_s: float,
+        observed: Sequence[str],
+        lm_xy: FloatArray,
+        z: FloatArray,
+        sig: FloatArray | None,
+        est: FilterEstimate,
+    ) -> bool:
+        """Keep the tracked frames' history and run the old-pose test (see
+        LocaliserConfig.kidnap_window): True when the frames since the graph's pose
+        first failed to explain one reject the graph's pose just before them."""
+        cfg = self.config
+        if cfg.kidnap_window <= 0:
+            return False
+        misfit = len(z) > 0 and track.graph_fit < cfg.lost_likelihood_ratio
+        if track.suspect:
+            track.suspect += 1
+        elif misfit and track.history:
+            track.suspect, track.calm = 1, 0
+        odo = None if odometry is None else np.asarray(odometry, dtype=np.float64)
+        sigmas = track.pf.bearing_sigmas(len(z), sig)
+        frame = WindowFrame(odo, dt_s, lm_xy, z, sigmas, tuple(observed))
+        pose = np.asarray(graph_pose[0], dtype=np.float64)
+        track.history.append((frame, pose, np.asarray(graph_pose[1], dtype=np.float64)))
+        while len(track.history) > cfg.kidnap_window + 1:
+            track.history.popleft()
+        if not track.suspect or not len(z):
+            return False
+        track.calm = 0 if misfit else track.calm + 1
+        if track.calm >= cfg.kidnap_calm_frames:
+            track.suspect = track.calm = 0
+            return False
+        n = min(track.suspect, len(track.history) - 1)
+        recent = list(track.history)[-n - 1 :]
+        _, anchor, anchor_cov = recent[0]
+        floor = np.diag(np.square(cfg.kidnap_sigma_floor))
+        rejected, track.rejection = rejects_old_pose(
+            anchor,
+            anchor_cov + floor,
+            [f for f, _, _ in recent[1:]],
+            cfg.filter,
+            cfg.kidnap_gate,
+            latest_xytheta=[est.pose_xytheta],
+        )
+        return rejected
 
     def _verdict(
         self,

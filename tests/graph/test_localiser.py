@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angle
-from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser
+from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
 from tests.graph.test_particles import LANDMARKS, _circle_pose, _observe, _odometry
 
 WORLD = {str(i): xy for i, xy in enumerate(LANDMARKS)}
@@ -21,45 +21,9 @@ def _frame(pose: np.ndarray, rng: np.random.Generator) -> tuple[list[str], list[
 
 
 def test_initialising_relocalised_tracking_lost_and_back() -> None:
-    rng, world = np.random.default_rng(0), np.random.default_rng(1)
     loc = Localiser()
-    statuses: list[str] = []
-    previous = None
-    graph = None  # the graph's pose: dead reckoning from the anchor (it never sees the kidnap)
     kidnap = 60
-    errors = []
-    for k in range(140):
-        truth = _circle_pose(k) if k < kidnap else _circle_pose(k, centre=(4.2, 4.6))
-        odo = None
-        if previous is not None:
-            nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
-            odo = _odometry(previous, nominal)
-            if graph is not None:
-                c, s = math.cos(graph[2]), math.sin(graph[2])
-                graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
-        labels, z = _frame(truth, world)
-        result = loc.step(
-            "r1",
-            odometry=odo,
-            dt_s=0.2,
-            labels=labels,
-            bearings_rad=z,
-            landmarks=WORLD,
-            graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
-            rng=rng,
-            frame=k,
-            stamp=0.2 * k,
-        )
-        statuses.append(result.status)
-        if result.anchor:
-            graph = result.estimate.pose_xytheta.copy()
-            est = result.estimate.pose_xytheta
-            errors.append(
-                (k, float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(est[2] - truth[2])))
-            )
-        if result.status == LOST:
-            graph = None
-        previous = truth
+    statuses, errors = _kidnap_run(loc, kidnap, graph_from_start=False, frames=140)
     assert statuses[0] == INITIALISING
     first = statuses.index(RELOCALISED)
     assert first <= 20
@@ -182,3 +146,73 @@ def test_a_weak_filter_is_started_again_where_the_graph_explains_the_observation
         est = track.pf.estimate().pose_xytheta
         near = np.hypot(*(est[:2] - graph[:2])) < 0.2 and abs(wrap_angle(est[2] - graph[2])) < 0.1
         assert near == (not weak)
+
+
+def _kidnap_run(
+    loc: Localiser,
+    kidnap: int | None,
+    *,
+    graph_from_start: bool,
+    seed: int = 0,
+    frames: int = 120,
+) -> tuple[list[str], list[tuple[int, float, float]]]:
+    """A robot along the circle, carried to another circle at frame `kidnap` (no
+    odometry for the jump) unless None. The graph's pose dead reckons from the last
+    relocalisation, or from the true first pose if `graph_from_start` (it never sees a
+    kidnap). The statuses, and (frame, m, rad) errors of each relocalisation."""
+    rng, world = np.random.default_rng(seed), np.random.default_rng(seed + 1)
+    statuses: list[str] = []
+    errors = []
+    previous = graph = None
+    for k in range(frames):
+        moved = kidnap is not None and k >= kidnap
+        truth = _circle_pose(k, centre=(4.2, 4.6)) if moved else _circle_pose(k)
+        odo = None
+        if previous is None and graph_from_start:
+            graph = truth.copy()
+        if previous is not None:
+            nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
+            odo = _odometry(previous, nominal)
+            if graph is not None:
+                c, s = math.cos(graph[2]), math.sin(graph[2])
+                graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+        labels, z = _frame(truth, world)
+        result = loc.step(
+            "r1",
+            odometry=odo,
+            dt_s=0.2,
+            labels=labels,
+            bearings_rad=z,
+            landmarks=WORLD,
+            graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
+            rng=rng,
+            frame=k,
+            stamp=0.2 * k,
+        )
+        statuses.append(result.status)
+        if result.anchor:
+            graph = result.estimate.pose_xytheta.copy()
+            est = result.estimate.pose_xytheta
+            errors.append(
+                (k, float(np.hypot(*(est[:2] - truth[:2]))), abs(wrap_angle(est[2] - truth[2])))
+            )
+        if result.status == LOST:
+            graph = None
+        previous = truth
+    return statuses, errors
+
+
+def test_the_observations_reject_the_tracked_pose_after_a_kidnap() -> None:
+    """With the other `lost` rules out of reach (lost_frames beyond the run), the
+    old-pose test alone finds a kidnapped robot lost within a few frames of the jump, and
+    a robot that was not moved is never lost."""
+    config = LocaliserConfig(lost_frames=10_000)
+    assert math.isfinite(config.kidnap_gate)
+    for seed in range(2):
+        calm, _ = _kidnap_run(Localiser(config), None, graph_from_start=True, seed=seed)
+        assert LOST not in calm
+        statuses, _ = _kidnap_run(Localiser(config), 60, graph_from_start=True, seed=seed)
+        assert LOST not in statuses[:60]
+        assert statuses.index(LOST, 60) - 60 <= 5
+    off = LocaliserConfig(lost_frames=10_000, kidnap_window=0)
+    assert LOST not in _kidnap_run(Localiser(off), 60, graph_from_start=True)[0]

@@ -137,3 +137,84 @@ def test_a_track_pickled_before_the_window_existed_loads_with_an_empty_one() -> 
     old.__setstate__(state)
     again = pickle.loads(pickle.dumps(old))
     assert list(again.window) == [] and again.status == INITIALISING
+
+
+# ------------------------------------------------------------------ the old-pose test
+def test_frames_from_where_the_robot_was_do_not_reject_its_pose() -> None:
+    """Under the hypothesis (the anchor is the pose before the frames) the statistic is
+    about chi^2 with 3 dof: below the 99.9 % quantile on frames that continue from it."""
+    from graph.window_check import old_pose_rejection
+
+    for seed in range(3):
+        frames, truth = _window(21, seed)
+        anchor = _circle_pose(0)
+        stat = old_pose_rejection(anchor, TIGHT, frames[1:], FilterConfig(), latest_xytheta=[truth])
+        assert -1e-6 <= stat < 16.27
+
+
+def test_frames_from_elsewhere_reject_the_old_pose_even_before_the_filter_finds_the_new() -> None:
+    """The robot carried 1.5 m away between the anchor and the frames: the frames reject
+    the anchor whether H1 starts at the new pose (the filter found it) or only from the
+    old one (the optimiser moves a pose without a prior to where the bearings fit)."""
+    from graph.window_check import old_pose_rejection
+
+    frames, truth = _window(11)
+    moved = _circle_pose(0) + np.array([1.5, 0.0, 0.0])
+    found = old_pose_rejection(moved, TIGHT, frames[1:], FilterConfig(), latest_xytheta=[truth])
+    alone = old_pose_rejection(moved, TIGHT, frames[1:], FilterConfig())
+    assert found > 100.0
+    assert alone > 100.0
+
+
+def test_a_wider_old_pose_is_rejected_later() -> None:
+    """What the test can tell shrinks with the old pose's covariance: a 1 m offset that a
+    tight anchor's first three frames reject stays unrejected under a metre-wide one."""
+    from graph.window_check import old_pose_rejection
+
+    frames, truth = _window(11)
+    moved = _circle_pose(0) + np.array([1.0, 0.0, 0.0])
+    tight = old_pose_rejection(moved, TIGHT, frames[1:4], FilterConfig(), latest_xytheta=[truth])
+    wide = np.diag([1.0, 1.0, 0.1])
+    loose = old_pose_rejection(moved, wide, frames[1:4], FilterConfig(), latest_xytheta=[truth])
+    assert tight > 16.27 > loose
+
+
+def test_a_wrong_bearing_does_not_reject_the_old_pose() -> None:
+    """One bearing 30 deg off in each of two frames (MRCLAM has such outliers): H1 can
+    fit them and H0 cannot, but the Cauchy loss keeps what they cost to a few sigmas'
+    worth, below the 99.9 % quantile that a kidnap's frames soon exceed."""
+    from graph.window_check import WindowFrame, old_pose_rejection
+
+    frames, truth = _window(11)
+    spoilt = list(frames[1:])
+    for k in (2, 6):
+        f = spoilt[k]
+        z = f.bearings_rad.copy()
+        z[0] += math.radians(30.0)
+        spoilt[k] = WindowFrame(f.odometry, f.dt_s, f.landmarks_xy, z, f.sigmas_rad)
+    stat = old_pose_rejection(
+        _circle_pose(0), TIGHT, spoilt, FilterConfig(), latest_xytheta=[truth]
+    )
+    assert stat < 16.27
+
+
+def test_one_landmark_misread_for_several_frames_does_not_reject_the_old_pose() -> None:
+    """A landmark's code misread seven frames running in frames that saw nothing else
+    (its bearings put on another landmark; the test's window starts at the first frame
+    the graph's pose does not explain): the free solution explains them and the old pose
+    cannot, beyond the gate, but left out, no bearing remains: no rejection. A kidnap's
+    frames reject without any one landmark as well."""
+    from graph.window_check import WindowFrame, old_pose_rejection, rejects_old_pose
+
+    frames, truth = _window(8)
+    wrong = frames[1].landmarks_xy[:1] + np.array([1.5, -1.0])  # the code misread names it
+    misread = [
+        WindowFrame(f.odometry, f.dt_s, wrong, f.bearings_rad[:1], f.sigmas_rad[:1])
+        for f in frames[1:]
+    ]
+    anchor, cfg = _circle_pose(0), FilterConfig()
+    assert old_pose_rejection(anchor, TIGHT, misread, cfg, latest_xytheta=[truth]) > 20.0
+    assert not rejects_old_pose(anchor, TIGHT, misread, cfg, 20.0, latest_xytheta=[truth])[0]
+    frames, truth = _window(11)
+    moved = anchor + np.array([1.5, 0.0, 0.0])
+    assert rejects_old_pose(moved, TIGHT, frames[1:], cfg, 20.0, latest_xytheta=[truth])[0]
