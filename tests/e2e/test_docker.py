@@ -10,7 +10,6 @@ stood in for by docker/base-image.sh (debootstrap; its root file system cached u
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -226,7 +225,16 @@ def test_frames_survive_a_container_restart_and_it_turns_healthy(
             summary = c.get(f"/v1/maps/{map_id}", headers=auth).json()
             after = c.get(f"/v1/maps/{map_id}/trajectory", headers=auth).json()
         assert summary["counts"]["frames"] == len(FRAMES)
-        assert json.dumps(after, sort_keys=True) == json.dumps(before, sort_keys=True)
+        # A clean stop snapshots the map; the restart loads that snapshot instead of
+        # replaying the log, which can differ in the last digits (~1e-15 m).
+        assert after["robots"].keys() == before["robots"].keys()
+        for robot, rows in before["robots"].items():
+            again = after["robots"][robot]
+            assert [(r["seq"], r["stamp"]) for r in again] == [(r["seq"], r["stamp"]) for r in rows]
+            for r, a in zip(rows, again, strict=True):
+                assert [a[k] for k in ("x", "y", "theta")] == pytest.approx(
+                    [r[k] for k in ("x", "y", "theta")], abs=1e-9
+                )
         print(f"container healthy {healthy_s:.1f} s after docker run")
     finally:
         _docker(docker_env, "rm", "-f", name, check=False)
