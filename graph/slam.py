@@ -765,9 +765,10 @@ class BearingSlam:
         bound = cfg.window_factor_bound
         if bound is None or n >= max(cfg.max_pose_window, cfg.pose_window):
             return True
-        if self._window_marginals(robot) >= (cfg.window_marginals or math.inf):
+        if self._window_factor_count(robot) >= bound:
             return True
-        return self._window_factor_count(robot) >= bound
+        most = cfg.window_marginals
+        return most is not None and self._window_marginals(robot) >= most
 
     def _window_factor_count(self, robot: _Robot) -> int:
         """Bearing factors on the robot's window poses (see SlamConfig.window_factor_bound)."""
