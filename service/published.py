@@ -80,10 +80,11 @@ def build_view(
     """
     pipeline = session.pipeline
     log_id = session.last_log_id
+    off_graph = bool(pipeline.off_graph_robots())
     held: dict[str, NDArray[np.float64]] | None
     if previous is None or (robot is None and not refresh):
         pose, poses_log_id = pose_answer(session), log_id
-        held, held_log_id = session.slam.trajectory(), log_id
+        held, held_log_id = None, log_id  # below
         landmarks, landmarks_log_id = Landmarks().answer(session), log_id
     elif robot is not None:
         fresh = pose_answer(session, robot)
@@ -96,9 +97,9 @@ def build_view(
         landmarks, landmarks_log_id = previous.landmarks, previous.landmarks_log_id
     else:
         pose, poses_log_id = previous.pose, previous.poses_log_id
-        held, held_log_id = session.slam.trajectory(), log_id
+        held, held_log_id = None, log_id  # below
         landmarks, landmarks_log_id = Landmarks().answer(session), log_id
-    if pipeline.off_graph_robots():
+    if off_graph:
         held = None
     elif held is None:
         held, held_log_id = session.slam.trajectory(), log_id
