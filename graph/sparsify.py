@@ -54,6 +54,9 @@ FloatArray = NDArray[np.float64]
 _PSEUDO_PRIOR = 1e-6
 """Pseudo-prior on every variable, relative to the mean diagonal of the information,
 under which mutual information is computed (tree structure only)."""
+_NULL_TOL = 1e-8
+"""A set of variables sees a direction of the null space when its rows of the null
+space's orthonormal basis have a singular value above this (see `_Marginals`)."""
 _RANK_TOL = 1e-10
 """Eigenvalues below this fraction of the largest count as zero (pseudo-inverses,
 square roots and observable subspaces)."""
@@ -134,10 +137,61 @@ def mutual_information(information: FloatArray, dims: Sequence[int]) -> FloatArr
     """(n, n) mutual information (nats) between every pair of the blanket's variables,
     of the Gaussian with (non-augmented) `information` plus a pseudo-prior (see the
     module docstring); the diagonal is 0."""
-    h = 0.5 * (information + information.T)
-    scale = float(np.mean(np.diag(h))) if h.size else 1.0
-    cov = np.linalg.inv(h + _PSEUDO_PRIOR * max(scale, 1e-12) * np.eye(h.shape[0]))
-    return _pairwise_mutual_information(np.asarray(cov, dtype=np.float64), dims)
+    w, v = np.linalg.eigh(0.5 * (information + information.T))
+    return _pairwise_mutual_information(_pseudo_covariance(information, w, v), dims)
+
+
+def _pseudo_covariance(information: FloatArray, w: FloatArray, v: FloatArray) -> FloatArray:
+    """The covariance of `information` (eigenpairs `w`, `v`) plus the pseudo-prior."""
+    scale = float(np.mean(np.diag(information))) if information.size else 1.0
+    return np.asarray((v / (w + _PSEUDO_PRIOR * max(scale, 1e-12))) @ v.T, dtype=np.float64)
+
+
+class _Marginals:
+    """Exact marginals of small sets of a blanket's variables from one eigen-decomposition
+    of the whole information H, instead of one generalised Schur complement (one
+    pseudo-inverse of nearly all of H) per set.
+
+    With a prior eps*I on every variable, the covariance is ``H^+ + N N^T / eps`` (N an
+    orthonormal basis of H's null space), so a set `a`'s covariance is ``A + N_a N_a^T /
+    eps`` (A the set's block of H^+, N_a the set's rows of N); as eps -> 0 its inverse
+    tends to ``Q (Q^T A Q)^-1 Q^T``, Q an orthonormal basis of the complement of N_a's
+    column space: the same limit as `marginal_information` (Q^T A Q is positive
+    definite: a direction of Q with Q^T A Q = 0 would lie in N). The linear term is the
+    marginal times the set's part of the minimum-norm mean H^+ g, and the constant
+    keeps the block's residual ``f - g^T H^+ g``."""
+
+    def __init__(self, augmented: FloatArray) -> None:
+        n = augmented.shape[0] - 1
+        h = augmented[:n, :n]
+        w, v = np.linalg.eigh(h)
+        keep = w > _RANK_TOL * max(float(w[-1]), 1e-300) if n else np.zeros(0, dtype=bool)
+        self.eigen = (w, v)
+        self._pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
+        self._null = v[:, ~keep]
+        self._mean = self._pinv @ augmented[:n, n]
+        self._residual = float(augmented[n, n] - augmented[:n, n] @ self._mean)
+
+    def of(self, columns: Sequence[int]) -> FloatArray:
+        """Augmented information of `columns` with every other column eliminated."""
+        cols = list(columns)
+        k = len(cols)
+        a = self._pinv[np.ix_(cols, cols)]
+        null = self._null[cols]
+        if null.shape[1]:
+            u, s, _ = np.linalg.svd(null, full_matrices=True)
+            q = u[:, int(np.sum(s > _NULL_TOL)) :]
+        else:
+            q = np.eye(k)
+        m = q @ np.linalg.solve(q.T @ a @ q, q.T) if q.shape[1] else np.zeros((k, k))
+        m = 0.5 * (m + m.T)
+        mean = self._mean[cols]
+        g = m @ mean
+        out = np.empty((k + 1, k + 1))
+        out[:k, :k] = m
+        out[:k, k] = out[k, :k] = g
+        out[k, k] = float(mean @ g) + max(self._residual, 0.0)
+        return out
 
 
 def _padded_index(dims: Sequence[int]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
@@ -231,7 +285,10 @@ def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) 
     o = _offsets(dims)
     augmented = 0.5 * (augmented + augmented.T)
     scale = math.sqrt(max(float(np.max(np.diag(augmented)[:-1], initial=0.0)), 1e-300))
-    mi = mutual_information(augmented[:-1, :-1], dims)
+    marginals = _Marginals(augmented)
+    mi = _pairwise_mutual_information(
+        _pseudo_covariance(augmented[:-1, :-1], *marginals.eigen), dims
+    )
     edges = maximum_spanning_tree(mi, root)
     size = int(o[-1])
     joint = np.zeros((size + 1, size + 1))
@@ -245,7 +302,7 @@ def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) 
 
     def marginal_of(v: int) -> FloatArray:
         if v not in unary:
-            unary[v] = marginal_information(augmented, _columns(o, (v,)))
+            unary[v] = marginals.of(_columns(o, (v,)))
         return unary[v]
 
     root_info = marginal_of(root)
@@ -254,7 +311,7 @@ def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) 
     if factor is not None:
         factors.append(factor)
     for child, parent in edges:
-        pair = marginal_information(augmented, _columns(o, (child, parent)))
+        pair = marginals.of(_columns(o, (child, parent)))
         conditional = pair.copy()
         rows = [*range(dims[child], dims[child] + dims[parent]), dims[child] + dims[parent]]
         conditional[np.ix_(rows, rows)] -= marginal_of(parent)

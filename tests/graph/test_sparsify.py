@@ -15,7 +15,13 @@ from graph.config import SlamConfig
 from graph.factors import is_landmark_key, pose_key
 from graph.slam import BearingSlam
 from graph.snapshot import capture, restore
-from graph.sparsify import chow_liu_tree, kl_divergence, marginal_information, tree_factors
+from graph.sparsify import (
+    _Marginals,
+    chow_liu_tree,
+    kl_divergence,
+    marginal_information,
+    tree_factors,
+)
 from tests.graph._world import circle_frames
 from tests.graph.test_gauge import _rotation_cost
 
@@ -121,6 +127,30 @@ def test_kl_of_a_tree_of_a_dense_marginal_is_positive_and_the_edges_keep_their_m
             marginal_information(tree.information, cols),
             marginal_information(exact, cols),
             atol=1e-7 * np.abs(exact).max(),
+        )
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 9), relative=st.booleans())
+def test_marginals_from_one_decomposition_equal_each_schur_complement(
+    seed: int, n: int, relative: bool
+) -> None:
+    """Every variable's and every pair's augmented marginal taken from one
+    eigen-decomposition of the whole information equals the generalised Schur complement
+    of the rest, for dense marginals with an absolute part and for gauge-free ones."""
+    rng = np.random.default_rng(seed)
+    dims = [int(d) for d in rng.choice([2, 3], size=n)]
+    dims[0] = 3
+    edges = [(i, j) for i in range(n) for j in range(i) if rng.random() < 0.6]
+    edges += [(c, p) for c, p in _random_tree(n, rng) if (c, p) not in edges]
+    exact = _tree_gaussian(dims, edges, rng, relative=relative)
+    marginals = _Marginals(exact)
+    o = _offsets(dims)
+    scale = np.abs(exact).max()
+    for variables in [(i,) for i in range(n)] + [(i, j) for i in range(n) for j in range(i)]:
+        cols = [c for v in variables for c in range(o[v], o[v + 1])]
+        np.testing.assert_allclose(
+            marginals.of(cols), marginal_information(exact, cols), atol=1e-7 * scale
         )
 
 
