@@ -11,6 +11,7 @@ Optimizer = Literal["dogleg", "gauss_newton"]
 BearingLoss = Literal["huber", "geman_mcclure"]
 """The robust loss of bearing factors (see SlamConfig.bearing_loss)."""
 MarginalSparsification = Literal["thin_keyframes", "chow_liu"]
+KeyframePlacement = Literal["spacing", "area"]
 """How marginal factors are kept sparse (see SlamConfig.marginal_sparsification)."""
 
 
@@ -147,11 +148,18 @@ class SlamConfig:
     Jacobians stay frozen where the landmark was removed. MRCLAM-6 at cap 8 (policy
     information): robot 1 ATE 0.547 -> 0.403 m, robot 5 0.550 -> 0.378."""
     keyframe_distance_m: float = 0.3
-    """A pose leaving the window stays in the graph as a keyframe when it lies this far
-    from the robot's last keyframe (or turned keyframe_angle_rad from it)."""
+    """A pose leaving the window stays in the graph as a keyframe when no keyframe lies
+    within this distance of it and within keyframe_angle_rad of its heading (which
+    keyframes: keyframe_placement)."""
     keyframe_angle_rad: float = math.radians(15.0)
-    """A pose leaving the window that turned this far from the robot's last keyframe
-    stays as a keyframe (see keyframe_distance_m)."""
+    """Keyframes that turned this far from a pose leaving the window are not near it
+    (see keyframe_distance_m)."""
+    keyframe_placement: KeyframePlacement = "area"
+    """Which keyframes a pose leaving the window is compared with (see
+    keyframe_distance_m): "area", every keyframe of the map, so that keyframes grow with
+    the area explored, not with time (a robot going round the same room adds none);
+    "spacing", its robot's last keyframe only (a robot adds one every
+    keyframe_distance_m it travels, max_keyframes marginalising the oldest)."""
     max_keyframes: int = 300
     """Keyframes kept per robot beyond the window (oldest marginalised first); 0 = none."""
     max_linked_keyframes: int = 24
@@ -305,6 +313,8 @@ class SlamConfig:
             raise ValueError("max_keyframes must be >= 0")
         if self.max_linked_keyframes < 1:
             raise ValueError("max_linked_keyframes must be >= 1")
+        if self.keyframe_placement not in ("spacing", "area"):
+            raise ValueError("keyframe_placement must be 'spacing' or 'area'")
         if self.marginal_sparsification not in ("thin_keyframes", "chow_liu"):
             raise ValueError("marginal_sparsification must be 'thin_keyframes' or 'chow_liu'")
         if self.max_landmark_factors is not None and self.max_landmark_factors < 1:

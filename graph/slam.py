@@ -745,15 +745,29 @@ class BearingSlam:
             return False, ()
         if cfg.max_keyframes == 0:
             return False, (exiting,)
-        if robot.keyframes and not self._holds_candidate_ray(exiting[0]):
-            last = self._graph.pose(robot.keyframes[-1][0])
-            step = last.between(self._graph.pose(exiting[0]))
-            far = math.hypot(step.x(), step.y()) >= cfg.keyframe_distance_m
-            if not (far or abs(step.theta()) >= cfg.keyframe_angle_rad):
-                return False, (exiting,)
+        if (
+            robot.keyframes
+            and not self._holds_candidate_ray(exiting[0])
+            and self._near_keyframe(robot, exiting[0])
+        ):
+            return False, (exiting,)
         if len(robot.keyframes) >= cfg.max_keyframes:
             return True, (robot.keyframes[0],)
         return True, ()
+
+    def _near_keyframe(self, robot: _Robot, key: int) -> bool:
+        """Does a keyframe lie within keyframe_distance_m of pose `key` and within
+        keyframe_angle_rad of its heading? Which keyframes: see keyframe_placement."""
+        cfg = self.config
+        if cfg.keyframe_placement == "spacing":
+            keys = [robot.keyframes[-1][0]]
+        else:
+            keys = [k for r in self._robots.values() for k, _ in r.keyframes]
+        pose = self._graph.pose(key)
+        xyt = self._graph.poses_xyt(keys)
+        near = np.hypot(xyt[:, 0] - pose.x(), xyt[:, 1] - pose.y()) < cfg.keyframe_distance_m
+        turn = np.abs(wrap_angles(xyt[:, 2] - pose.theta()))
+        return bool(np.any(near & (turn < cfg.keyframe_angle_rad)))
 
     def _window_full(self, robot: _Robot) -> bool:
         """Does the robot's oldest window pose leave with this frame (see pose_window and

@@ -14,7 +14,13 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from graph.config import BearingLoss, MarginalSparsification, Optimizer, SlamConfig
+from graph.config import (
+    BearingLoss,
+    KeyframePlacement,
+    MarginalSparsification,
+    Optimizer,
+    SlamConfig,
+)
 from graph.policies import POLICY_NAMES
 from service.pipeline.camera_config import (
     CAMERA_GRAPH_FRAME_DISTANCE_M,
@@ -215,17 +221,25 @@ class GatingConfig(StrictModel):
 class KeyframeConfig(StrictModel):
     """Which poses leaving the pose window stay in the graph as keyframes."""
 
+    keyframe_placement: KeyframePlacement = Field(
+        "spacing",
+        description="'area': a pose leaving the window stays as a keyframe only where no "
+        "keyframe of the map is near (keyframes grow with the area explored); 'spacing': "
+        "where its robot's last keyframe is not near (keyframes grow with the distance "
+        f"travelled). A map created without it gets {_DEFAULTS.keyframe_placement!r}; a "
+        "stored config without it, 'spacing'",
+    )
     keyframe_distance_m: float = Field(
         _DEFAULTS.keyframe_distance_m,
         ge=0,
-        description="a pose leaving the window stays as a keyframe when it lies this far "
-        "from its robot's last keyframe, metres",
+        description="a keyframe within this distance of a pose leaving the window (and "
+        "within keyframe_angle_rad of its heading) is near it, metres",
     )
     keyframe_angle_rad: float = Field(
         _DEFAULTS.keyframe_angle_rad,
         gt=0,
-        description="a pose leaving the window that turned this far from its robot's last "
-        "keyframe stays as a keyframe, radians",
+        description="a keyframe that turned this far from a pose leaving the window is "
+        "not near it, radians",
     )
     max_keyframes: int = Field(
         _DEFAULTS.max_keyframes,
@@ -530,13 +544,13 @@ class MapConfig(StrictModel):
     ) -> MapConfig:
         """The config a map is created with: the service's default cap if the client gave
         none (`camera_default_cap` for a camera map; None: uncapped); the odometry random
-        walks of RANDOM_WALK_NOISE_DEFAULTS and the estimator's window_marginals where
-        the client gave none; for a camera map,
+        walks of RANDOM_WALK_NOISE_DEFAULTS and the estimator's window_marginals and
+        keyframe_placement where the client gave none; for a camera map,
         graph_frame_distance_m and the noise's bearing loss and
         scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at
         creation: a stored config or an export without these fields is a map built with
-        every frame in the graph, Huber's loss and no marginal bound on its window, and
-        its frame log replays that way."""
+        every frame in the graph, Huber's loss, no marginal bound on its window and
+        keyframes spaced along each robot's path, and its frame log replays that way."""
         given = self.noise.model_fields_set
         noise = self.noise.model_copy(
             update={k: v for k, v in RANDOM_WALK_NOISE_DEFAULTS.items() if k not in given}
@@ -544,6 +558,10 @@ class MapConfig(StrictModel):
         update: dict[str, Any] = {"noise": noise}
         if "window_marginals" not in self.model_fields_set:
             update["window_marginals"] = _DEFAULTS.window_marginals
+        if "keyframe_placement" not in self.keyframes.model_fields_set:
+            update["keyframes"] = self.keyframes.model_copy(
+                update={"keyframe_placement": _DEFAULTS.keyframe_placement}
+            )
         if self.camera is None:
             return self.with_default_cap(default_cap).model_copy(update=update)
         config = self.with_default_cap(camera_default_cap)

@@ -526,6 +526,34 @@ def test_a_window_stops_growing_when_removed_landmarks_marginals_pile_up_on_it()
     assert shed, "the run must exercise the shedding"
 
 
+def test_keyframes_placed_by_area_stop_growing_when_the_robot_goes_round_again() -> None:
+    """keyframe_placement: going round the same circle three times, keyframes spaced
+    along the path grow with every lap, keyframes placed by area only with the first
+    (a pose leaving the window near any keyframe stays out), and the map is as good."""
+    frames, truth, _ = circle_frames(630, seed=5, n_landmarks=30)
+    lap = 210  # 2 pi 5 m / 0.15 m a frame
+    counts: dict[str, list[int]] = {}
+    for placement in ("spacing", "area"):
+        cfg = SlamConfig(
+            landmark_cap=None, pose_window=20, max_keyframes=1000, keyframe_placement=placement
+        )
+        slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+        counts[placement] = []
+        for i, f in enumerate(frames, start=1):
+            slam.process(f, with_covariance=False)
+            if i % lap == 0:
+                counts[placement].append(len(slam._robots["r1"].keyframes))
+        assert _rmse(slam.trajectory()["r1"], truth) < 0.3
+    spacing, area = counts["spacing"], counts["area"]
+    # The window's 20 poses of a lap leave during the next: the circle is covered by
+    # the end of the second lap.
+    assert spacing[2] - spacing[1] > 0.8 * spacing[0], spacing
+    assert area[1] >= spacing[0] and area[2] - area[1] <= 0.1 * (spacing[2] - spacing[1]), (
+        area,
+        spacing,
+    )
+
+
 def test_by_default_every_maps_window_grows_and_a_stored_capped_one_does_not() -> None:
     """window_factor_bound: window_observations (900 by default), capped or not; where
     it is None (maps stored before capped maps grew), an uncapped map grows by
