@@ -204,6 +204,7 @@ def run_worker(
     error = None
     probes: list[tuple[int, float]] = [(0, min(speed_probe_ms() for _ in range(3)))]
     held: list[tuple[int, int]] = []
+    keyframes: list[tuple[int, int]] = []
     start = time.perf_counter()
     for frame in todo:
         if budget_s is not None and time.perf_counter() - start >= budget_s:
@@ -232,6 +233,7 @@ def run_worker(
         if done % RSS_EVERY == 0:
             result.rss_mb.append((done, current_rss_mb()))
             held.append((done, slam.held_trajectory_rows))
+            keyframes.append((done, slam.keyframe_count))
         if done % step == 0:
             probes.append((done, min(speed_probe_ms() for _ in range(3))))
             print(
@@ -274,6 +276,7 @@ def run_worker(
         "landmarks_restored": restored,
         "first_removal_frame": result.removal_log.first_frame,
         "held_trajectory_rows": held,
+        "keyframes": keyframes,
         # Every frame has one row: held by the estimator, or spooled.
         "spooled_trajectory_rows": slam.frame_count - slam.held_trajectory_rows,
         "trajectory": traj,
@@ -515,6 +518,7 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
     growth_current = 100.0 * (record["rss_end_mb"] - quarter[1]) / quarter[1] if quarter else None
     creep = steady_rss_creep(record, n)
     held = [h for _, h in record.get("held_trajectory_rows", [])]
+    keyframes = record.get("keyframes", [])
     goal_key, goal_growth = (
         ("peak_rss_growth_pct_end_vs_quarter", peak_growth)
         if peak_growth is not None
@@ -549,6 +553,9 @@ def bounded_figures(record: dict[str, Any], n: int) -> dict[str, Any]:
         ),
         "steady_rss_creep_bytes_per_frame": _r(creep, 1),
         "held_trajectory_rows_max": max(held) if held else None,
+        # (frame, keyframes) at every tenth of the run: bounded by the area explored
+        # (keyframe_placement "area") or by max_keyframes per robot ("spacing").
+        "keyframes": [*keyframes[-1::-max(len(keyframes) // 10, 1)]][::-1],
         "spooled_trajectory_rows": record.get("spooled_trajectory_rows"),
         "tail": tail_figures(ms),
     }
@@ -795,6 +802,7 @@ def print_summary(report: dict[str, Any]) -> None:
         f"{'':10s} steady RSS creep from frame {f['rss_quarter_frame']}:"
         f" {fmt(f.get('steady_rss_creep_bytes_per_frame'), ' B/frame')}"
         f"   trajectory rows held at most {f.get('held_trajectory_rows_max')},"
+        f" keyframes at the end {(f.get('keyframes') or [[0, None]])[-1][1]},"
         f" spooled {f.get('spooled_trajectory_rows')}"
     )
     tail = f["tail"]

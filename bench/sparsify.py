@@ -81,7 +81,7 @@ def run(robot: int, method: str, directory: Path) -> dict[str, Any]:
         p99_ms=float(np.percentile(ms, 99)),
         seconds=seconds,
         removals=slam.removal_count,
-        keyframes=sum(len(r.keyframes) for r in slam._robots.values()),
+        keyframes=slam.keyframe_count,
         sparsifications=slam.graph.sparsifications,
         kl_nats=_kl_summary(kl),
         graph_variables=slam.graph.num_variables,

@@ -290,6 +290,11 @@ class BearingSlam:
         return out
 
     @property
+    def keyframe_count(self) -> int:
+        """Poses kept in the graph as keyframes, every robot's (see keyframe_placement)."""
+        return sum(len(r.keyframes) for r in self._robots.values())
+
+    @property
     def held_trajectory_rows(self) -> int:
         """Trajectory rows whose pose can still change (bounded by the graph's size)."""
         return self._trajectory.held_count
