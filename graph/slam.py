@@ -761,18 +761,20 @@ class BearingSlam:
         return True, ()
 
     def _near_keyframe(self, robot: _Robot, key: int) -> bool:
-        """Does a keyframe lie within keyframe_distance_m of pose `key` and within
-        keyframe_angle_rad of its heading? Which keyframes: see keyframe_placement."""
+        """Is a keyframe near pose `key` (see keyframe_placement): "spacing", its robot's
+        last keyframe within keyframe_distance_m and keyframe_angle_rad of it; "area",
+        any keyframe of the map within keyframe_distance_m (a bearing sensor sees all
+        around: a place is known whichever way the robot faced there)."""
         cfg = self.config
-        if cfg.keyframe_placement == "spacing":
-            keys = [robot.keyframes[-1][0]]
-        else:
-            keys = [k for r in self._robots.values() for k, _ in r.keyframes]
         pose = self._graph.pose(key)
-        xyt = self._graph.poses_xyt(keys)
+        if cfg.keyframe_placement == "spacing":
+            xyt = self._graph.poses_xyt([robot.keyframes[-1][0]])
+            turn = np.abs(wrap_angles(xyt[:, 2] - pose.theta())) < cfg.keyframe_angle_rad
+        else:
+            xyt = self._graph.poses_xyt([k for r in self._robots.values() for k, _ in r.keyframes])
+            turn = np.ones(len(xyt), dtype=bool)
         near = np.hypot(xyt[:, 0] - pose.x(), xyt[:, 1] - pose.y()) < cfg.keyframe_distance_m
-        turn = np.abs(wrap_angles(xyt[:, 2] - pose.theta()))
-        return bool(np.any(near & (turn < cfg.keyframe_angle_rad)))
+        return bool(np.any(near & turn))
 
     def _window_full(self, robot: _Robot) -> bool:
         """Does the robot's oldest window pose leave with this frame (see pose_window and
