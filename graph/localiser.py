@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -137,16 +137,6 @@ class LocaliserConfig:
     frames, 1.5 m away.)"""
     kidnap_calm_frames: int = 10
     """Frames with observations the graph's poses explain after which the test stops."""
-    anchor_at_verified_pose: bool = True
-    """Labelled maps: a robot the window check confirms is relocalised at the check's
-    solution of the search's frames (pose and covariance) rather than at the filter's
-    mean, and its filter starts again around that pose, when that solution lies within
-    `refine_gate` of the filter's belief (False: always at the filter's mean)."""
-    refine_gate: float = 7.81
-    """Squared Mahalanobis distance (chi^2, 3 dof, 95 %) under the filter's covariance
-    within which the check's solution refines the filter's mean; beyond, the two found
-    different poses (a long search's odometry chain can bend the solution away), and the
-    filter's mean stands."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
         # A config pickled before later fields existed: those take their defaults.
@@ -467,15 +457,10 @@ class Localiser:
                 track.converged_frames = 0
             elif len(z):
                 track.converged_frames += 1
-            verdict, verified = None, None
+            verdict = None
             if track.converged_frames >= cfg.confirm_frames:
-                verdict, verified = self._verdict(track, est, verify, labelled=q is None)
+                verdict = self._verdict(track, est, verify, labelled=q is None)
             if verdict == CONFIRMED:
-                if verified is not None and self._refines(est, verified):
-                    # The check's solution weighs every frame of the search at once; the
-                    # filter's mean lags behind what those frames say.
-                    track.pf = _around_graph(verified, cfg.filter, rng)
-                    est = replace(est, pose_xytheta=verified[0], covariance=verified[1])
                 track.status = RELOCALISED
                 track.converged_frames = 0
                 track.window.clear()
@@ -564,15 +549,6 @@ class Localiser:
         )
         return rejected
 
-    def _refines(self, est: FilterEstimate, verified: tuple[FloatArray, FloatArray]) -> bool:
-        """Whether the window check's solution (pose (3,), covariance (3, 3)) replaces the
-        filter's estimate as the pose to relocalise at (see anchor_at_verified_pose)."""
-        if not self.config.anchor_at_verified_pose:
-            return False
-        e = np.asarray(verified[0], dtype=np.float64) - est.pose_xytheta
-        e[2] = float(wrap_angles(e[2]))
-        return float(e @ np.linalg.solve(est.covariance, e)) <= self.config.refine_gate
-
     def _verdict(
         self,
         track: RobotTrack,
@@ -580,17 +556,15 @@ class Localiser:
         verify: Callable[[FilterEstimate], bool] | None,
         *,
         labelled: bool,
-    ) -> tuple[str, tuple[FloatArray, FloatArray] | None]:
+    ) -> str:
         """CONFIRMED, REFUTED or WAIT (see graph.window_check) for a converged filter:
-        the caller's check if it gives one, else (labelled bearings) the window check,
-        with its solution for the latest frame (pose (3,), covariance (3, 3))."""
+        the caller's check if it gives one, else (labelled bearings) the window check."""
         if verify is not None:
-            return (CONFIRMED if verify(est) else REFUTED), None
+            return CONFIRMED if verify(est) else REFUTED
         if not labelled or self.config.verify_window <= 0 or not track.window:
-            return CONFIRMED, None
+            return CONFIRMED
         frames = list(track.window)
-        got = check_window(est.pose_xytheta, est.covariance, frames, self.config.filter)
-        return got.verdict, (got.pose_xytheta, got.covariance)
+        return check_window(est.pose_xytheta, est.covariance, frames, self.config.filter).verdict
 
     def learn(
         self,

@@ -3,7 +3,6 @@ the localiser relocalising only at a pose that check confirms."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pickle
 
@@ -99,6 +98,35 @@ def test_a_filter_converged_at_a_wrong_pose_is_not_relocalised_on_a_labelled_map
     assert _converged_at_wrong_pose(verify_window=150) == INITIALISING
     # Without the check, the same filter reports the wrong pose relocalised.
     assert _converged_at_wrong_pose(verify_window=0) == RELOCALISED
+
+
+def test_a_filter_converged_at_the_true_pose_is_relocalised_on_a_labelled_map() -> None:
+    """The same 30 frames, the filter converged at the truth of the 30th and moved by the
+    odometry to the next frame: the check confirms it."""
+    config = LocaliserConfig(confirm_frames=1, learn_places=False)
+    loc = Localiser(config)
+    rng, world = np.random.default_rng(0), np.random.default_rng(1)
+    frames, last = _window(30)
+    track = RobotTrack(
+        ParticleFilter.around(last, (0.02, 0.02, 0.005), config.filter, rng=rng), INITIALISING
+    )
+    track.window.extend(frames)
+    loc.robots["r"] = track
+    nxt = _circle_pose(30)
+    labels, z = _frame(nxt, world)
+    result = loc.step(
+        "r",
+        odometry=_odometry(last, nxt),
+        dt_s=0.2,
+        labels=labels,
+        bearings_rad=z,
+        landmarks=WORLD,
+        graph_pose=None,
+        rng=rng,
+        sigmas_rad=[SIGMA] * len(z),
+    )
+    assert result.status == RELOCALISED and result.anchor
+    assert float(np.hypot(*(result.estimate.pose_xytheta[:2] - nxt[:2]))) < 0.1
 
 
 def test_the_callers_check_takes_precedence_over_the_window() -> None:
@@ -219,57 +247,3 @@ def test_one_landmark_misread_for_several_frames_does_not_reject_the_old_pose() 
     frames, truth = _window(11)
     moved = anchor + np.array([1.5, 0.0, 0.0])
     assert rejects_old_pose(moved, TIGHT, frames[1:], cfg, 20.0, latest_xytheta=[truth])[0]
-
-
-def _confirmed_near_truth(anchor_at_verified_pose: bool) -> tuple[str, np.ndarray, np.ndarray]:
-    """A robot's 30 true frames and a filter converged 0.15 m beside the truth (within its
-    spread): the status it gets on the next frame, the pose it is relocalised at, and the
-    truth."""
-    config = LocaliserConfig(
-        confirm_frames=1, learn_places=False, anchor_at_verified_pose=anchor_at_verified_pose
-    )
-    loc = Localiser(config)
-    rng, world = np.random.default_rng(4), np.random.default_rng(5)
-    frames, last = _window(30)
-    nxt = _circle_pose(30)
-    beside = last + np.array([0.15, 0.0, 0.0])  # moved to the next frame by the odometry
-    track = RobotTrack(
-        ParticleFilter.around(beside, (0.1, 0.1, 0.02), config.filter, rng=rng), INITIALISING
-    )
-    track.window.extend(frames)
-    loc.robots["r"] = track
-    labels, z = _frame(nxt, world)
-    result = loc.step(
-        "r",
-        odometry=_odometry(last, nxt),
-        dt_s=0.2,
-        labels=labels,
-        bearings_rad=z,
-        landmarks=WORLD,
-        graph_pose=None,
-        rng=rng,
-        sigmas_rad=[SIGMA] * len(z),
-    )
-    return result.status, result.estimate.pose_xytheta, nxt
-
-
-def test_a_confirmed_robot_is_relocalised_at_the_checks_solution() -> None:
-    status, pose, truth = _confirmed_near_truth(anchor_at_verified_pose=True)
-    assert status == RELOCALISED
-    _, mean, _ = _confirmed_near_truth(anchor_at_verified_pose=False)
-    # The window's solution weighs all 31 frames; the filter's mean sits where it was put.
-    assert float(np.hypot(*(pose[:2] - truth[:2]))) < 0.05
-    assert float(np.hypot(*(mean[:2] - truth[:2]))) > 0.1
-
-
-def test_a_solution_beyond_the_filters_spread_leaves_the_filters_mean() -> None:
-    loc = Localiser(LocaliserConfig())
-    cov = np.diag([0.2**2, 0.2**2, math.radians(5.0) ** 2])
-    est = ParticleFilter.around(
-        np.zeros(3), (0.01, 0.01, 0.001), FilterConfig(), rng=np.random.default_rng(0)
-    ).estimate()
-    est = dataclasses.replace(est, pose_xytheta=np.zeros(3), covariance=cov)
-    near = (np.array([0.3, 0.0, 0.0]), cov)  # 1.5 sigma
-    far = (np.array([1.0, 0.0, 0.0]), cov)  # 5 sigma
-    assert loc._refines(est, near)
-    assert not loc._refines(est, far)
