@@ -5,11 +5,19 @@ from __future__ import annotations
 
 import math
 import pickle
+from collections.abc import Callable
 
 import numpy as np
 
-from graph.localiser import INITIALISING, RELOCALISED, Localiser, LocaliserConfig, RobotTrack
-from graph.particles import FilterConfig, ParticleFilter
+from graph.localiser import (
+    INITIALISING,
+    RELOCALISED,
+    Localiser,
+    LocaliserConfig,
+    RobotTrack,
+    StepResult,
+)
+from graph.particles import FilterConfig, FilterEstimate, ParticleFilter
 from graph.window_check import CONFIRMED, REFUTED, WAIT, WindowFrame, check_window
 from tests.graph.test_localiser import WORLD, _frame
 from tests.graph.test_particles import _circle_pose, _observe, _odometry
@@ -62,18 +70,28 @@ def _on_the_ray(truth: np.ndarray, landmark: np.ndarray, metres: float) -> np.nd
     return np.array([*(truth[:2] + metres * d / np.linalg.norm(d)), truth[2]])
 
 
-def _converged_at_wrong_pose(verify_window: int) -> str:
-    """A robot's 30 true frames, then a filter converged (by sample impoverishment) at a
-    pose 1.5 m off that fits the next frame's single bearing: the status it gets."""
+def _searching(
+    verify_window: int, rng: np.random.Generator
+) -> tuple[Localiser, RobotTrack, np.ndarray]:
+    """A localiser whose robot searched over the test world's first 30 frames, its filter
+    converged at the 30th true pose (returned)."""
     config = LocaliserConfig(confirm_frames=1, learn_places=False, verify_window=verify_window)
     loc = Localiser(config)
-    rng, world = np.random.default_rng(0), np.random.default_rng(1)
     frames, truth = _window(30)
     track = RobotTrack(
         ParticleFilter.around(truth, (0.02, 0.02, 0.005), config.filter, rng=rng), INITIALISING
     )
     track.window.extend(frames)
     loc.robots["r"] = track
+    return loc, track, truth
+
+
+def _converged_at_wrong_pose(verify_window: int) -> str:
+    """A robot's 30 true frames, then a filter converged (by sample impoverishment) at a
+    pose 1.5 m off that fits the next frame's single bearing: the status it gets."""
+    rng, world = np.random.default_rng(0), np.random.default_rng(1)
+    loc, track, _ = _searching(verify_window, rng)
+    config = loc.config
     nxt = _circle_pose(30)
     labels, z = _frame(nxt, world)
     label = labels[0]
@@ -100,29 +118,49 @@ def test_a_filter_converged_at_a_wrong_pose_is_not_relocalised_on_a_labelled_map
     assert _converged_at_wrong_pose(verify_window=0) == RELOCALISED
 
 
-def test_the_callers_check_takes_precedence_over_the_window() -> None:
-    frames, truth = _window(30)
-    config = LocaliserConfig(confirm_frames=1, learn_places=False)
-    loc = Localiser(config)
-    rng, world = np.random.default_rng(2), np.random.default_rng(3)
-    track = RobotTrack(
-        ParticleFilter.around(truth, (0.02, 0.02, 0.005), config.filter, rng=rng), INITIALISING
-    )
-    track.window.extend(frames)  # the window alone would confirm the pose
-    loc.robots["r"] = track
-    labels, z = _frame(truth, world)
-    result = loc.step(
+def _step_at(
+    loc: Localiser,
+    pose: np.ndarray,
+    odometry: np.ndarray | None,
+    rng: np.random.Generator,
+    world: np.random.Generator,
+    verify: Callable[[FilterEstimate], bool] | None = None,
+) -> StepResult:
+    """The searching robot's next frame: every landmark the test world shows from `pose`."""
+    labels, z = _frame(pose, world)
+    return loc.step(
         "r",
-        odometry=None,
+        odometry=None if odometry is None else tuple(float(v) for v in odometry),
         dt_s=0.2,
         labels=labels,
         bearings_rad=z,
         landmarks=WORLD,
         graph_pose=None,
         rng=rng,
-        verify=lambda est: False,
+        sigmas_rad=[SIGMA] * len(z),
+        verify=verify,
     )
-    assert result.status == INITIALISING
+
+
+def test_a_filter_converged_at_the_true_pose_is_relocalised_on_a_labelled_map() -> None:
+    """The same 30 frames, the filter converged at the truth of the 30th and moved by the
+    odometry to the next frame: the check confirms it."""
+    rng, world = np.random.default_rng(0), np.random.default_rng(1)
+    loc, _, last = _searching(LocaliserConfig().verify_window, rng)
+    nxt = _circle_pose(30)
+    result = _step_at(loc, nxt, _odometry(last, nxt), rng, world)
+    assert result.status == RELOCALISED and result.anchor
+    assert float(np.hypot(*(result.estimate.pose_xytheta[:2] - nxt[:2]))) < 0.1
+
+
+def test_the_callers_check_takes_precedence_over_the_window() -> None:
+    def status(verify: Callable[[FilterEstimate], bool] | None) -> str:
+        rng, world = np.random.default_rng(2), np.random.default_rng(3)
+        loc, _, truth = _searching(LocaliserConfig().verify_window, rng)
+        return _step_at(loc, truth, None, rng, world, verify=verify).status
+
+    assert status(None) == RELOCALISED  # the window alone confirms the pose
+    assert status(lambda est: False) == INITIALISING
 
 
 def test_a_track_pickled_before_the_window_existed_loads_with_an_empty_one() -> None:
