@@ -222,12 +222,11 @@ class KeyframeConfig(StrictModel):
     """Which poses leaving the pose window stay in the graph as keyframes."""
 
     keyframe_placement: KeyframePlacement = Field(
-        "spacing",
-        description="'area': a pose leaving the window stays as a keyframe only where no "
-        "keyframe of the map is near (keyframes grow with the area explored); 'spacing': "
-        "where its robot's last keyframe is not near (keyframes grow with the distance "
-        f"travelled). A map created without it gets {_DEFAULTS.keyframe_placement!r}; a "
-        "stored config without it, 'spacing'",
+        _DEFAULTS.keyframe_placement,
+        description="which keyframes make a pose leaving the window not a keyframe: "
+        "'spacing', its robot's last one, when within keyframe_distance_m and "
+        "keyframe_angle_rad (keyframes grow with the distance travelled); 'area', any "
+        "keyframe of the map within keyframe_distance_m (they grow with the area explored)",
     )
     keyframe_distance_m: float = Field(
         _DEFAULTS.keyframe_distance_m,
@@ -544,13 +543,13 @@ class MapConfig(StrictModel):
     ) -> MapConfig:
         """The config a map is created with: the service's default cap if the client gave
         none (`camera_default_cap` for a camera map; None: uncapped); the odometry random
-        walks of RANDOM_WALK_NOISE_DEFAULTS and the estimator's window_marginals and
-        keyframe_placement where the client gave none; for a camera map,
+        walks of RANDOM_WALK_NOISE_DEFAULTS and the estimator's window_marginals where
+        the client gave none; for a camera map,
         graph_frame_distance_m and the noise's bearing loss and
         scale (CAMERA_NOISE_DEFAULTS) where the client gave none of them. Only at
         creation: a stored config or an export without these fields is a map built with
-        every frame in the graph, Huber's loss, no marginal bound on its window and
-        keyframes spaced along each robot's path, and its frame log replays that way."""
+        every frame in the graph, Huber's loss and no marginal bound on its window, and
+        its frame log replays that way."""
         given = self.noise.model_fields_set
         noise = self.noise.model_copy(
             update={k: v for k, v in RANDOM_WALK_NOISE_DEFAULTS.items() if k not in given}
@@ -558,10 +557,6 @@ class MapConfig(StrictModel):
         update: dict[str, Any] = {"noise": noise}
         if "window_marginals" not in self.model_fields_set:
             update["window_marginals"] = _DEFAULTS.window_marginals
-        if "keyframe_placement" not in self.keyframes.model_fields_set:
-            update["keyframes"] = self.keyframes.model_copy(
-                update={"keyframe_placement": _DEFAULTS.keyframe_placement}
-            )
         if self.camera is None:
             return self.with_default_cap(default_cap).model_copy(update=update)
         config = self.with_default_cap(camera_default_cap)

@@ -121,21 +121,11 @@ def test_a_new_map_bounds_its_window_by_marginals_and_a_stored_one_keeps_its_own
         MapConfig.model_validate({"window_marginals": 0})
 
 
-def test_a_new_map_places_keyframes_by_area_and_a_stored_one_keeps_its_spacing() -> None:
-    """At creation a map without keyframes.keyframe_placement gets the estimator's
-    default ('area'); an explicit value is kept, and a stored config (or an export)
-    without the field replays with keyframes spaced along each robot's path."""
-    assert SlamConfig().keyframe_placement == "area"
-    new = MapConfig.model_validate({"keyframes": {"max_keyframes": 50}}).for_new_map(50)
-    assert new.keyframes.keyframe_placement == "area"
-    assert new.keyframes.max_keyframes == 50
-    stored = new.model_dump(mode="json")
+def test_keyframe_placement_reaches_the_estimator_and_defaults_to_spacing() -> None:
+    assert slam_config({}, "mapping").keyframe_placement == "spacing"
+    given = {"keyframes": {"keyframe_placement": "area"}}
+    stored = MapConfig.model_validate(given).for_new_map(50).model_dump(mode="json")
     assert slam_config(stored, "mapping").keyframe_placement == "area"
-    given = {"keyframes": {"keyframe_placement": "spacing"}}
-    kept = MapConfig.model_validate(given).for_new_map(50)
-    assert kept.keyframes.keyframe_placement == "spacing"
-    del stored["keyframes"]["keyframe_placement"]
-    assert slam_config(stored, "mapping").keyframe_placement == "spacing"
     with pytest.raises(ValidationError):
         MapConfig.model_validate({"keyframes": {"keyframe_placement": "time"}})
 
@@ -383,13 +373,11 @@ def test_every_estimator_parameter_at_once_and_the_defaults_are_the_estimators()
 def test_a_config_stored_before_the_groups_loads_with_the_estimators_defaults() -> None:
     loaded = slam_config(LEGACY_STORED_CONFIG, "mapping")
     # As it was built: no odometry random walks, a capped window that does not grow (and
-    # no bound by marginals), keyframes spaced along the path, and the optimizer it
-    # stored (dogleg, the default then).
+    # no bound by marginals), and the optimizer it stored (dogleg, the default then).
     assert loaded == replace(
         SlamConfig(),
         window_observations=None,
         window_marginals=None,
-        keyframe_placement="spacing",
         optimizer="dogleg",
         odometry_sigma_per_sqrt_metre=(0.0, 0.0, 0.0),
         odometry_sigma_per_sqrt_radian=0.0,
