@@ -163,8 +163,7 @@ class SlamConfig:
     same room adds none). "area" keeps fewer poses and costs accuracy: MRCLAM-6 robot 2
     uncapped 0.180 m ATE against 0.159 (robot 1: 80 keyframes against 108), and on the
     dense lifelong world at cap 50 (Chow-Liu sparsification) it reached max_keyframes
-    (300) by frame 4 000 as well,
-    ATE 0.270 m against 0.196 (docs/estimator.md)."""
+    (300) by frame 4 000 as well, ATE 0.270 m against 0.196 (docs/estimator.md)."""
     max_keyframes: int = 300
     """Keyframes kept per robot beyond the window (oldest marginalised first); 0 = none."""
     max_linked_keyframes: int = 24
