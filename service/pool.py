@@ -24,7 +24,8 @@ same length-prefixed frames non-blockingly (``loop.add_writer`` when the pipe is
 full, e.g. a large import while the worker computes) and reads answers in a
 ``loop.add_reader`` callback. No helper threads, so a request costs two process
 hand-offs and nothing more. An answer may carry the map's new published view
-(service.published), handed to `on_view`; message id 0 is a view sent unasked.
+(service.published, as a delta from the one before), handed to `on_view`; message id
+0 is a view sent unasked.
 
 A worker that dies shows as end-of-file on its socket: the requests in flight get
 `WorkerUnavailable` (the API answers 503 + Retry-After), a new process is started,
@@ -52,7 +53,7 @@ from typing import Any, Protocol, TypeVar
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
-from service.published import MapView
+from service.published import ViewDelta
 from service.requests import CloseMap, OpenMap, Ping, Request
 from service.settings import Settings
 
@@ -73,8 +74,9 @@ class Engine(Protocol):
     """Maps moved from one worker to another (balancing)."""
     shared: bool
     """Other API processes may run maps of the same store (look maps up in the catalogue)."""
-    on_view: Callable[[MapView], None] | None
-    """Called with each published view of a map (engines whose workers publish them)."""
+    on_view: Callable[[ViewDelta], None] | None
+    """Called with each published view of a map, as sent (engines whose workers publish
+    them)."""
 
     async def start(self, maps: Iterable[str]) -> None: ...
     async def stop(self) -> None: ...
@@ -224,7 +226,7 @@ class EngineBase:
         self.restarts = 0
         self.moves = 0
         """Maps moved from one worker to another (balancing)."""
-        self.on_view: Callable[[MapView], None] | None = None
+        self.on_view: Callable[[ViewDelta], None] | None = None
         """Called with every published view a worker sends (the local pool's workers)."""
 
     def track(self, map_id: str) -> None:

@@ -118,6 +118,32 @@ def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
     _run(tmp_path, 1, body)
 
 
+def test_a_view_lost_in_the_api_process_comes_back_whole(tmp_path: Path) -> None:
+    """A worker sends each view as the parts that changed since the view before it; when
+    the API process no longer holds that view, the delta is dropped, the reads go to
+    the worker, and the whole view it is asked for answers them again."""
+
+    async def body(service: MapService) -> None:
+        map_id = await _new_map(service, FRAMES[:10])
+        views: Any = service._views
+        views.pop(map_id)
+        await service.submit(map_id, FRAMES[10])
+        assert map_id not in views  # the frame's delta had no base here
+        assert (await service.summary(map_id))["counts"]["frames"] == 11  # the worker's
+        deadline = time.monotonic() + 30
+        while map_id not in views:
+            assert time.monotonic() < deadline, "no whole view came"
+            await asyncio.sleep(0.01)
+        view = views[map_id]
+        assert view.summary["counts"]["frames"] == 11 and view.places is not None
+        await service.submit(map_id, FRAMES[11])  # deltas apply again
+        assert views[map_id].summary["counts"]["frames"] == 12
+        for query in (Pose(), Summary(), Places(), Landmarks(), Trajectory()):
+            assert await service.query(map_id, query) == await service.pool.call(map_id, query)
+
+    _run(tmp_path, 1, body)
+
+
 async def _open_on(service: MapService, worker: int) -> list[str]:
     pool: Any = service.pool
     reply = await pool._request(pool._slots[worker], "", Ping())
