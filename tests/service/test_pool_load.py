@@ -211,8 +211,7 @@ def test_maps_are_dealt_out_evenly_at_their_first_frame(tmp_path: Path) -> None:
 
         async def post(map_id: str) -> list[int]:
             return [
-                json.loads((await service.submit(map_id, f)).result_json)["seq"]
-                for f in FRAMES[:5]
+                json.loads((await service.submit(map_id, f)).result_json)["seq"] for f in FRAMES[:5]
             ]
 
         answered = await asyncio.gather(*(post(m) for m in ids))
