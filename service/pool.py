@@ -16,7 +16,8 @@ request spends) times the worker time one of its requests takes. A worker serves
 requests in turn, so equal loads give the maps of all workers the same rate. Every
 `workers.balance_interval_s` the pool compares the workers' loads; when they differ
 clearly and moving one map from the busiest to the least busy worker narrows the
-difference to 60 % or less, it moves it (then lets the loads settle for a few
+difference to 60 % or less, at two looks in a row (a measured load is noisy, and a move
+costs a snapshot and a load), it moves it (then lets the loads settle for a few
 intervals): new calls for the map wait in the API process, the old worker answers what
 it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
 from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged
@@ -290,6 +291,8 @@ class WorkerPool(EngineBase):
         """Maps being dealt at their first frame: the worker they go to."""
         self.deals = 0
         """Maps moved at their first frame (not counted in `moves`)."""
+        self._leaning: tuple[int, int] | None = None
+        """(from, to) workers of the move the balancer's last look would have made."""
 
     # ------------------------------------------------------------ lifecycle
     async def start(self, maps: Iterable[str]) -> None:
@@ -449,11 +452,14 @@ class WorkerPool(EngineBase):
         return totals, movable
 
     async def balance(self, interval_s: float) -> tuple[str, int, int] | None:
-        """Sample the maps' loads and move at most one map (see `choose_move`); the move
+        """Sample the maps' loads and move at most one map (see `choose_move`), if the
+        previous look would have moved one between the same two workers too; the move
         made, or None."""
         choice = choose_move(*self._sample(interval_s))
-        if choice is None:
+        leaning, self._leaning = self._leaning, None if choice is None else choice[1:]
+        if choice is None or leaning != choice[1:]:
             return None
+        self._leaning = None
         map_id, _, target = choice
         return choice if await self.move(map_id, target) else None
 

@@ -243,8 +243,10 @@ def test_the_balancer_moves_a_map_off_the_busier_worker(tmp_path: Path) -> None:
                 await service.submit(map_id, f)
 
         posting = [asyncio.create_task(post(m)) for m in (a, b)]
-        await asyncio.sleep(1.0)
-        moved = await pool.balance(1.0)
+        await asyncio.sleep(0.5)
+        assert await pool.balance(0.5) is None  # one look: the gap must hold for two
+        await asyncio.sleep(0.5)
+        moved = await pool.balance(0.5)
         await asyncio.gather(*posting)
         assert moved == (a, crowded, 1 - crowded)  # b moved a moment ago: it stays
         assert pool.worker_of(a) != pool.worker_of(b)
