@@ -14,7 +14,8 @@ same world. Map config: landmark cap 50, the default policy.
 
 1. ``http``: a ``covslam serve --workers 2`` (uvicorn in a subprocess, SQLite,
    synchronous NORMAL); 12 maps are created (placed 6:6) and 4 of worker 1's deleted, so
-   the load maps start placed 6:2 on the workers, as a placement by id did. M maps x C
+   the load maps are placed 6:2 on the workers when their frames begin, as a placement
+   by id did (``placed_at_start``; the pool deals a map again at its first frame). M maps x C
    clients post their frames for `load-s` seconds (one keep-alive http.client
    connection per client, closed loop; no client runs out of frames): frames/s, POST
    p50/p99, per-map frames/s in the first and the last third of the phase (the

@@ -25,7 +25,7 @@ from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
 from service.pool import Engine, make_engine
-from service.published import MapView
+from service.published import MapView, ViewDelta
 from service.queries import Landmarks, SetMode, Summary, Trajectory
 from service.requests import (
     CreateMap,
@@ -124,15 +124,25 @@ class MapService:
         self.pool.on_view = self._publish_view
         self._views: dict[str, MapView] = {}
         self._new_ids: set[str] = set()
-        self._refreshing: set[str] = set()
+        self._refreshing: set[tuple[str, bool]] = set()
         self._tasks: set[asyncio.Task[None]] = set()
         """Maps being created or imported (their first view comes before their record)."""
         self.notifier = Notifier()
         self.started = False
 
-    def _publish_view(self, view: MapView) -> None:
-        if view.map_id in self._records or view.map_id in self._new_ids:
-            self._views[view.map_id] = view
+    def _publish_view(self, delta: ViewDelta) -> None:
+        """A map's new view from its worker (a delta from the view it sent before)."""
+        map_id = delta.map_id
+        if map_id not in self._records and map_id not in self._new_ids:
+            return
+        view = delta.apply(self._views.get(map_id))
+        if view is not None:
+            self._views[map_id] = view
+            return
+        # Not made from the view held here (a view was lost): the worker answers the
+        # map's reads until the whole view it is asked for arrives.
+        self._views.pop(map_id, None)
+        self._refresh(map_id, whole=True)
 
     async def start(self) -> None:
         await self.pool.start(self._records)
@@ -297,20 +307,22 @@ class MapService:
                 return answer
         return await self.pool.call(map_id, request)
 
-    def _refresh(self, map_id: str) -> None:
+    def _refresh(self, map_id: str, *, whole: bool = False) -> None:
         """Ask the map's worker for its live landmarks and held trajectory rows now (one
-        request at a time); the view it publishes answers the next reads."""
-        if map_id in self._refreshing:
+        request at a time; `whole`: and all of its view); the view it publishes answers
+        the next reads."""
+        key = (map_id, whole)
+        if key in self._refreshing:
             return
-        self._refreshing.add(map_id)
+        self._refreshing.add(key)
 
         async def refresh() -> None:
             try:
-                await self.pool.call(map_id, RefreshView())
+                await self.pool.call(map_id, RefreshView(whole))
             except Exception:
-                log.warning("refreshing the landmarks of map %s failed", map_id, exc_info=True)
+                log.warning("refreshing the view of map %s failed", map_id, exc_info=True)
             finally:
-                self._refreshing.discard(map_id)
+                self._refreshing.discard(key)
 
         task = asyncio.get_running_loop().create_task(refresh())
         self._tasks.add(task)

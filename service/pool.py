@@ -6,13 +6,18 @@ worker takes its requests strictly in order, so a map's frames are applied in ar
 order while maps on different workers proceed in parallel.
 
 Placement: new maps and the maps found at start are dealt out to the workers in turn.
-A map's load is the work it keeps in flight: the time-averaged number of its requests
+A map with no frame yet has no state to carry, so its first frame deals it again (a
+move that costs opening an empty map): to the worker with the fewest busy maps (a
+request in flight, or one that ended within ACTIVE_S), so that maps that start taking
+frames together are balanced from their first frame, however they were created. A
+map's load is the work it keeps in flight: the time-averaged number of its requests
 waiting or being computed (by Little's law its clients' rate times the time each
 request spends) times the worker time one of its requests takes. A worker serves its
 requests in turn, so equal loads give the maps of all workers the same rate. Every
 `workers.balance_interval_s` the pool compares the workers' loads; when they differ
 clearly and moving one map from the busiest to the least busy worker narrows the
-difference to 60 % or less, it moves it (then lets the loads settle for a few
+difference to 60 % or less, at two looks in a row (a measured load is noisy, and a move
+costs a snapshot and a load), it moves it (then lets the loads settle for a few
 intervals): new calls for the map wait in the API process, the old worker answers what
 it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
 from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged
@@ -24,7 +29,8 @@ same length-prefixed frames non-blockingly (``loop.add_writer`` when the pipe is
 full, e.g. a large import while the worker computes) and reads answers in a
 ``loop.add_reader`` callback. No helper threads, so a request costs two process
 hand-offs and nothing more. An answer may carry the map's new published view
-(service.published), handed to `on_view`; message id 0 is a view sent unasked.
+(service.published, as a delta from the one before), handed to `on_view`; message id
+0 is a view sent unasked.
 
 A worker that dies shows as end-of-file on its socket: the requests in flight get
 `WorkerUnavailable` (the API answers 503 + Retry-After), a new process is started,
@@ -52,8 +58,8 @@ from typing import Any, Protocol, TypeVar
 
 from service import worker
 from service.errors import ServiceError, WorkerUnavailable
-from service.published import MapView
-from service.requests import CloseMap, OpenMap, Ping, Request
+from service.published import ViewDelta
+from service.requests import CloseMap, CreateMap, OpenMap, Ping, Request, SubmitFrame
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -73,8 +79,9 @@ class Engine(Protocol):
     """Maps moved from one worker to another (balancing)."""
     shared: bool
     """Other API processes may run maps of the same store (look maps up in the catalogue)."""
-    on_view: Callable[[MapView], None] | None
-    """Called with each published view of a map (engines whose workers publish them)."""
+    on_view: Callable[[ViewDelta], None] | None
+    """Called with each published view of a map, as sent (engines whose workers publish
+    them)."""
 
     async def start(self, maps: Iterable[str]) -> None: ...
     async def stop(self) -> None: ...
@@ -126,6 +133,9 @@ MIN_LOAD_GAP = 0.005
 move..."""
 MIN_RELATIVE_GAP = 0.25
 """...or by this fraction of the busiest worker's load."""
+ACTIVE_S = 1.0
+"""A map whose last request ended this recently counts as busy when a map is dealt at
+its first frame (a client between two frames)."""
 MOVE_GAIN = 0.6
 """A move must leave at most this fraction of the gap it closes (6:2 equal maps -> 5:3
 leaves 1/2; a move that mostly swaps the roles of the two workers is no gain)."""
@@ -147,11 +157,19 @@ class MapLoad:
     load: float = 0.0
     """`waiting` x `service_s`: the work the map keeps in flight, seconds."""
     moved: float = -MOVE_COOLDOWN_S
+    ended: float = -ACTIVE_S
+    """When its last request ended (time.monotonic)."""
 
     def change(self, delta: int, now: float) -> None:
         self.area += self.inflight * (now - self.since)
         self.since = now
         self.inflight += delta
+        if delta < 0:
+            self.ended = now
+
+    def active(self, now: float) -> bool:
+        """A request in flight, or one that ended within ACTIVE_S."""
+        return self.inflight > 0 or now - self.ended < ACTIVE_S
 
     def served(self, seconds: float) -> None:
         """A request of the map took the worker `seconds`."""
@@ -224,7 +242,7 @@ class EngineBase:
         self.restarts = 0
         self.moves = 0
         """Maps moved from one worker to another (balancing)."""
-        self.on_view: Callable[[MapView], None] | None = None
+        self.on_view: Callable[[ViewDelta], None] | None = None
         """Called with every published view a worker sends (the local pool's workers)."""
 
     def track(self, map_id: str) -> None:
@@ -267,6 +285,14 @@ class WorkerPool(EngineBase):
         self._next_owner = 0
         self._load: dict[str, MapLoad] = {}
         self._moving: dict[str, asyncio.Future[None]] = {}
+        self._empty: set[str] = set()
+        """Maps with no frame yet: their first frame deals them to a worker anew."""
+        self._heading: dict[str, int] = {}
+        """Maps being dealt at their first frame: the worker they go to."""
+        self.deals = 0
+        """Maps moved at their first frame (not counted in `moves`)."""
+        self._leaning: tuple[int, int] | None = None
+        """(from, to) workers of the move the balancer's last look would have made."""
 
     # ------------------------------------------------------------ lifecycle
     async def start(self, maps: Iterable[str]) -> None:
@@ -315,6 +341,8 @@ class WorkerPool(EngineBase):
                             log.error(
                                 "worker %d: map %s did not open: %s", slot.index, map_id, reply
                             )
+                        elif reply["value"]["frames"] == 0:
+                            self._empty.add(map_id)
                     finally:
                         slot.loading = max(0, slot.loading - 1)
             except _WorkerDied:
@@ -391,6 +419,7 @@ class WorkerPool(EngineBase):
         super().untrack(map_id)
         self._load.pop(map_id, None)
         self._owner.pop(map_id, None)
+        self._empty.discard(map_id)
 
     # ------------------------------------------------------------ balance
     async def _balance_every(self, interval_s: float) -> None:
@@ -423,18 +452,45 @@ class WorkerPool(EngineBase):
         return totals, movable
 
     async def balance(self, interval_s: float) -> tuple[str, int, int] | None:
-        """Sample the maps' loads and move at most one map (see `choose_move`); the move
+        """Sample the maps' loads and move at most one map (see `choose_move`), if the
+        previous look would have moved one between the same two workers too; the move
         made, or None."""
         choice = choose_move(*self._sample(interval_s))
-        if choice is None:
+        leaning, self._leaning = self._leaning, None if choice is None else choice[1:]
+        if choice is None or leaning != choice[1:]:
             return None
+        self._leaning = None
         map_id, _, target = choice
         return choice if await self.move(map_id, target) else None
 
-    async def move(self, map_id: str, target: int) -> bool:
+    async def _deal(self, map_id: str) -> None:
+        """A map's first frame: move it to the worker with the fewest busy maps (this
+        one left out) if its own has more; it has no state yet, so the move only opens
+        an empty map. Ties stay."""
+        self._empty.discard(map_id)
+        source = self.worker_of(map_id)
+        now = time.monotonic()
+        busy = {s.index: 0 for s in self._slots}
+        for other, load in self._load.items():
+            worker = self._heading.get(other, self._owner.get(other))
+            if other != map_id and worker is not None and load.active(now):
+                busy[worker] += 1
+        target = min(busy, key=lambda w: (busy[w], w != source))
+        if busy[target] >= busy[source]:
+            return
+        self._heading[map_id] = target
+        try:
+            if await self.move(map_id, target, balancing=False):
+                self.deals += 1
+        finally:
+            del self._heading[map_id]
+
+    async def move(self, map_id: str, target: int, *, balancing: bool = True) -> bool:
         """Move a map to worker `target`: calls meanwhile wait; the old worker answers
         what it has, snapshots and closes the map; the new one opens it. False when the
-        map stays where it was (unknown, already there or moving, the old worker failed)."""
+        map stays where it was (unknown, already there or moving, the old worker failed).
+        `balancing`: a balancer's move (counted in `moves`; the map stays for
+        MOVE_COOLDOWN_S), not a deal at the map's first frame."""
         source = self._owner.get(map_id)
         if source is None or source == target or map_id in self._moving:
             return False
@@ -450,8 +506,9 @@ class WorkerPool(EngineBase):
                 log.error("map %s could not leave worker %d: %s", map_id, source, reply)
                 return False
             self._owner[map_id] = target
-            self._load.setdefault(map_id, MapLoad()).moved = time.monotonic()
-            self.moves += 1
+            if balancing:
+                self._load.setdefault(map_id, MapLoad()).moved = time.monotonic()
+                self.moves += 1
             log.info("map %s moved from worker %d to worker %d", map_id, source, target)
             self._background(self._open(self._slots[target], map_id))
             return True
@@ -562,14 +619,16 @@ class WorkerPool(EngineBase):
     async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
         """Carry out `request` on the map's worker; its answer, or raise ServiceError /
         WorkerUnavailable."""
-        while (gate := self._moving.get(map_id)) is not None:
-            await asyncio.shield(gate)  # the map is moving: to its new worker afterwards
-        slot = self._slots[self.worker_of(map_id)]
         timeout, retry_after = self._limits(timeout_s)
         load = self._load.setdefault(map_id, MapLoad())
         load.change(+1, time.monotonic())
-        future = self._request(slot, map_id, request)
         try:
+            if map_id in self._empty and isinstance(request, SubmitFrame):
+                await self._deal(map_id)
+            while (gate := self._moving.get(map_id)) is not None:
+                await asyncio.shield(gate)  # the map is moving: to its new worker afterwards
+            slot = self._slots[self.worker_of(map_id)]
+            future = self._request(slot, map_id, request)
             reply = await asyncio.wait_for(future, timeout)
         except _WorkerDied as exc:
             raise WorkerUnavailable(
@@ -585,4 +644,6 @@ class WorkerPool(EngineBase):
         finally:
             load.change(-1, time.monotonic())
         load.served(reply.get("busy_s", 0.0))
+        if isinstance(request, CreateMap) and reply["ok"]:
+            self._empty.add(map_id)
         return reply_value(reply, retry_after_s=retry_after)

@@ -9,20 +9,29 @@ latest view it holds, so a read never waits behind the frames the worker is busy
 landmarks, per-frame statistics, a robot known only to the place localiser) still goes
 to the worker.
 
-After a frame, a view renews what is cheap: the summary, the places and the pose of
-the robot that sent it. Three parts may lag behind the map: the other robots' poses
-(each covariance costs a marginal of the graph), the trajectory rows the estimator
-holds (renewed every HELD_EVERY frames), and the live landmarks (a joint marginal of
-all of them, ~5 ms for 50, half a frame). A read of a lagging part goes to the worker
-when it has nothing else to do (so a client reads its own writes) and is answered from
-the view while the worker is busy; a lagging trajectory or landmark read then asks for
-them anew (`RefreshView`, one at a time per map), and a worker that has been idle for
-a moment renews everything.
+After a frame, a view renews what is cheap: the summary, the places (if a place or a
+transition changed) and the pose of the robot that sent it. Three parts may lag behind
+the map: the other robots' poses (each covariance costs a marginal of the graph), the
+trajectory rows the estimator holds (renewed every HELD_EVERY frames), and the live
+landmarks (a joint marginal of all of them, ~5 ms for 50, half a frame). A read of a
+lagging part goes to the worker when it has nothing else to do (so a client reads its
+own writes) and is answered from the view while the worker is busy; a lagging trajectory
+or landmark read then asks for them anew (`RefreshView`, one at a time per map), and a
+worker that has been idle for a moment renews everything.
+
+A view crosses the pipe as a `ViewDelta`: only the parts that are not the very objects
+of the view sent before it (the places document is kept while no place or transition
+changed, the held rows for HELD_EVERY frames, the landmarks until they are renewed), so
+that a frame's answer does not carry, pickle and unpickle the whole map's places and
+trajectory every time. The API process applies a delta only to the view it was made
+from (`serial`); any other it drops, and asks the worker for a whole view.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+import os
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -35,6 +44,8 @@ Doc = dict[str, Any]
 
 HELD_EVERY = 10
 """Frames between two renewals of the held trajectory rows after frames."""
+
+_serials = itertools.count(1)
 
 
 @dataclass(frozen=True)
@@ -58,6 +69,48 @@ class MapView:
     poses_log_id: int
     """The frame after which every robot's pose was computed (each frame after it
     renewed only its own robot's entry)."""
+    places_version: tuple[int, ...] | None = None
+    """The place localiser's `places_version` that `places` was made at."""
+    serial: tuple[int, int] = (0, 0)
+    """(process id, number): names this view among all views built (a delta's base)."""
+
+
+_PARTS = ("summary", "pose", "places", "held", "landmarks")
+"""A view's documents: sent again only when they are new objects."""
+
+
+@dataclass(frozen=True)
+class ViewDelta:
+    """A view as sent to the API process: its small fields, and those of its documents
+    that are not the objects the view `base` (the one sent before it) held; `base` None:
+    every part is here."""
+
+    base: tuple[int, int] | None
+    fields: dict[str, Any]
+
+    @property
+    def map_id(self) -> str:
+        return str(self.fields["map_id"])
+
+    @classmethod
+    def between(cls, view: MapView, previous: MapView | None) -> ViewDelta:
+        """What to send of `view` when `previous` was sent before it (None: all)."""
+        parts = {f.name: getattr(view, f.name) for f in fields(view)}
+        if previous is None:
+            return cls(None, parts)
+        for name in _PARTS:
+            if parts[name] is getattr(previous, name):
+                del parts[name]
+        return cls(previous.serial, parts)
+
+    def apply(self, current: MapView | None) -> MapView | None:
+        """The view this delta describes, from the API process's `current` view of the
+        map; None when `current` is not the view it was made from."""
+        if self.base is None:
+            return MapView(**self.fields)
+        if current is None or current.serial != self.base:
+            return None
+        return replace(current, **self.fields)
 
 
 def build_view(
@@ -70,11 +123,11 @@ def build_view(
     """The view of an open map now, in one of three ways (with the map's `previous`
     view; without one, or with neither `robot` nor `refresh`, everything is new):
 
-    - `robot`: after a frame of that robot: the summary, the places and that robot's
-      entry of the poses are new, and every HELD_EVERY frames the held rows; the rest
-      is `previous`'s. (Every other robot's pose moved a little with the frame's update,
-      but its covariance would cost a marginal of the graph, ~1.5 ms a robot; all
-      robots' rows ~0.5 ms; the landmarks ~5 ms.)
+    - `robot`: after a frame of that robot: the summary, the places (if they changed)
+      and that robot's entry of the poses are new, and every HELD_EVERY frames the held
+      rows; the rest is `previous`'s. (Every other robot's pose moved a little with the
+      frame's update, but its covariance would cost a marginal of the graph, ~1.5 ms a
+      robot; all robots' rows ~0.5 ms; the landmarks ~5 ms.)
     - `refresh`: the live landmarks and the held rows are new (a read found them
       behind), the poses are `previous`'s.
     """
@@ -82,7 +135,8 @@ def build_view(
     log_id = session.last_log_id
     off_graph = bool(pipeline.off_graph_robots())
     held: dict[str, NDArray[np.float64]] | None
-    if previous is None or (robot is None and not refresh):
+    renew_all = previous is None or (robot is None and not refresh)
+    if previous is None or renew_all:
         pose, poses_log_id = pose_answer(session), log_id
         held, held_log_id = None, log_id  # below
         landmarks, landmarks_log_id = Landmarks().answer(session), log_id
@@ -103,15 +157,24 @@ def build_view(
         held = None
     elif held is None:
         held, held_log_id = session.slam.trajectory(), log_id
+    places, places_version = None, None
+    if pipeline.localiser is not None:
+        places_version = pipeline.localiser.places_version()
+        if renew_all or previous is None or previous.places_version != places_version:
+            places = Places().answer(session)
+        else:
+            places = previous.places  # no place or transition changed since
     return MapView(
         map_id=session.record.id,
         log_id=log_id,
         summary=Summary().answer(session),
         pose=pose,
-        places=None if pipeline.localiser is None else Places().answer(session),
+        places=places,
         held=held,
         landmarks=landmarks,
         landmarks_log_id=landmarks_log_id,
         held_log_id=held_log_id,
         poses_log_id=poses_log_id,
+        places_version=places_version,
+        serial=(os.getpid(), next(_serials)),
     )

@@ -50,7 +50,7 @@ class Summary(MapRequest[Doc]):
 
     def answer(self, session: MapSession) -> Doc:
         frame_ms = session.frame_ms()
-        ms = np.asarray(frame_ms) if frame_ms else None
+        ms = frame_ms if len(frame_ms) else None
         off_graph = session.pipeline.off_graph_count()
         robots = session.slam.robots
         robots += [r for r in session.pipeline.off_graph_robots() if r not in robots]
@@ -78,10 +78,25 @@ class Summary(MapRequest[Doc]):
 
 
 def _timing(ms: np.ndarray) -> Doc:
-    """Frames, mean, p50 and p99 of frame times, ms (one sort: a summary is published
-    with every frame)."""
-    p50, p99 = np.percentile(ms, [50, 99])
-    return {"frames": len(ms), "mean": float(ms.mean()), "p50": float(p50), "p99": float(p99)}
+    """Frames, mean, p50 and p99 of frame times, ms (a summary is published with every
+    frame: one sort, and the percentiles as numpy's default `percentile` takes them,
+    without its overhead, half the summary's time)."""
+    ordered = np.sort(ms)
+    return {
+        "frames": len(ms),
+        "mean": float(ms.mean()),
+        "p50": _percentile(ordered, 50),
+        "p99": _percentile(ordered, 99),
+    }
+
+
+def _percentile(ordered: np.ndarray, q: float) -> float:
+    """`numpy.percentile(ordered, q)` (linear) of (N,) sorted values, N >= 1."""
+    position = (len(ordered) - 1) * q / 100
+    lo = int(position)
+    a, b = float(ordered[lo]), float(ordered[min(lo + 1, len(ordered) - 1)])
+    t = position - lo
+    return b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t  # numpy's lerp
 
 
 @dataclass(frozen=True)

@@ -79,6 +79,9 @@ class RefreshView(WorkerRequest[None]):
     """Publish the map's view with its live landmarks and held trajectory rows computed
     now (a read found the published ones behind the map)."""
 
+    whole: bool = False
+    """Send the whole view (the API process has none the next delta could apply to)."""
+
 
 @dataclass(frozen=True)
 class CloseMap(WorkerRequest[None]):

@@ -489,6 +489,6 @@ class MapSession:
         """The map's seed (its config's)."""
         return MapConfig.model_validate(self.record.config).seed
 
-    def frame_ms(self) -> list[float]:
-        """Processing time of the last (up to 1000) frames this session took, ms."""
-        return list(self._timing)
+    def frame_ms(self) -> np.ndarray:
+        """(N,) processing time of the last (up to 1000) frames this session took, ms."""
+        return np.fromiter(self._timing, dtype=np.float64, count=len(self._timing))

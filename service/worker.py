@@ -7,10 +7,10 @@ the order they arrived. A map is opened on first use
 (latest snapshot + log tail) and kept open. Every answer is a plain dict:
 ``{"ok": True, "value": ...}`` or ``{"ok": False, "error": ServiceError.as_dict()}``;
 an answer to a request that changed a map also carries the map's new published view
-(``"view"``, service.published.MapView), and an idle worker sends the views it
-refreshed unasked (message id 0). When the API process goes away (its shutdown closes
-the connection), every open map that took frames since its last snapshot is
-snapshotted before the process ends, so the next start replays no log.
+(``"view"``, a service.published.ViewDelta from the view sent before), and an idle
+worker sends the views it refreshed unasked (message id 0). When the API process goes
+away (its shutdown closes the connection), every open map that took frames since its
+last snapshot is snapshotted before the process ends, so the next start replays no log.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from frontend.pipeline import FrontEnd
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import import_frames, parse_export
 from service.pipeline.config import camera_model, slam_config
-from service.published import MapView, build_view
+from service.published import MapView, ViewDelta, build_view
 from service.queries import LearnPlace, SetMode, Summary
 from service.requests import (
     CloseMap,
@@ -59,7 +59,7 @@ _publish = False
 _stale: set[str] = set()
 """Open maps whose published view has parts that lag behind the map."""
 _views: dict[str, MapView] = {}
-"""The latest view published of each open map."""
+"""The latest view published of each open map (the base of the next one's delta)."""
 
 _CHANGES = (SubmitFrame, SetMode, LearnPlace, OpenMap, CreateMap, ImportMap, RefreshView)
 """Requests after which a map's published view is rebuilt."""
@@ -203,6 +203,8 @@ def carry_out(map_id: str, request: Request[Any]) -> Any:
         return None
     if isinstance(request, RefreshView):
         _session(map_id)  # its view follows with the answer
+        if request.whole:
+            _views.pop(map_id, None)  # all of it is sent, and built anew
         return None
     if isinstance(request, DeleteMap):
         _delete(map_id)
@@ -301,14 +303,16 @@ def _idle_work(inbox: queue.Queue[Message | None], conn: Connection) -> None:
         snapshot_if_due(map_id)
 
 
-def _view(map_id: str, *, robot: str | None = None, refresh: bool = False) -> MapView | None:
-    """The open map's published view now (None: not open, or it failed: logged);
-    `robot`, `refresh`: see build_view (neither: all new)."""
+def _view(map_id: str, *, robot: str | None = None, refresh: bool = False) -> ViewDelta | None:
+    """The open map's published view now, as a delta from the one sent before (None:
+    not open, or it failed: logged); `robot`, `refresh`: see build_view (neither: all
+    new)."""
     session = _sessions.get(map_id)
     if session is None:
         return None
+    previous = _views.get(map_id)
     try:
-        view = build_view(session, previous=_views.get(map_id), robot=robot, refresh=refresh)
+        view = build_view(session, previous=previous, robot=robot, refresh=refresh)
     except Exception:
         log.exception("the published view of map %s failed", map_id)
         return None
@@ -317,10 +321,10 @@ def _view(map_id: str, *, robot: str | None = None, refresh: bool = False) -> Ma
         _stale.discard(map_id)
     else:
         _stale.add(map_id)
-    return view
+    return ViewDelta.between(view, previous)
 
 
-def _published(map_id: str, request: Request[Any], value: Any) -> MapView | None:
+def _published(map_id: str, request: Request[Any], value: Any) -> ViewDelta | None:
     """The view to publish after `request` answered `value` (None: nothing changed)."""
     if not isinstance(request, _CHANGES):
         return None

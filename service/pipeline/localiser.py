@@ -180,6 +180,20 @@ class PlaceLocaliser:
             ids=landmark_ids(slam),
         )
 
+    def places_version(self) -> tuple[int, ...]:
+        """Changes whenever `places_doc` would: places are only added, and a transition
+        is only added or counted up (so a published places document can be kept until
+        this changes instead of being rebuilt for every frame)."""
+        places = self.localiser.places
+        return (
+            id(places),
+            len(places.places),
+            len(places.transitions),
+            sum(t.count for t in places.transitions.values()),
+            id(self.appearance),
+            len(self.appearance.places),
+        )
+
     def places_doc(self) -> dict[str, Any]:
         places = self.localiser.places
         return {

@@ -118,6 +118,32 @@ def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
     _run(tmp_path, 1, body)
 
 
+def test_a_view_lost_in_the_api_process_comes_back_whole(tmp_path: Path) -> None:
+    """A worker sends each view as the parts that changed since the view before it; when
+    the API process no longer holds that view, the delta is dropped, the reads go to
+    the worker, and the whole view it is asked for answers them again."""
+
+    async def body(service: MapService) -> None:
+        map_id = await _new_map(service, FRAMES[:10])
+        views: Any = service._views
+        views.pop(map_id)
+        await service.submit(map_id, FRAMES[10])
+        assert map_id not in views  # the frame's delta had no base here
+        assert (await service.summary(map_id))["counts"]["frames"] == 11  # the worker's
+        deadline = time.monotonic() + 30
+        while map_id not in views:
+            assert time.monotonic() < deadline, "no whole view came"
+            await asyncio.sleep(0.01)
+        view = views[map_id]
+        assert view.summary["counts"]["frames"] == 11 and view.places is not None
+        await service.submit(map_id, FRAMES[11])  # deltas apply again
+        assert views[map_id].summary["counts"]["frames"] == 12
+        for query in (Pose(), Summary(), Places(), Landmarks(), Trajectory()):
+            assert await service.query(map_id, query) == await service.pool.call(map_id, query)
+
+    _run(tmp_path, 1, body)
+
+
 async def _open_on(service: MapService, worker: int) -> list[str]:
     pool: Any = service.pool
     reply = await pool._request(pool._slots[worker], "", Ping())
@@ -169,11 +195,43 @@ def test_a_moved_map_is_deleted_where_it_is_open(tmp_path: Path) -> None:
     _run(tmp_path, 2, body)
 
 
+def test_maps_are_dealt_out_evenly_at_their_first_frame(tmp_path: Path) -> None:
+    """Four new maps placed 3:1 on two workers start taking frames together: the first
+    frames deal them 2:2 (an empty map moves for free), and every frame is answered in
+    order on the map's new worker."""
+
+    async def body(service: MapService) -> None:
+        pool: Any = service.pool
+        ids = [await _new_map(service, []) for _ in range(4)]
+        lone = next(m for m in ids if pool.worker_of(m) == 1)
+        crowded = [m for m in ids if m != lone]
+        assert await pool.move(crowded[-1], 0)  # 3:1, none with a frame yet
+        assert sorted(pool.worker_of(m) for m in ids) == [0, 0, 0, 1]
+        moves = pool.moves
+
+        async def post(map_id: str) -> list[int]:
+            return [
+                json.loads((await service.submit(map_id, f)).result_json)["seq"] for f in FRAMES[:5]
+            ]
+
+        answered = await asyncio.gather(*(post(m) for m in ids))
+        assert answered == [[f["seq"] for f in FRAMES[:5]]] * 4
+        assert sorted(pool.worker_of(m) for m in ids) == [0, 0, 1, 1]
+        assert pool.deals == 1 and pool.moves == moves  # a deal is not a balancer move
+        for worker in (0, 1):
+            open_here = await _open_on(service, worker)
+            assert sorted(open_here) == sorted(m for m in ids if pool.worker_of(m) == worker)
+        again = await _new_map(service, FRAMES[:1])  # alone: its first frame stays put
+        assert pool.deals == 1 and (await service.summary(again))["counts"]["frames"] == 1
+
+    _run(tmp_path, 2, body)
+
+
 def test_the_balancer_moves_a_map_off_the_busier_worker(tmp_path: Path) -> None:
     async def body(service: MapService) -> None:
         pool: Any = service.pool
-        a = await _new_map(service, [])
-        b = await _new_map(service, [])
+        a = await _new_map(service, FRAMES[:1])
+        b = await _new_map(service, FRAMES[:1])  # one frame each: dealt already
         if pool.worker_of(a) == pool.worker_of(b):
             pytest_fail = "a new map goes to the less loaded worker"
             raise AssertionError(pytest_fail)
@@ -181,12 +239,14 @@ def test_the_balancer_moves_a_map_off_the_busier_worker(tmp_path: Path) -> None:
         crowded = pool.worker_of(a)
 
         async def post(map_id: str) -> None:
-            for f in FRAMES[:40]:
+            for f in FRAMES[1:40]:
                 await service.submit(map_id, f)
 
         posting = [asyncio.create_task(post(m)) for m in (a, b)]
-        await asyncio.sleep(1.0)
-        moved = await pool.balance(1.0)
+        await asyncio.sleep(0.5)
+        assert await pool.balance(0.5) is None  # one look: the gap must hold for two
+        await asyncio.sleep(0.5)
+        moved = await pool.balance(0.5)
         await asyncio.gather(*posting)
         assert moved == (a, crowded, 1 - crowded)  # b moved a moment ago: it stays
         assert pool.worker_of(a) != pool.worker_of(b)

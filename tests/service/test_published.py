@@ -3,6 +3,7 @@ hands out what the store holds; the balancer picks the move that evens workers o
 
 from __future__ import annotations
 
+import pickle
 import time
 
 import numpy as np
@@ -12,7 +13,7 @@ from service.frames_io import frame_to_dict
 from service.maps import Notifier
 from service.offline.datasets.indoor_sim import make_world, simulate
 from service.pool import choose_move
-from service.published import build_view
+from service.published import ViewDelta, build_view
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
 from service.session import MapSession
 from service.settings import StoreSettings
@@ -72,6 +73,39 @@ def test_after_a_frame_the_costly_parts_lag_until_refreshed(
     assert not Landmarks().view_behind(third) and not Trajectory().view_behind(third)
     assert Landmarks().from_view(third, store) == Landmarks().answer(session)
     assert Trajectory().from_view(third, store) == Trajectory().answer(session)
+
+
+READS = (Pose(), Summary(), Places(), Landmarks(), Trajectory())
+
+
+def test_a_view_crosses_as_the_parts_that_changed(session: MapSession, store: Store) -> None:
+    """What a worker sends after a frame leaves out the documents the view before it
+    held (the API process's copy keeps them); applied to that copy, after the pipe's
+    pickling, it answers every read as the view itself does. Applied to any other copy,
+    it is refused."""
+    first = build_view(session)
+    whole = ViewDelta.between(first, None)
+    held_here = whole.apply(None)  # a whole view needs no base
+    assert held_here is not None and held_here.serial == first.serial
+    frames = circle_frames(140, seed=2)[0]
+    views, kept_places = [first], 0
+    for frame in frames[120:]:
+        session.submit(frame_to_dict(frame))
+        views.append(build_view(session, previous=views[-1], robot="r1"))
+        delta = pickle.loads(pickle.dumps(ViewDelta.between(views[-1], views[-2])))
+        for part in ("places", "held", "landmarks"):
+            kept = getattr(views[-1], part) is getattr(views[-2], part)
+            assert (part in delta.fields) != kept, part
+        kept_places += "places" not in delta.fields
+        assert views[-1].places == Places().answer(session)  # kept only while unchanged
+        assert delta.apply(None) is None
+        assert delta.apply(first if len(views) > 2 else None) is None
+        held_here = delta.apply(held_here)
+        assert held_here is not None
+        for query in READS:
+            assert query.from_view(held_here, store) == query.from_view(views[-1], store), query
+    assert kept_places > 0, "every frame changed the places: their reuse is untested"
+    assert kept_places < len(frames) - 120, "the places never changed: their renewal untested"
 
 
 def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
