@@ -475,11 +475,15 @@ def _spread(n: int, limit: int) -> NDArray[np.int64]:
 
 def _starved(robot: RobotState, matches: int) -> bool:
     """Whether a tracked frame with `matches` pose-gated landmark matches is starved
-    (see STARVED_SHARE); the robot's running average takes the frame in."""
+    (see STARVED_SHARE); the robot's running average takes the frame in unless it is
+    starved: a robot carried elsewhere stays starved until the filter has found it
+    (a capped camera map, ~17 matches a frame: the average decayed below
+    STARVED_MIN_AVERAGE two frames after the jump, and the kidnap went unnoticed)."""
     average = robot.landmark_matches
     starved = (
         average is not None and average >= STARVED_MIN_AVERAGE and matches < STARVED_SHARE * average
     )
-    n = float(matches)
-    robot.landmark_matches = n if average is None else average + AVERAGE_RATE * (n - average)
+    if not starved:
+        n = float(matches)
+        robot.landmark_matches = n if average is None else average + AVERAGE_RATE * (n - average)
     return starved

@@ -11,8 +11,9 @@ import pickle
 import numpy as np
 import pytest
 
-from frontend.association import Associator
+from frontend.association import Association, Associator
 from frontend.association_state import associator_from_doc, associator_to_doc
+from frontend.features import Features
 from tests.frontend.test_association import _features, _flip
 
 BEARINGS_DEG = [-150.0, -90.0, -30.0, 30.0, 90.0, 150.0]
@@ -33,18 +34,22 @@ def _positions(pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, 
     }
 
 
+def _seen_twice(assoc: Associator, feats: Features) -> Association:
+    """The association of `feats` seen a second time from the origin (one frame committed
+    before, no landmark live): every feature continues its track."""
+    first = assoc.associate(
+        feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={}
+    )
+    assoc.commit(first, pose=(0, 0, 0), live_labels=())
+    return assoc.associate(feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={})
+
+
 def _mapped(descs: np.ndarray) -> tuple[Associator, list[str]]:
     """An associator that learnt six landmarks from tracks (one robot at the origin) and
     the labels the graph gave them, all of them then marginalised."""
     assoc = Associator()
     feats = _features(BEARINGS_DEG, descs)
-    first = assoc.associate(
-        feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={}
-    )
-    assoc.commit(first, pose=(0, 0, 0), live_labels=())
-    again = assoc.associate(
-        feats, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={}
-    )
+    again = _seen_twice(assoc, feats)
     labels = [o.label for o in sorted(again.observations, key=lambda o: o.bearing_rad)]
     assoc.commit(again, pose=(0, 0, 0), live_labels=set(labels))
     assert assoc.known_landmarks == len(BEARINGS_DEG)
@@ -91,9 +96,7 @@ def test_a_landmark_removed_before_its_track_was_promoted_keeps_the_tracks_views
     descs = rng.integers(0, 256, (2, 32), dtype=np.uint8)
     assoc = Associator()
     f = _features([30.0, -30.0], descs)
-    r = assoc.associate(f, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={})
-    assoc.commit(r, pose=(0, 0, 0), live_labels=())
-    r = assoc.associate(f, robot="r1", predicted_pose=(0, 0, 0), pose_cov=None, landmarks={})
+    r = _seen_twice(assoc, f)
     gone = r.observations[0].label
     # The estimator made the track a landmark and the cap removed it in the same frame.
     assoc.commit(r, pose=(0, 0, 0), live_labels=(), removed_labels={gone})
