@@ -17,13 +17,23 @@ Each run records the CPU time the localiser step adds to a tracked frame (the
 filter on the frame's landmark matches) and to a frame of a robot searching (pose-free
 matching and the filter), with the load average.
 
-    python -m bench.camera_localisation [--seeds 0 1 2] [--starts 4] [--out bench/results]
+`--caps`: the whole bench once per landmark cap (``none``: uncapped). With a cap small
+enough that most landmarks are archived before the new robots start, it measures
+whether a robot recognises places whose landmarks were marginalised (the localiser
+matches archived landmarks by their archived views). `--live-only` weighs live
+landmarks only (the localiser before the archive of views; an ablation). Per start
+also: success = relocalised with the pose within `--tolerance` (0.5 m, 15 deg) for
+`--hold` (20) frames from then on; a wrong convergence = relocalised beyond it.
+
+    python -m bench.camera_localisation [--seeds 0 1 2] [--starts 4] [--caps none 40]
+        [--frames 30] [--out bench/results]
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as dt
+import itertools
 import json
 import math
 import os
@@ -48,13 +58,20 @@ from service.offline.datasets.camera_runs import (
     straight,
 )
 from service.offline.datasets.render import TexturedWorld
+from service.pipeline import map_pipeline
+from service.pipeline.localiser import landmark_map
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
 
+TOLERANCE = (0.5, 15.0)
+"""(m, deg) within which a relocalised pose counts as right."""
+HOLD_FRAMES = 20
 
-def new_session(tmp: Path, name: str) -> MapSession:
-    record = MapRecord(name, name, "mapping", CONFIG, time.time())
+
+def new_session(tmp: Path, name: str, cap: int | None = None) -> MapSession:
+    config = {**CONFIG, "landmark_cap": cap}
+    record = MapRecord(name, name, "mapping", config, time.time())
     return MapSession.create(tmp / f"{name}.sqlite", record, StoreSettings(snapshot_every=10**6))
 
 
@@ -87,6 +104,30 @@ def first(rows: list[dict[str, Any]], status: str, start: int = 0) -> int | None
     return next((k for k in range(start, len(rows)) if rows[k]["status"] == status), None)
 
 
+def within(row: dict[str, Any], tolerance: tuple[float, float]) -> bool:
+    return row["error_m"] <= tolerance[0] and row["error_deg"] <= tolerance[1]
+
+
+def held(rows: list[dict[str, Any]], tolerance: tuple[float, float], hold: int) -> dict[str, Any]:
+    """Success (the first frame relocalised from which the pose stays within `tolerance`
+    for `hold` frames, 1-based; None if none) and wrong convergences (frames relocalised
+    beyond the tolerance)."""
+    found = [k for k, row in enumerate(rows) if row["status"] == RELOCALISED]
+    ok = next(
+        (
+            k
+            for k in found
+            if k + hold <= len(rows) and all(within(r, tolerance) for r in rows[k : k + hold])
+        ),
+        None,
+    )
+    return {
+        "success_frame": None if ok is None else ok + 1,
+        "wrong_convergences": sum(not within(rows[k], tolerance) for k in found),
+        "relocalisations": len(found),
+    }
+
+
 def map_room(session: MapSession, world: TexturedWorld, seed: int) -> tuple[Leg, list[dict]]:
     path = mapping_path()
     leg = render_leg(
@@ -103,10 +144,14 @@ def run_starts(
     frames: int,
     offset_m: float,
     tmp: Path,
+    cap: int | None = None,
+    tolerance: tuple[float, float] = TOLERANCE,
+    hold: int = HOLD_FRAMES,
 ) -> dict[str, Any]:
     """r1 maps; then `starts` new robots each start without a pose (one map)."""
-    session = new_session(tmp, f"starts{seed}_{offset_m}")
+    session = new_session(tmp, f"starts{seed}_{offset_m}_{cap}", cap)
     leg, mapping_rows = map_room(session, world, seed)
+    live, archived = len(session.slam.landmarks), len(session.slam.archive)
     rng = np.random.default_rng([seed, 2])
     out = []
     for i in range(starts):
@@ -119,6 +164,7 @@ def run_starts(
             "start": start.tolist(),
             "relocalised_frame": None if k is None else k + 1,
             "statuses": [row["status"] for row in rows],
+            **held(rows, tolerance, hold),
         }
         if k is not None:
             item["error_m"], item["error_deg"] = rows[k]["error_m"], rows[k]["error_deg"]
@@ -153,6 +199,9 @@ def run_starts(
     tracked = mapping_rows[10:]
     return {
         "seed": seed,
+        "landmark_cap": cap,
+        "live_landmarks_at_starts": live,
+        "archived_landmarks_at_starts": archived,
         "start_offset_m": offset_m,
         "mapping_lost_frames": sum(r["status"] == LOST for r in mapping_rows),
         "mapping_localise_ms_median": float(np.median([r["localise_ms"] for r in tracked])),
@@ -167,10 +216,13 @@ def run_starts(
     }
 
 
-def run_kidnap(world: TexturedWorld, *, seed: int, frames: int, tmp: Path) -> dict[str, Any]:
+def run_kidnap(
+    world: TexturedWorld, *, seed: int, frames: int, tmp: Path, cap: int | None = None
+) -> dict[str, Any]:
     """r1 maps, drives on 10 frames, is carried to another pose of its path, drives on."""
-    session = new_session(tmp, f"kidnap{seed}")
+    session = new_session(tmp, f"kidnap{seed}_{cap}", cap)
     leg, _ = map_room(session, world, seed)
+    archived = len(session.slam.archive)
     rng = np.random.default_rng([seed, 4])
     end = leg.truth[-1]
     before = straight(end, 10)
@@ -201,12 +253,16 @@ def run_kidnap(world: TexturedWorld, *, seed: int, frames: int, tmp: Path) -> di
     back = None if lost is None else first(rows, RELOCALISED, lost)
     out: dict[str, Any] = {
         "seed": seed,
+        "landmark_cap": cap,
+        "archived_landmarks_at_jump": archived,
         "jump_m": float(math.hypot(*(target[:2] - before[-1][:2]))),
         "jump_deg": math.degrees(abs(wrap_angle(target[2] - before[-1][2]))),
         "lost_before_jump": sum(row["status"] == LOST for row in rows[:jump]),
         "frames_to_lost": None if lost is None else lost - jump + 1,
         "frames_to_relocalised": None if back is None else back - jump + 1,
         "statuses": [row["status"] for row in rows],
+        "error_m_end": rows[-1]["error_m"],
+        "error_deg_end": rows[-1]["error_deg"],
     }
     if back is not None:
         out["error_m"], out["error_deg"] = rows[back]["error_m"], rows[back]["error_deg"]
@@ -217,26 +273,37 @@ def run_kidnap(world: TexturedWorld, *, seed: int, frames: int, tmp: Path) -> di
 
 
 def summary(doc: dict[str, Any]) -> dict[str, Any]:
-    offsets = sorted({run["start_offset_m"] for run in doc["start_runs"]})
+    """One summary per landmark cap (key ``cap_none``, ``cap_40``, ...)."""
+    caps = list(dict.fromkeys(run["landmark_cap"] for run in doc["start_runs"]))
     return {
+        f"cap_{cap if cap is not None else 'none'}": cap_summary(
+            [run for run in doc["start_runs"] if run["landmark_cap"] == cap],
+            [run for run in doc["kidnap_runs"] if run["landmark_cap"] == cap],
+        )
+        for cap in caps
+    }
+
+
+def cap_summary(
+    start_runs: list[dict[str, Any]], kidnap_runs: list[dict[str, Any]]
+) -> dict[str, Any]:
+    offsets = sorted({run["start_offset_m"] for run in start_runs})
+    starts = [s for run in start_runs for s in run["starts"]]
+    return {
+        "live_landmarks_at_starts": [run["live_landmarks_at_starts"] for run in start_runs],
+        "archived_landmarks_at_starts": [run["archived_landmarks_at_starts"] for run in start_runs],
+        "all_starts": start_summary(starts),
         **{
             f"starts_within_{offset}m": start_summary(
-                [
-                    s
-                    for run in doc["start_runs"]
-                    if run["start_offset_m"] == offset
-                    for s in run["starts"]
-                ]
+                [s for run in start_runs if run["start_offset_m"] == offset for s in run["starts"]]
             )
             for offset in offsets
         },
-        "unmapped_starts": sum(len(run["unmapped_starts"]) for run in doc["start_runs"]),
+        "unmapped_starts": sum(len(run["unmapped_starts"]) for run in start_runs),
         "unmapped_starts_relocalised_falsely": sum(
-            s["relocalised_frame"] is not None
-            for run in doc["start_runs"]
-            for s in run["unmapped_starts"]
+            s["relocalised_frame"] is not None for run in start_runs for s in run["unmapped_starts"]
         ),
-        **kidnap_summary(doc),
+        **kidnap_summary(start_runs, kidnap_runs),
     }
 
 
@@ -248,8 +315,15 @@ def start_summary(starts: list[dict[str, Any]]) -> dict[str, Any]:
     ]
     found = [s for s in starts if s["relocalised_frame"] is not None]
     good = [s for s in found if s["error_m"] <= 0.3 and s["error_deg"] <= 10.0]
+    success = [s["success_frame"] for s in starts if s["success_frame"] is not None]
     return {
         "starts": len(starts),
+        "success_held": len(success),
+        "success_percent": 100.0 * len(success) / len(starts) if starts else None,
+        "success_frames_median": float(np.median(success)) if success else None,
+        "success_frames_max": max(success, default=None),
+        "wrong_convergences": sum(s["wrong_convergences"] for s in starts),
+        "starts_with_wrong_convergence": sum(s["wrong_convergences"] > 0 for s in starts),
         "relocalised": len(found),
         "relocalised_within_0.3m_10deg": len(good),
         "frames_to_relocalise_median": float(np.median([s["relocalised_frame"] for s in found]))
@@ -265,8 +339,7 @@ def start_summary(starts: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def kidnap_summary(doc: dict[str, Any]) -> dict[str, Any]:
-    kid = doc["kidnap_runs"]
+def kidnap_summary(start_runs: list[dict[str, Any]], kid: list[dict[str, Any]]) -> dict[str, Any]:
     lost = [k["frames_to_lost"] for k in kid if k["frames_to_lost"] is not None]
     back = [k["frames_to_relocalised"] for k in kid if k["frames_to_relocalised"] is not None]
     return {
@@ -276,14 +349,15 @@ def kidnap_summary(doc: dict[str, Any]) -> dict[str, Any]:
         "kidnap_frames_to_lost": lost,
         "kidnap_frames_to_relocalised": back,
         "kidnap_lost_before_jump": sum(k["lost_before_jump"] for k in kid),
+        "kidnap_error_m_end": [k["error_m_end"] for k in kid],
         "kidnap_error_m_after_max": max(
             (k["error_m_after_max"] for k in kid if "error_m_after_max" in k), default=None
         ),
         "tracked_frame_localise_cpu_ms_median": float(
-            np.median([r["mapping_localise_cpu_ms_median"] for r in doc["start_runs"]])
+            np.median([r["mapping_localise_cpu_ms_median"] for r in start_runs])
         ),
         "tracked_frame_localise_cpu_ms_p90_max": max(
-            r["mapping_localise_cpu_ms_p90"] for r in doc["start_runs"]
+            r["mapping_localise_cpu_ms_p90"] for r in start_runs
         ),
     }
 
@@ -292,7 +366,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     parser.add_argument("--starts", type=int, default=4, help="new robots per seed")
-    parser.add_argument("--frames", type=int, default=15, help="frames per new robot")
+    parser.add_argument("--frames", type=int, default=30, help="frames per new robot")
+    parser.add_argument(
+        "--caps",
+        nargs="*",
+        default=["none", "40"],
+        help="landmark caps, one bench each (none: uncapped)",
+    )
+    parser.add_argument(
+        "--live-only",
+        action="store_true",
+        help="the filter weighs live landmarks only (ablation: no archived landmarks)",
+    )
+    parser.add_argument("--tolerance", type=float, nargs=2, default=list(TOLERANCE))
+    parser.add_argument("--hold", type=int, default=HOLD_FRAMES)
     parser.add_argument(
         "--start-offset-m",
         type=float,
@@ -311,9 +398,14 @@ def main() -> None:
         "start_runs": [],
         "kidnap_runs": [],
     }
+    if args.live_only:
+        # The localiser as it was before archived landmarks: live ones only.
+        map_pipeline.localisation_landmarks = landmark_map
+    caps = [None if c == "none" else int(c) for c in args.caps]
+    tolerance = (args.tolerance[0], args.tolerance[1])
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in args.seeds:
+        for seed, cap in itertools.product(args.seeds, caps):
             world = scene(seed)
             for offset in args.start_offset_m:
                 run = run_starts(
@@ -323,12 +415,15 @@ def main() -> None:
                     frames=args.frames,
                     offset_m=offset,
                     tmp=Path(tmp),
+                    cap=cap,
+                    tolerance=tolerance,
+                    hold=args.hold,
                 )
                 doc["start_runs"].append(run)
                 print(json.dumps({k: v for k, v in run.items() if k != "starts"}))
                 for s in run["starts"]:
                     print(json.dumps({k: v for k, v in s.items() if k != "statuses"}))
-            kid = run_kidnap(world, seed=seed, frames=args.kidnap_frames, tmp=Path(tmp))
+            kid = run_kidnap(world, seed=seed, frames=args.kidnap_frames, tmp=Path(tmp), cap=cap)
             doc["kidnap_runs"].append(kid)
             print(json.dumps({k: v for k, v in kid.items() if k != "statuses"}))
     doc["seconds"] = time.perf_counter() - t0
@@ -336,7 +431,8 @@ def main() -> None:
     doc["summary"] = summary(doc)
     print(json.dumps(doc["summary"], indent=1))
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "camera_localisation.json").write_text(json.dumps(doc, indent=1))
+    name = "camera_localisation_live_only" if args.live_only else "camera_localisation"
+    (args.out / f"{name}.json").write_text(json.dumps(doc, indent=1))
 
 
 if __name__ == "__main__":

@@ -18,8 +18,15 @@ Per frame:
    sighting when the robot had no tracks (`report_when_trackless`).
 2. `commit(association, pose=..., live_labels=...)` after the estimator processed
    the frame: stores new views of matched landmarks, extends, starts and ends
-   tracks, promotes tracks whose label became a landmark, and forgets the
-   landmarks that are no longer live (marginalised).
+   tracks, promotes tracks whose label became a landmark, and moves the views of
+   landmarks that are no longer live (marginalised) to its archive.
+
+The archive of views: a landmark the estimator removed keeps its descriptor views
+here, under its label, for the place localiser (a robot that does not know where it
+is matches its features to live and archived landmarks alike: `match_without_pose`,
+and `associate` when given archived positions). The graph's own association is
+given live landmarks only, so an archived label never comes back into the graph.
+It grows with distinct landmarks, as the estimator's archive does.
 
 Labels of new tracks are ``f"{label_prefix}{n:06d}"`` with n counting up; a label
 is never reused.
@@ -287,29 +294,47 @@ class Associator:
     def __init__(self, config: AssociationConfig | None = None) -> None:
         self.config = config or AssociationConfig()
         self._landmarks: dict[str, _Landmark] = {}
+        self._archived: dict[str, _Landmark] = {}
+        """Views of landmarks no longer live (module docstring)."""
         self._tracks: dict[str, list[_Track]] = {}
         self._next_track = 0
         self._last_fit: dict[str, float] = {}
         self._last_lateral: dict[str, float] = {}
         self._last_contested: IntArray = np.zeros(0, dtype=np.int64)
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # A snapshot pickled before the archive of views existed has none.
+        state.setdefault("_archived", {})
+        self.__dict__.update(state)
+
     @property
     def known_landmarks(self) -> int:
         return len(self._landmarks)
+
+    @property
+    def archived_landmarks(self) -> int:
+        """Labels whose views the archive holds (landmarks no longer live)."""
+        return len(self._archived)
+
+    def _record(self, label: str) -> _Landmark | None:
+        """A live landmark's views, else an archived one's (None: no views)."""
+        lm = self._landmarks.get(label)
+        return self._archived.get(label) if lm is None else lm
 
     def track_count(self, robot: str) -> int:
         return len(self._tracks.get(robot, []))
 
     def has_views(self) -> bool:
-        """Some landmark has a stored descriptor (a pose-free match can find it)."""
-        return any(lm.descriptors for lm in self._landmarks.values())
+        """Some landmark, live or archived, has a stored descriptor (a pose-free match can
+        find it)."""
+        return any(lm.descriptors for lm in (*self._landmarks.values(), *self._archived.values()))
 
     def views_of(self, labels: Sequence[str]) -> list[NDArray[Any]]:
-        """``(V, D)`` stored descriptor views of each label (``(0, 0)`` for a label the
-        associator holds no view of)."""
+        """``(V, D)`` stored descriptor views of each label, live or archived (``(0, 0)``
+        for a label the associator holds no view of)."""
         out: list[NDArray[Any]] = []
         for label in labels:
-            lm = self._landmarks.get(label)
+            lm = self._record(label)
             out.append(np.stack(lm.descriptors) if lm and lm.descriptors else np.zeros((0, 0)))
         return out
 
@@ -345,7 +370,9 @@ class Associator:
         pose_cov: ArrayLike | None,
         landmarks: Mapping[str, LandmarkEstimate],
     ) -> Association:
-        """Label the features of one frame (nothing is changed until `commit`)."""
+        """Label the features of one frame (nothing is changed until `commit`).
+        `landmarks` may name archived landmarks (at their archived positions): they are
+        matched by their archived views."""
         pose = np.asarray(predicted_pose, dtype=np.float64)
         cov = np.zeros((3, 3)) if pose_cov is None else np.asarray(pose_cov, dtype=np.float64)
         n = len(features)
@@ -433,11 +460,13 @@ class Associator:
         the other landmarks have pinned the pose down.
         """
         cfg = self.config
-        labels = [lb for lb in landmarks if lb in self._landmarks]
-        if not labels or len(features) == 0:
+        found = [(lb, self._record(lb)) for lb in landmarks]
+        known = [(lb, lm) for lb, lm in found if lm is not None]
+        if not known or len(features) == 0:
             return {}
+        labels = [lb for lb, _ in known]
+        records = [lm for _, lm in known]
         xy = np.array([landmarks[lb][0] for lb in labels], dtype=np.float64).reshape(-1, 2)
-        records = [self._landmarks[lb] for lb in labels]
         lcov = self._prior_covs(records)
         for i, lb in enumerate(labels):
             given = landmarks[lb][1]
@@ -622,12 +651,16 @@ class Associator:
         pose: ArrayLike,
         live_labels: Collection[str],
         landmark_xy: Mapping[str, ArrayLike] | None = None,
+        removed_labels: Collection[str] = (),
     ) -> None:
         """Update descriptors and tracks after the estimator processed the frame.
 
         `pose`: the frame's pose estimate (3,). `live_labels`: the labels of every
         live landmark after the frame. `landmark_xy`: positions of (some) live
         landmarks, used to learn their height for the elevation gate.
+        `removed_labels`: the landmarks the estimator removed this frame; one removed
+        before its track was promoted (the frame that made it a landmark) has its
+        track's views archived (the track goes on as before).
         """
         cfg = self.config
         feats = association.features
@@ -679,7 +712,10 @@ class Associator:
                 self._add_track_view(t, feats, c, here)
             if t.label in live:
                 self._promote(t, here, positions.get(t.label))
-            elif t.missed <= cfg.track_max_missed:
+                continue
+            if t.label in removed_labels and self._record(t.label) is None:
+                self._archived[t.label] = self._landmark_of(t, here, None)
+            if t.missed <= cfg.track_max_missed:
                 kept.append(t)
         # The labels `associate` reported for new tracks, the next ones in order (if another
         # association of this map was committed in between, these are later ones: unique).
@@ -697,7 +733,9 @@ class Associator:
             kept.append(t)
         self._tracks[association.robot] = kept
         for label in [lb for lb in self._landmarks if lb not in live]:
-            del self._landmarks[label]
+            self._archived[label] = self._landmarks.pop(label)
+        for label in [lb for lb in self._archived if lb in live]:  # restored by label
+            self._landmarks.setdefault(label, self._archived.pop(label))
 
     def _add_track_view(self, t: _Track, feats: Features, c: int, here: FloatArray) -> None:
         world = float(here[2] + feats.bearing_rad[c])
@@ -711,6 +749,11 @@ class Associator:
 
     def _promote(self, t: _Track, here: FloatArray, xy: ArrayLike | None) -> None:
         """A track's label became a live landmark: it keeps the track's views."""
+        self._landmarks[t.label] = self._landmark_of(t, here, xy)
+
+    @staticmethod
+    def _landmark_of(t: _Track, here: FloatArray, xy: ArrayLike | None) -> _Landmark:
+        """The landmark record of a track's views (its height from `xy`, if given)."""
         lm = _Landmark()
         views = t.views or [(t.descriptor, here, t.bearing)]
         for desc, p, b in views:
@@ -721,7 +764,7 @@ class Associator:
             d = math.hypot(p[0] - t.origin[0], p[1] - t.origin[1])
             lm.height_m = d * math.tan(t.elevation)
             lm.height_n = 1
-        self._landmarks[t.label] = lm
+        return lm
 
     @staticmethod
     def _learn_height(

@@ -10,6 +10,7 @@ Document (version 1)::
     {"version": 1, "descriptor": {"dtype": "uint8", "length": 32}, "next_track": 812,
      "landmarks": [{"label": "t000017", "descriptors": ["<b64>", ...],
                     "view_angles": [rad, ...], "height_m": 0.4 | null, "height_n": 3}],
+     "archived": [same as landmarks: the views of landmarks no longer live; optional],
      "tracks": {"r1": [{"label", "descriptor", "origin": [x, y, theta], "bearing",
                         "elevation", "length", "missed",
                         "views": [{"descriptor", "pose": [x, y, theta], "bearing"}]}]}}
@@ -40,7 +41,11 @@ def _encode(desc: NDArray[Any]) -> str:
 def associator_to_doc(assoc: Associator) -> dict[str, Any]:
     """The associator's landmark views, tracks and label counter as JSON-ready data."""
     sample = next(
-        (d for lm in assoc._landmarks.values() for d in lm.descriptors),
+        (
+            d
+            for lm in (*assoc._landmarks.values(), *assoc._archived.values())
+            for d in lm.descriptors
+        ),
         next((t.descriptor for ts in assoc._tracks.values() for t in ts), None),
     )
     dtype = "uint8" if sample is None or sample.dtype == np.uint8 else "float32"
@@ -49,18 +54,8 @@ def associator_to_doc(assoc: Associator) -> dict[str, Any]:
         "version": STATE_VERSION,
         "descriptor": {"dtype": dtype, "length": length},
         "next_track": assoc._next_track,
-        "landmarks": [
-            {
-                "label": label,
-                "descriptors": [_encode(d) for d in lm.descriptors],
-                "view_angles": [float(a) for a in lm.view_angles],
-                "height_m": lm.height_m,
-                "height_n": lm.height_n,
-                "lateral_m2": lm.lateral_m2,
-                "lateral_n": lm.lateral_n,
-            }
-            for label, lm in assoc._landmarks.items()
-        ],
+        "landmarks": [_landmark_doc(label, lm) for label, lm in assoc._landmarks.items()],
+        "archived": [_landmark_doc(label, lm) for label, lm in assoc._archived.items()],
         "tracks": {
             robot: [
                 {
@@ -80,6 +75,18 @@ def associator_to_doc(assoc: Associator) -> dict[str, Any]:
             ]
             for robot, tracks in assoc._tracks.items()
         },
+    }
+
+
+def _landmark_doc(label: str, lm: _Landmark) -> dict[str, Any]:
+    return {
+        "label": label,
+        "descriptors": [_encode(d) for d in lm.descriptors],
+        "view_angles": [float(a) for a in lm.view_angles],
+        "height_m": lm.height_m,
+        "height_n": lm.height_n,
+        "lateral_m2": lm.lateral_m2,
+        "lateral_n": lm.lateral_n,
     }
 
 
@@ -145,6 +152,24 @@ class _Reader:
         return desc
 
 
+def _read_landmark(r: _Reader, item: Any, path: str) -> tuple[str, _Landmark]:
+    item = r.obj(item, path)
+    label = r.label(item.get("label"), f"{path}.label")
+    descs = r.lst(item.get("descriptors"), f"{path}.descriptors")
+    angles = r.lst(item.get("view_angles"), f"{path}.view_angles")
+    if len(descs) != len(angles) or not descs:
+        raise ValueError(f"{path}: descriptors and view_angles: same non-zero length")
+    height = item.get("height_m")
+    return label, _Landmark(
+        descriptors=[r.descriptor(d, f"{path}.descriptors[{k}]") for k, d in enumerate(descs)],
+        view_angles=[r.num(a, f"{path}.view_angles[{k}]") for k, a in enumerate(angles)],
+        height_m=None if height is None else r.num(height, f"{path}.height_m"),
+        height_n=r.count(item.get("height_n"), f"{path}.height_n"),
+        lateral_m2=max(0.0, r.num(item.get("lateral_m2", 0.0), f"{path}.lateral_m2")),
+        lateral_n=max(0.0, r.num(item.get("lateral_n", 0.0), f"{path}.lateral_n")),
+    )
+
+
 def associator_from_doc(doc: Any, config: AssociationConfig | None = None) -> Associator:
     """An associator from `associator_to_doc`'s document; ValueError naming a bad field."""
     r = _Reader(np.uint8, 0)
@@ -157,23 +182,13 @@ def associator_from_doc(doc: Any, config: AssociationConfig | None = None) -> As
     r = _Reader(_DTYPES[spec["dtype"]], r.count(spec.get("length"), "associator.descriptor.length"))
     out = Associator(config)
     out._next_track = r.count(doc.get("next_track"), "associator.next_track")
-    for i, item in enumerate(r.lst(doc.get("landmarks"), "associator.landmarks")):
-        path = f"associator.landmarks[{i}]"
-        item = r.obj(item, path)
-        label = r.label(item.get("label"), f"{path}.label")
-        descs = r.lst(item.get("descriptors"), f"{path}.descriptors")
-        angles = r.lst(item.get("view_angles"), f"{path}.view_angles")
-        if len(descs) != len(angles) or not descs:
-            raise ValueError(f"{path}: descriptors and view_angles: same non-zero length")
-        height = item.get("height_m")
-        out._landmarks[label] = _Landmark(
-            descriptors=[r.descriptor(d, f"{path}.descriptors[{k}]") for k, d in enumerate(descs)],
-            view_angles=[r.num(a, f"{path}.view_angles[{k}]") for k, a in enumerate(angles)],
-            height_m=None if height is None else r.num(height, f"{path}.height_m"),
-            height_n=r.count(item.get("height_n"), f"{path}.height_n"),
-            lateral_m2=max(0.0, r.num(item.get("lateral_m2", 0.0), f"{path}.lateral_m2")),
-            lateral_n=max(0.0, r.num(item.get("lateral_n", 0.0), f"{path}.lateral_n")),
-        )
+    for key in ("landmarks", "archived"):
+        if key == "archived" and key not in doc:
+            continue  # a document from before the archive of views
+        into = out._landmarks if key == "landmarks" else out._archived
+        for i, item in enumerate(r.lst(doc.get(key), f"associator.{key}")):
+            label, lm = _read_landmark(r, item, f"associator.{key}[{i}]")
+            into[label] = lm
     for robot, tracks in r.obj(doc.get("tracks"), "associator.tracks").items():
         kept: list[_Track] = []
         for i, item in enumerate(r.lst(tracks, f"associator.tracks.{robot}")):

@@ -97,10 +97,15 @@ class FrontEnd:
         pose: ArrayLike,
         live_labels: Collection[str],
         landmark_xy: Mapping[str, ArrayLike] | None = None,
+        removed_labels: Collection[str] = (),
     ) -> None:
         """Record what the estimator made of the frame (see Associator.commit)."""
         self.associator.commit(
-            association, pose=pose, live_labels=live_labels, landmark_xy=landmark_xy
+            association,
+            pose=pose,
+            live_labels=live_labels,
+            landmark_xy=landmark_xy,
+            removed_labels=removed_labels,
         )
 
     def describe(self) -> dict[str, Any]:

@@ -262,7 +262,15 @@ class ImageFrontEnd:
         near = [(lb, i) for lb, i in live.items() if lb in touched]
         xy_near = slam.landmark_positions([i for _, i in near])
         positions = {lb: p for (lb, _), p in zip(near, xy_near, strict=True)}
-        self.front_end.commit(association, pose=pose, live_labels=live, landmark_xy=positions)
+        archived = (slam.archive.get(i) for i in outcome.marginalised)
+        removed = {entry.label for entry in archived if entry is not None}
+        self.front_end.commit(
+            association,
+            pose=pose,
+            live_labels=live,
+            landmark_xy=positions,
+            removed_labels=removed,
+        )
         if signature is not None:
             state.signature = signature
         t4 = time.perf_counter()

@@ -53,6 +53,20 @@ def landmark_map(slam: BearingSlam) -> dict[str, FloatArray]:
     return {rec.label: slam.landmark_position(lid) for lid, rec in slam.landmarks.items()}
 
 
+def localisation_landmarks(slam: BearingSlam) -> dict[str, FloatArray]:
+    """label -> (2,) map position of the landmarks a camera map's filter weighs: the live
+    ones (at the graph's estimate) and the archived ones (at their archived estimate),
+    whose descriptor views the front end keeps (frontend.association): a robot that
+    returns to a place whose landmarks the cap removed still recognises it."""
+    out = {
+        entry.label: np.array(entry.position, dtype=np.float64)
+        for entry in slam.archive
+        if entry.id not in slam.landmarks
+    }
+    out.update(landmark_map(slam))
+    return out
+
+
 def landmark_covariances(slam: BearingSlam) -> dict[str, FloatArray]:
     """label -> (2, 2) marginal covariance of every live landmark (one joint marginal)."""
     ids = sorted(slam.landmarks)

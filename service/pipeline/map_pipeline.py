@@ -26,7 +26,10 @@ matches, and the filter's injection proposals come from the appearance places th
 recognition ranks highest. Before such a robot is relocalised, the pose-gated
 association run from the filter's estimate must match enough landmarks (look-alike
 posters of an unmapped room can draw the filter to a pose their pose-free matches fit
-by chance); if not, the filter searches afresh.
+by chance); if not, the filter searches afresh. In a camera map the filter's landmarks
+are the live ones and the archived ones (at their archived estimates, matched by the
+views the front end archived with them): a cap removes landmarks from the graph, not
+from what a returning robot can recognise.
 
 The observations a frame is recorded with (a map export carries them): the
 association's for an image frame the graph took, the pose-free matches the filter
@@ -57,7 +60,7 @@ from graph.snapshot import last_accepted
 from graph.types import BearingObservation, FrameInput, Pose2D
 from service.pipeline.covariance import to_map_frame, to_robot_frame
 from service.pipeline.images import ImageFrontEnd
-from service.pipeline.localiser import PlaceLocaliser, landmark_map
+from service.pipeline.localiser import PlaceLocaliser, landmark_map, localisation_landmarks
 from service.pipeline.robots import RobotState
 
 __all__ = ["FrameStep", "ImageFeatures", "MapPipeline"]
@@ -287,7 +290,9 @@ class MapPipeline:
         graph: _GraphStep | None,
     ) -> _FilterInput:
         """What the filter weighs of the frame (see the module docstring)."""
-        landmarks = landmark_map(self.slam)  # with the frame's new ones
+        # With the frame's new ones; a camera map's archived landmarks too.
+        slam = self.slam
+        landmarks = landmark_map(slam) if self.images is None else localisation_landmarks(slam)
         if image is None:
             return _FilterInput(frame.observations, landmarks=landmarks)
         assert self.images is not None and self.localiser is not None
@@ -470,11 +475,15 @@ def _spread(n: int, limit: int) -> NDArray[np.int64]:
 
 def _starved(robot: RobotState, matches: int) -> bool:
     """Whether a tracked frame with `matches` pose-gated landmark matches is starved
-    (see STARVED_SHARE); the robot's running average takes the frame in."""
+    (see STARVED_SHARE); the robot's running average takes the frame in unless it is
+    starved: a robot carried elsewhere stays starved until the filter has found it
+    (a capped camera map, ~17 matches a frame: the average decayed below
+    STARVED_MIN_AVERAGE two frames after the jump, and the kidnap went unnoticed)."""
     average = robot.landmark_matches
     starved = (
         average is not None and average >= STARVED_MIN_AVERAGE and matches < STARVED_SHARE * average
     )
-    n = float(matches)
-    robot.landmark_matches = n if average is None else average + AVERAGE_RATE * (n - average)
+    if not starved:
+        n = float(matches)
+        robot.landmark_matches = n if average is None else average + AVERAGE_RATE * (n - average)
     return starved

@@ -247,7 +247,7 @@ def test_a_new_track_label_stays_unique_when_another_association_was_committed_f
     assert len(set(labels)) == 2
 
 
-def test_promoted_track_becomes_a_landmark_and_is_forgotten_when_marginalised() -> None:
+def test_promoted_track_becomes_a_landmark_and_is_archived_when_marginalised() -> None:
     rng = np.random.default_rng(4)
     descs = rng.integers(0, 256, (2, 32), dtype=np.uint8)
     assoc = Associator()
@@ -270,9 +270,13 @@ def test_promoted_track_becomes_a_landmark_and_is_forgotten_when_marginalised() 
         landmarks={first: (xy, None)},
     )
     assert list(r.landmark_matches) == [first]
-    # The graph marginalised it: its descriptors are forgotten.
+    # The graph marginalised it: its views move to the archive, out of the association.
     assoc.commit(r, pose=(0, 0, 0), live_labels=())
-    assert assoc.known_landmarks == 0
+    assert assoc.known_landmarks == 0 and assoc.archived_landmarks == 1
+    again = assoc.associate(
+        f, robot="r1", predicted_pose=(0, 0, 0), pose_cov=np.diag([1e-4] * 3), landmarks={}
+    )
+    assert not again.landmark_matches
 
 
 def test_at_most_one_observation_per_landmark_and_per_feature() -> None:

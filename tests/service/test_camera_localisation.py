@@ -58,8 +58,9 @@ def newcomer(world: TexturedWorld, mapping: Leg) -> Leg:
     return render_leg(world, straight(start, 12), robot="r2", rng=np.random.default_rng(SEED))
 
 
-def _session(path: Path, every: int = 10**6) -> MapSession:
-    record = MapRecord("cam", "cam", "mapping", CONFIG, time.time())
+def _session(path: Path, every: int = 10**6, cap: int | None = None) -> MapSession:
+    config = CONFIG if cap is None else {**CONFIG, "landmark_cap": cap}
+    record = MapRecord("cam", "cam", "mapping", config, time.time())
     return MapSession.create(path, record, StoreSettings(snapshot_every=every))
 
 
@@ -129,10 +130,42 @@ def test_a_camera_robot_without_initial_pose_is_relocalised_from_its_images(
     session.close()
 
 
-def test_a_kidnapped_camera_robot_goes_lost_and_recovers(
-    tmp_path: Path, world: TexturedWorld, mapping: Leg
+def test_a_camera_robot_is_relocalised_where_the_cap_archived_the_landmarks(
+    tmp_path: Path, mapping: Leg, newcomer: Leg
 ) -> None:
-    session = _session(tmp_path / "cam.sqlite")
+    """A cap of 30: by the time r2 starts most landmarks are archived; the localiser
+    matches them by the views the front end archived with them, at their archived
+    positions."""
+    session = _session(tmp_path / "cam.sqlite", cap=30)
+    _post(session, mapping)
+    live = {rec.label for rec in session.slam.landmarks.values()}
+    archived = {entry.label for entry in session.slam.archive}
+    assert len(live) <= 30 and len(archived) > 3 * len(live)
+    assert session.pipeline.images is not None
+    assert session.pipeline.images.front_end.associator.archived_landmarks == len(archived)
+
+    results = _post(session, newcomer)
+    statuses = [r["localisation"]["status"] for r in results]
+    k = statuses.index(RELOCALISED)
+    assert k + 1 <= RELOCALISE_WITHIN, statuses
+    for r, t in zip(results[k:], newcomer.truth[k:], strict=True):
+        e_m, e_deg = pose_error(r["pose"], t)
+        assert e_m < 0.3 and e_deg < 10.0, (r["seq"], e_m, e_deg)
+    # The searching frames' pose-free matches are mostly archived landmarks.
+    first = next(f for f in session.store.frames_after(0) if f.robot == "r2")
+    observed = [o["label"] for o in session.store.image_observations(first.id) or []]
+    assert len(observed) >= 10
+    assert sum(label in archived for label in observed) > len(observed) / 2
+    session.close()
+
+
+@pytest.mark.parametrize("cap", [None, 40], ids=["uncapped", "cap40"])
+def test_a_kidnapped_camera_robot_goes_lost_and_recovers(
+    tmp_path: Path, world: TexturedWorld, mapping: Leg, cap: int | None
+) -> None:
+    """With a cap of 40 most landmarks are archived and a tracked frame matches ~17:
+    the kidnap must still starve the frames until the filter finds the robot."""
+    session = _session(tmp_path / "cam.sqlite", cap=cap)
     _post(session, mapping)
     end = mapping.truth[-1]
     before = straight(end, 8)
