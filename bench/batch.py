@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 
 from graph.angles import wrap_angles
 from graph.config import SlamConfig
@@ -40,6 +41,9 @@ class BatchResult:
     """The solution's landmark positions (x, y metres) by label."""
     per_start: dict[str, BatchResult] = field(default_factory=dict)
     """The winner only: the solution from every starting point that converged, by name."""
+    landmark_cov: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    """With `batch_solve(..., covariances=True)`, the winner's landmark marginal
+    covariances (2x2, m^2) by label (gtsam.Marginals of the whole graph)."""
 
 
 def _xy(point: np.ndarray) -> tuple[float, float]:
@@ -76,10 +80,12 @@ def batch_solve(
     config: SlamConfig,
     *,
     online: Trajectory | dict[str, Trajectory] | None = None,
+    covariances: bool = False,
 ) -> BatchResult:
     """Optimise all frames of one robot at once, from dead reckoning and from each
     online estimate given; the solution with the lowest graph error wins (LM finds a
-    local minimum, and a bearing-only graph has bad ones)."""
+    local minimum, and a bearing-only graph has bad ones). `covariances`: the winner
+    also carries its landmarks' marginal covariances."""
     dr = dead_reckoning(frames)
     # Every ray of a label: (frame index, bearing, sigma); origins come from the start.
     rays: dict[str, list[tuple[int, float, float]]] = {}
@@ -95,6 +101,7 @@ def batch_solve(
         starts.update({f"online_{name}": t for name, t in online.items()})
     labels: dict[str, int] = {}
     solved: dict[str, BatchResult] = {}
+    problems: dict[str, tuple[gtsam.NonlinearFactorGraph, gtsam.Values, dict[str, int]]] = {}
     for name, start in starts.items():
         values = gtsam.Values()
         for k in range(len(frames)):
@@ -146,8 +153,18 @@ def batch_solve(
             },
         )
         solved[name] = result
+        problems[name] = (graph, est, labels)
         labels = {}
     if not solved:
         raise RuntimeError("batch optimisation failed from every starting point")
     best = min(solved.values(), key=lambda r: r.cost)
-    return replace(best, per_start=solved)
+    cov: dict[str, NDArray[np.float64]] = {}
+    if covariances:
+        graph, est, used = problems[best.start]
+        marginals = gtsam.Marginals(graph, est)
+        cov = {
+            label: np.asarray(marginals.marginalCovariance(landmark_key(i)), dtype=np.float64)
+            for label, i in used.items()
+            if est.exists(landmark_key(i))
+        }
+    return replace(best, per_start=solved, landmark_cov=cov)
