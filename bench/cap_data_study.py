@@ -44,18 +44,17 @@ import dataclasses
 import json
 import logging
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench.batch import batch_solve
 from bench.lifelong import machine_info
+from bench.mrclam_cli import mrclam_parser, parse_mrclam
 from graph.config import SlamConfig
 from graph.slam import BearingSlam, RemovalRecord
 from graph.types import FrameInput
 from service.offline.datasets.mrclam import (
-    default_mrclam_dir,
     load_mrclam,
     mrclam_frames,
     mrclam_noise,
@@ -168,20 +167,13 @@ def run_robot(robot: int, args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--robots", default="1,2,3,4,5")
+    parser = mrclam_parser(__doc__)
     parser.add_argument("--cap", type=int, default=8)
     parser.add_argument("--policy", default="coverage")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--subsets", type=int, default=3, help="random fixed subsets per robot")
     parser.add_argument("--ray-frames", type=int, default=150)
-    parser.add_argument("--data", type=Path, default=default_mrclam_dir())
-    parser.add_argument("--out", type=Path, default=Path("bench/results"))
-    parser.add_argument("--jobs", type=int, default=2)
-    args = parser.parse_args()
-    if not args.data.is_dir():
-        raise SystemExit(f"MRCLAM data not found at {args.data} (set COVSLAM_DATA)")
-    robots = [int(r) for r in args.robots.split(",")]
+    args, robots = parse_mrclam(parser)
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = list(pool.map(run_robot, robots, [args] * len(robots)))
     keys = ("online", "batch_all", "batch_same_data", *FIXED_SUBSET_KEYS)

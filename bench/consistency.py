@@ -16,7 +16,6 @@ the reference for what the data allows.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -28,8 +27,9 @@ import numpy as np
 from bench.batch import batch_solve
 from bench.lifelong import machine_info
 from bench.mrclam_accuracy import CAP, _frames, _noise
+from bench.mrclam_cli import mrclam_parser, parse_mrclam
 from graph.config import SlamConfig
-from service.offline.datasets.mrclam import default_mrclam_dir, surveyed_landmarks
+from service.offline.datasets.mrclam import surveyed_landmarks
 from service.offline.replay import replay
 
 CHI2_2_95 = 5.991
@@ -79,15 +79,7 @@ def run(robot: int, directory: Path) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--robots", default="1,2,3,4,5")
-    parser.add_argument("--data", type=Path, default=default_mrclam_dir())
-    parser.add_argument("--out", type=Path, default=Path("bench/results"))
-    parser.add_argument("--jobs", type=int, default=2)
-    args = parser.parse_args()
-    if not args.data.is_dir():
-        raise SystemExit(f"MRCLAM data not found at {args.data} (set COVSLAM_DATA)")
-    robots = [int(r) for r in args.robots.split(",")]
+    args, robots = parse_mrclam(mrclam_parser(__doc__))
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = dict(
