@@ -176,7 +176,8 @@ class SlamConfig:
     """What a marginal factor linking more than max_linked_keyframes keyframes becomes:
     "thin_keyframes" marginalises its oldest keyframes (map detail is lost);
     "chow_liu" replaces it by its Chow-Liu tree (graph.sparsify), one binary factor per
-    tree edge, and keeps every keyframe (bounded by max_keyframes and their spacing)."""
+    tree edge, and keeps every keyframe (bounded by max_keyframes and their spacing);
+    a factor whose tree would lose a direction it observes is thinned instead."""
     max_landmark_factors: int | None = None
     """Most bearing factors on live landmarks added per frame; None = one per observation.
     Beyond it, the observed landmarks whose last factor is oldest get one (ties spread

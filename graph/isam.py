@@ -33,6 +33,7 @@ in 747 Schur marginalisations; the leaf route's failures by variant).
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterable, Sequence
 from itertools import chain
 
@@ -104,6 +105,8 @@ class IncrementalGraph:
         """Keys of every marginal factor added since the caller last cleared this."""
         self.sparsifications = 0
         """Marginal factors replaced by their Chow-Liu tree (see `update`'s `sparsify`)."""
+        self.sparsifications_refused = 0
+        """Marginal factors kept exact because their tree would lose a direction."""
         self.sparsification_kl: list[float] | None = None
         """Set to a list, KL(exact || tree) in nats of every later sparsification is
         appended to it (an evaluation's measure: one eigen-decomposition more each)."""
@@ -404,10 +407,12 @@ class IncrementalGraph:
             factor = remaining.at(i)
             if factor is None or len(factor.keys()) == 0:
                 continue
-            if sparsify is not None and sparsify(list(factor.keys())):
-                marginals.extend(self._tree_of(factor, keys))
-                continue
-            marginals.append(self._wrap(factor, keys))
+            tree = (
+                self._tree_of(factor, keys)
+                if sparsify is not None and sparsify(list(factor.keys()))
+                else None
+            )
+            marginals.extend(tree if tree is not None else [self._wrap(factor, keys)])
         return indices, marginals
 
     def _wrap(
@@ -430,24 +435,36 @@ class IncrementalGraph:
 
     def _tree_of(
         self, factor: gtsam.GaussianFactor, marginalised: Sequence[int]
-    ) -> list[gtsam.NonlinearFactor]:
+    ) -> list[gtsam.NonlinearFactor] | None:
         """The Chow-Liu tree of a linear marginal (graph.sparsify), one factor per edge
         (and the root's marginal), each kept as the marginal itself would be (`_wrap`), so
-        that they are relinearised and keep their absolute part where they have one."""
+        that they are relinearised and keep their absolute part where they have one;
+        None when the tree would lose a direction the marginal observes (infinite KL)."""
         linear, tree = tree_factors(factor)
+        exact = np.asarray(factor.information(), dtype=np.float64)
+        kl = kl_divergence(exact, tree.information[:-1, :-1])
+        if not math.isfinite(kl):
+            # The tree loses a direction the marginal observes (three rays of a landmark
+            # constrain three viewpoints, no pair of them does) and can leave a pose
+            # unconstrained: iSAM2 then refuses the system even with QR (MRCLAM-6
+            # robot 5 at cap 8, policy coverage_paper, seed 2). The marginal stays exact
+            # (BearingSlam thins its keyframes instead).
+            self.sparsifications_refused += 1
+            return None
         self.sparsifications += 1
         if self.sparsification_kl is not None:
-            exact = np.asarray(factor.information(), dtype=np.float64)
-            self.sparsification_kl.append(kl_divergence(exact, tree.information[:-1, :-1]))
+            self.sparsification_kl.append(kl)
         return [self._wrap(f, marginalised) for f in linear]
 
     def sparsify_marginals(
         self, key_sets: Iterable[Sequence[int]], sparsify: Callable[[Sequence[int]], bool]
-    ) -> None:
+    ) -> list[tuple[int, ...]]:
         """Replace every factor in the graph over one of `key_sets` for which `sparsify`
         is true (a marginal whose keys became more keyframes) by its Chow-Liu tree, at
-        its linearisation at theta, in one update."""
+        its linearisation at theta, in one update. Returns the key sets of the factors
+        kept as they were because their tree would lose a direction (see `_tree_of`)."""
         drop: set[int] = set()
+        refused: list[tuple[int, ...]] = []
         trees: list[gtsam.NonlinearFactor] = []
         for keys in key_sets:
             if not keys or not sparsify(keys):
@@ -457,7 +474,12 @@ class IncrementalGraph:
                 factor = self._factors[index]
                 if len(factor.keys()) != len(keys):
                     continue
+                tree = self._tree_of(factor.linearize(self._theta), keys)
+                if tree is None:
+                    refused.append(tuple(keys))
+                    continue
                 drop.add(index)
-                trees.extend(self._tree_of(factor.linearize(self._theta), keys))
+                trees.extend(tree)
         if drop:
             self.update(trees, drop=sorted(drop))
+        return refused

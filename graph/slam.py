@@ -1016,14 +1016,14 @@ class BearingSlam:
             return
         owner = self._keyframe_owners()
         if self.config.marginal_sparsification == "chow_liu":
-            self._graph.sparsify_marginals(linked, self._too_dense(owner))
+            # Factors whose tree would lose a direction are thinned instead.
+            linked = self._graph.sparsify_marginals(linked, self._too_dense(owner))
             self._graph.marginal_keys = []
-            return
         drop: set[int] = set()
         for keys in linked:
             drop.update(self._excess_keyframes(keys, owner))
         if drop:
-            self._marginalise_with_thinning([], drop, owner)
+            self._marginalise_with_thinning([], drop, owner, thinning=True)
 
     def _keyframe_owners(self) -> dict[int, tuple[_Robot, int]]:
         """Every keyframe's key -> (its robot, its frame index)."""
@@ -1054,6 +1054,8 @@ class BearingSlam:
         keys: Sequence[int],
         thin: Iterable[int] = (),
         owner: dict[int, tuple[_Robot, int]] | None = None,
+        *,
+        thinning: bool = False,
     ) -> None:
         """Marginalise `keys` (and the keyframes `thin`) in one update, together with the
         oldest keyframes of every marginal factor it would leave linking more than
@@ -1065,9 +1067,11 @@ class BearingSlam:
         in the graph, its linearisation and its root clique, on top of the thinning's
         own. The marginal is the same either way (Schur complements compose), and the
         keyframes are still eliminated on their own, after `keys`, so that their
-        marginal is relative as it was (IncrementalGraph.update's then_marginalise)."""
+        marginal is relative as it was (IncrementalGraph.update's then_marginalise).
+        With Chow-Liu sparsification the factors are sparsified instead, unless
+        `thinning` (a factor whose tree would lose a direction)."""
         owner = self._keyframe_owners() if owner is None else owner
-        if self.config.marginal_sparsification == "chow_liu":
+        if self.config.marginal_sparsification == "chow_liu" and not thinning:
             self._graph.update(marginalise=keys, sparsify=self._too_dense(owner))
             return
         marginalise = set(keys)

@@ -252,3 +252,39 @@ def test_a_sparsified_map_survives_a_snapshot() -> None:
     np.testing.assert_allclose(
         restored.trajectory("r1")["r1"], original.trajectory("r1")["r1"], atol=1e-2
     )
+
+
+def test_a_tree_that_would_lose_a_direction_is_refused() -> None:
+    """One row over three poses (what a landmark's three rays leave on its viewpoints)
+    constrains them jointly and no pair: its tree would hold nothing (infinite KL) and
+    could leave a pose unconstrained, so the graph keeps the marginal instead; a tree
+    that keeps every direction is taken."""
+    from graph.isam import IncrementalGraph
+
+    graph = IncrementalGraph(SlamConfig())
+    keys = [pose_key(0, k) for k in range(3)]
+    rng = np.random.default_rng(2)
+    row = gtsam.JacobianFactor(
+        keys[0],
+        rng.normal(size=(1, 3)),
+        keys[1],
+        rng.normal(size=(1, 3)),
+        keys[2],
+        rng.normal(size=(1, 3)),
+        np.zeros(1),
+        gtsam.noiseModel.Unit.Create(1),
+    )
+    assert graph._tree_of(row, []) is None
+    assert graph.sparsifications_refused == 1 and graph.sparsifications == 0
+    chain = gtsam.JacobianFactor(
+        keys[0],
+        rng.normal(size=(6, 3)),
+        keys[1],
+        rng.normal(size=(6, 3)),
+        np.zeros(6),
+        gtsam.noiseModel.Unit.Create(6),
+    )
+    for key in keys[:2]:
+        graph._theta.insert(key, gtsam.Pose2(float(key % 7), 0.0, 0.1))
+    assert graph._tree_of(chain, []) is not None
+    assert graph.sparsifications == 1
