@@ -45,7 +45,7 @@ from graph.config import SlamConfig
 from graph.errors import EstimationError
 from graph.factors import is_landmark_key
 from graph.relative import RelativeMarginalFactor, choose_reference, relative_marginal
-from graph.sparsify import kl_divergence, tree_factors
+from graph.sparsify import tree_factors
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ class IncrementalGraph:
         """Marginal factors kept exact because their tree would lose a direction."""
         self.sparsification_kl: list[float] | None = None
         """Set to a list, KL(exact || tree) in nats of every later sparsification is
-        appended to it (an evaluation's measure: one eigen-decomposition more each)."""
+        appended to it (an evaluation's measure; every tree computes it)."""
 
     # ------------------------------------------------------------------ queries
     def __contains__(self, key: int) -> bool:
@@ -441,9 +441,7 @@ class IncrementalGraph:
         that they are relinearised and keep their absolute part where they have one;
         None when the tree would lose a direction the marginal observes (infinite KL)."""
         linear, tree = tree_factors(factor)
-        exact = np.asarray(factor.information(), dtype=np.float64)
-        kl = kl_divergence(exact, tree.information[:-1, :-1])
-        if not math.isfinite(kl):
+        if not math.isfinite(tree.kl):
             # The tree loses a direction the marginal observes (three rays of a landmark
             # constrain three viewpoints, no pair of them does) and can leave a pose
             # unconstrained: iSAM2 then refuses the system even with QR (MRCLAM-6
@@ -453,7 +451,7 @@ class IncrementalGraph:
             return None
         self.sparsifications += 1
         if self.sparsification_kl is not None:
-            self.sparsification_kl.append(kl)
+            self.sparsification_kl.append(tree.kl)
         return [self._wrap(f, marginalised) for f in linear]
 
     def sparsify_marginals(

@@ -83,7 +83,8 @@ class ChowLiuTree:
     `factors`: the non-empty factors (a conditional per edge, the root's marginal);
     `information`: (n + 1, n + 1) augmented information of the tree's joint;
     `mutual_information`: (n, n) pairwise mutual information (nats) the tree was
-    chosen by."""
+    chosen by; `kl`: KL(marginal || tree) in nats (see `kl_divergence`; inf when the
+    tree loses a direction the marginal observes)."""
 
     dims: tuple[int, ...]
     root: int
@@ -91,6 +92,7 @@ class ChowLiuTree:
     factors: tuple[TreeFactor, ...]
     information: FloatArray
     mutual_information: FloatArray
+    kl: float
 
 
 def _offsets(dims: Sequence[int]) -> FloatArray:
@@ -319,7 +321,8 @@ def chow_liu_tree(augmented: FloatArray, dims: Sequence[int], *, root: int = 0) 
         factor = _factor(conditional, (child, parent), dims, scale)
         if factor is not None:
             factors.append(factor)
-    return ChowLiuTree(dims, root, tuple(edges), tuple(factors), joint, mi)
+    kl = _kl_from_eigen(*marginals.eigen, joint[:-1, :-1])
+    return ChowLiuTree(dims, root, tuple(edges), tuple(factors), joint, mi, kl)
 
 
 def kl_divergence(exact: FloatArray, approx: FloatArray) -> float:
@@ -332,8 +335,14 @@ def kl_divergence(exact: FloatArray, approx: FloatArray) -> float:
     span of its eigenvectors above _RANK_TOL of the largest; r its dimension), where S
     exists. An approximation that invents information outside that subspace is not
     penalised there; one that loses a direction of it has no finite divergence: inf."""
-    h = 0.5 * (exact + exact.T)
-    w, v = np.linalg.eigh(h)
+    w, v = np.linalg.eigh(0.5 * (exact + exact.T))
+    return _kl_from_eigen(w, v, approx)
+
+
+def _kl_from_eigen(w: FloatArray, v: FloatArray, approx: FloatArray) -> float:
+    """`kl_divergence` given the exact information's eigenpairs `w`, `v`."""
+    if not len(w):
+        return 0.0
     keep = w > _RANK_TOL * max(float(w[-1]), 1e-300)
     r = int(keep.sum())
     if r == 0:

@@ -120,6 +120,7 @@ def test_kl_of_a_tree_of_a_dense_marginal_is_positive_and_the_edges_keep_their_m
     tree = chow_liu_tree(exact, dims)
     kl = kl_divergence(exact[:-1, :-1], tree.information[:-1, :-1])
     assert kl > 1e-6 and math.isfinite(kl)
+    assert tree.kl == pytest.approx(kl, rel=1e-6)
     o = _offsets(dims)
     for c, p in tree.edges:
         cols = [*range(o[c], o[c + 1]), *range(o[p], o[p + 1])]
@@ -264,26 +265,14 @@ def test_a_tree_that_would_lose_a_direction_is_refused() -> None:
     graph = IncrementalGraph(SlamConfig())
     keys = [pose_key(0, k) for k in range(3)]
     rng = np.random.default_rng(2)
-    row = gtsam.JacobianFactor(
-        keys[0],
-        rng.normal(size=(1, 3)),
-        keys[1],
-        rng.normal(size=(1, 3)),
-        keys[2],
-        rng.normal(size=(1, 3)),
-        np.zeros(1),
-        gtsam.noiseModel.Unit.Create(1),
-    )
-    assert graph._tree_of(row, []) is None
+
+    def rows(on: list[int], n: int) -> gtsam.JacobianFactor:
+        blocks = [b for k in on for b in (k, rng.normal(size=(n, 3)))]
+        return gtsam.JacobianFactor(*blocks, np.zeros(n), gtsam.noiseModel.Unit.Create(n))
+
+    assert graph._tree_of(rows(keys, 1), []) is None
     assert graph.sparsifications_refused == 1 and graph.sparsifications == 0
-    chain = gtsam.JacobianFactor(
-        keys[0],
-        rng.normal(size=(6, 3)),
-        keys[1],
-        rng.normal(size=(6, 3)),
-        np.zeros(6),
-        gtsam.noiseModel.Unit.Create(6),
-    )
+    chain = rows(keys[:2], 6)
     for key in keys[:2]:
         graph._theta.insert(key, gtsam.Pose2(float(key % 7), 0.0, 0.1))
     assert graph._tree_of(chain, []) is not None
