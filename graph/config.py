@@ -149,11 +149,11 @@ class SlamConfig:
     information): robot 1 ATE 0.547 -> 0.403 m, robot 5 0.550 -> 0.378."""
     keyframe_distance_m: float = 0.3
     """A pose leaving the window stays in the graph as a keyframe when no keyframe lies
-    within this distance of it and within keyframe_angle_rad of its heading (which
-    keyframes: keyframe_placement)."""
+    within this distance of it (and, with keyframe_placement "spacing", within
+    keyframe_angle_rad of its heading; which keyframes: keyframe_placement)."""
     keyframe_angle_rad: float = math.radians(15.0)
-    """Keyframes that turned this far from a pose leaving the window are not near it
-    (see keyframe_distance_m)."""
+    """With keyframe_placement "spacing", a keyframe that turned this far from a pose
+    leaving the window is not near it (see keyframe_distance_m)."""
     keyframe_placement: KeyframePlacement = "spacing"
     """Which keyframes a pose leaving the window is compared with (see
     keyframe_distance_m): "spacing", its robot's last keyframe (a robot adds one every

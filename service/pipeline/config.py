@@ -231,14 +231,14 @@ class KeyframeConfig(StrictModel):
     keyframe_distance_m: float = Field(
         _DEFAULTS.keyframe_distance_m,
         ge=0,
-        description="a keyframe within this distance of a pose leaving the window (and "
-        "within keyframe_angle_rad of its heading) is near it, metres",
+        description="a keyframe within this distance of a pose leaving the window (and, "
+        "with 'spacing', within keyframe_angle_rad of its heading) is near it, metres",
     )
     keyframe_angle_rad: float = Field(
         _DEFAULTS.keyframe_angle_rad,
         gt=0,
-        description="a keyframe that turned this far from a pose leaving the window is "
-        "not near it, radians",
+        description="with 'spacing', a keyframe that turned this far from a pose leaving "
+        "the window is not near it, radians",
     )
     max_keyframes: int = Field(
         _DEFAULTS.max_keyframes,
