@@ -72,6 +72,7 @@ def run(robot: int, method: str, directory: Path) -> dict[str, Any]:
         t0 = time.perf_counter()
         slam.process(frame, with_covariance=False)
         res.frame_ms.append(1e3 * (time.perf_counter() - t0))
+    slam.settle()
     seconds = time.perf_counter() - t
     row = _judge(res.trajectory(f"r{robot}"), gt, map_landmarks(res), surveyed)
     ms = np.asarray(res.frame_ms)

@@ -12,6 +12,8 @@ BearingLoss = Literal["huber", "geman_mcclure"]
 """The robust loss of bearing factors (see SlamConfig.bearing_loss)."""
 MarginalSparsification = Literal["thin_keyframes", "chow_liu"]
 KeyframePlacement = Literal["spacing", "area"]
+Upkeep = Literal["in_frame", "budget_after_frame", "after_frame"]
+"""When the work that keeps a map bounded runs (see SlamConfig.upkeep)."""
 """How marginal factors are kept sparse (see SlamConfig.marginal_sparsification)."""
 
 
@@ -138,7 +140,22 @@ class SlamConfig:
     """iSAM2 relinearises a variable whose linear delta exceeds this (metres or radians,
     per component); 0 = every variable at every relinearisation."""
     relinearize_skip: int = 1
-    """iSAM2 checks for relinearisation every this many updates."""
+    """iSAM2 checks for relinearisation every this many updates (with upkeep
+    "after_frame": every this many upkeeps)."""
+    upkeep: Upkeep = "in_frame"
+    """When the work that keeps the map bounded runs. "in_frame": all inside
+    `BearingSlam.process`. "budget_after_frame": the landmark budget's removals, a second
+    window exit and keyframe thinning run in `BearingSlam.upkeep()`, which the service
+    calls once the frame's result is sent (and `process` calls first when nobody did).
+    "after_frame": iSAM2's relinearisation moves there too; the frame's own update then
+    only re-eliminates the cliques it touched, and its pose is the Gauss-Newton step from
+    the last upkeep's linearisation point (relinearize_skip counts upkeeps).
+    With either of the last two, a frame's outcome reports the removals made after the
+    frame before it, and between a frame and its upkeep the map may hold that frame's
+    new landmarks above the cap. On the dense lifelong world the removals (19-24 when a
+    robot re-enters a room it mapped) and the relinearisations after a loop correction
+    (every marginal factor on the moved poses re-evaluated in Python, 35-50 ms against a
+    median frame of ~10 ms) are the frames of the tail."""
     relative_marginals: bool = True
     """Marginals of old poses are kept relative to the next pose (see graph.relative)
     rather than as linear factors in absolute coordinates."""
@@ -364,6 +381,8 @@ class SlamConfig:
         ):
             if optional is not None and not (optional > 0 and math.isfinite(optional)):
                 raise ValueError(f"{name} must be a positive finite number or None")
+        if self.upkeep not in ("in_frame", "budget_after_frame", "after_frame"):
+            raise ValueError("upkeep must be 'in_frame', 'budget_after_frame' or 'after_frame'")
         if self.relinearize_threshold < 0 or self.relinearize_skip < 1:
             raise ValueError("need relinearize_threshold >= 0 and relinearize_skip >= 1")
         if self.keyframe_distance_m < 0 or self.gate_min_age_frames < 0:

@@ -50,6 +50,10 @@ from graph.sparsify import tree_factors
 log = logging.getLogger(__name__)
 
 
+_NEVER = 2**31 - 1
+"""An iSAM2 relinearisation interval no map reaches."""
+
+
 def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.ISAM2:
     """iSAM2 for `config`; `factorization` "CHOLESKY" (iSAM2's default, the faster) or
     "QR" (see IncrementalGraph.update)."""
@@ -60,7 +64,8 @@ def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.I
     else:
         params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams())
     params.setRelinearizeThreshold(config.relinearize_threshold)
-    params.relinearizeSkip = config.relinearize_skip
+    # Relinearised in the upkeep (IncrementalGraph.relinearise): never inside an update.
+    params.relinearizeSkip = _NEVER if config.upkeep == "after_frame" else config.relinearize_skip
     params.findUnusedFactorSlots = True
     return gtsam.ISAM2(params)
 
@@ -230,6 +235,23 @@ class IncrementalGraph:
         return self._theta
 
     # ------------------------------------------------------------------ update
+    def relinearise(self) -> None:
+        """Relinearise, in a step of its own, the variables whose delta exceeds the
+        relinearisation threshold (with SlamConfig.upkeep "after_frame", updates do
+        not)."""
+        try:
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+        except RuntimeError as exc:  # gtsam's IndeterminantLinearSystem etc.
+            raise EstimationError(str(exc)) from exc
+        finally:
+            self._forget_estimate()
+
+    def _forget_estimate(self) -> None:
+        self._estimate = None
+        self._pose_cache = {}
+        self._point_cache = {}
+        self._cov_cache = {}
+
     def update(
         self,
         factors: Iterable[gtsam.NonlinearFactor] = (),
@@ -283,10 +305,7 @@ class IncrementalGraph:
         # the cliques it touched, and its partial (wildfire) updates had left their
         # delta behind the MAP. A stale cache here made a restored map (rebuilt with a
         # full step) diverge from the original by centimetres.
-        self._estimate = None
-        self._pose_cache = {}
-        self._point_cache = {}
-        self._cov_cache = {}
+        self._forget_estimate()
         for index in remove:
             self._marginals.discard(index)
             for key in self._factors.pop(index).keys():

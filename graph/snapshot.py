@@ -20,18 +20,22 @@ from __future__ import annotations
 
 import pickle
 from collections.abc import Callable
+from dataclasses import fields
 from typing import Any
 
 import gtsam
 import numpy as np
 
+from graph.config import SlamConfig
 from graph.relative import RelativeMarginalFactor, RelativeSpec
 from graph.slam import BearingSlam, RemovalRecord
 from graph.trajectory import PoseRow
 
-SNAPSHOT_VERSION = 4
+SNAPSHOT_VERSION = 5
 """3: the trajectory is a graph.trajectory.Trajectory (held rows + kept final rows).
-4: the estimator keeps its removed landmarks in a graph.archive.LandmarkArchive."""
+4: the estimator keeps its removed landmarks in a graph.archive.LandmarkArchive.
+5: the config is kept by field name (a pickled SlamConfig is positional: a field added
+in the middle shifted every later one), with the frame whose upkeep is pending."""
 
 _SLAM_SPECIAL = frozenset({"_graph", "_policy", "_removal_sink", "_rng", "_trajectory_sink"})
 """BearingSlam attributes handled explicitly: the graph is rebuilt, the policy is
@@ -71,7 +75,10 @@ def capture(slam: BearingSlam, *, extra: Any = None) -> bytes:
         "factors": factors.serialize(),
         "relative": relative,
         "linpoint": linpoint.serialize(),
-        "slam": {k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
+        "slam": {
+            **{k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
+            "config": {f.name: getattr(slam.config, f.name) for f in fields(SlamConfig)},
+        },
         "graph": {k: v for k, v in vars(inner).items() if k not in _GRAPH_SPECIAL},
         "extra": extra,
     }
@@ -110,6 +117,8 @@ def restore_with_extra(
     plain: dict[str, Any] = state["slam"]
     rng = np.random.default_rng()
     rng.bit_generator.state = state["rng"]
+    known = {f.name for f in fields(SlamConfig)}
+    plain["config"] = SlamConfig(**{k: v for k, v in plain["config"].items() if k in known})
     slam = BearingSlam(
         plain["config"],
         rng=rng,

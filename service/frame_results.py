@@ -59,7 +59,10 @@ class Localisation(BaseModel):
 class LandmarkChanges(BaseModel):
     observed: list[int] = Field(description="ids of live landmarks observed in this frame")
     added: list[int] = Field(description="ids of landmarks this frame initialised")
-    marginalised: list[int] = Field(description="ids the landmark budget removed after it")
+    marginalised: list[int] = Field(
+        description="ids the landmark budget removed after it, or, with the map's "
+        "solver.upkeep 'after_frame', after the frame before it"
+    )
     live: int = Field(description="live landmarks after the frame")
 
 
@@ -160,6 +163,11 @@ def frame_events(
 ) -> tuple[list[tuple[str, str]], list[tuple[int, int, str]], list[tuple[int, int, str]]]:
     """(events as (type, JSON data), removal rows, archived landmark rows) of a frame."""
     events: list[tuple[str, str]] = [("frame", result_json)]
+    # Removals made after the frame before (SlamConfig.upkeep "after_frame") happened
+    # before this frame's restorations: their events come first.
+    index = None if step.outcome is None else step.outcome.frame_index
+    earlier = [r for r in removals if index is not None and r.frame < index]
+    rows, archived = _removal_events(slam, earlier, log_id, events)
     added = () if step.outcome is None else step.outcome.added
     if step.learnt is not None:
         doc = {"id": step.learnt.id, "robot": step.learnt.robot}
@@ -171,6 +179,15 @@ def frame_events(
             events.append(("landmark_added", json.dumps({**doc, "frame_id": log_id})))
     restored = () if step.outcome is None else step.outcome.restored
     events.extend(restored_events(slam, restored, log_id))
+    own = [r for r in removals if index is None or r.frame >= index]
+    more_rows, more_archived = _removal_events(slam, own, log_id, events)
+    return events, rows + more_rows, archived + more_archived
+
+
+def _removal_events(
+    slam: BearingSlam, removals: list[RemovalRecord], log_id: int, events: list[tuple[str, str]]
+) -> tuple[list[tuple[int, int, str]], list[tuple[int, int, str]]]:
+    """Append the removals' events to `events`; their removal rows and archived rows."""
     rows = []
     archived = []
     for r in removals:
@@ -180,4 +197,4 @@ def frame_events(
         entry = slam.archive.get(r.landmark_id)
         if entry is not None:
             archived.append((r.landmark_id, r.frame, json.dumps(entry.as_dict())))
-    return events, rows, archived
+    return rows, archived

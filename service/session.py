@@ -420,6 +420,27 @@ class MapSession:
             marginalised=0 if final is None else len(final.marginalised),
         )
 
+    def upkeep(self) -> None:
+        """The estimator's work the last frame left for after its result was sent
+        (SlamConfig.upkeep "after_frame"): the worker calls it before its next request.
+        What it removes is stored, sent and published with the next frame's result; a
+        snapshot meanwhile keeps it pending. If it fails, the map is reloaded from its
+        store (the log's frames replayed) and this upkeep is skipped: the next frame's
+        upkeep brings the map back under its cap."""
+        if not self.slam.upkeep_pending:
+            return
+        try:
+            self.pipeline.upkeep()
+        except EstimationError:
+            log.exception(
+                "map %s: the upkeep after log frame %d failed", self.place, self._last_log_id
+            )
+            self._removals.take()
+            self._poses.take()
+            self._removal_count = None
+            self.pipeline, self._last_log_id, self._since_snapshot = self._load()
+            self.slam.skip_upkeep()
+
     def _forget_frame(self, log_id: int) -> None:
         """Undo a frame the estimator failed on half way: the in-memory map may be half
         updated. The frame was never acknowledged; it leaves the log and the map is

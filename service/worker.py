@@ -251,6 +251,8 @@ def serve(conn: Connection, settings: dict[str, Any], index: int) -> None:
                 conn.send_bytes(pickle.dumps((request_id, reply), protocol=5))
             except (BrokenPipeError, OSError):
                 return
+            if isinstance(what, SubmitFrame):
+                upkeep(map_id)
             try:  # a client that sends one request after the other is not idle
                 waiting = inbox.get(timeout=IDLE_AFTER_S)
             except queue.Empty:
@@ -335,6 +337,16 @@ def _published(map_id: str, request: Request[Any], value: Any) -> ViewDelta | No
     if isinstance(request, RefreshView):
         return _view(map_id, refresh=True)
     return _view(map_id)
+
+
+def upkeep(map_id: str) -> None:
+    """The open map's upkeep after a frame whose result was sent (MapSession.upkeep)."""
+    session = _sessions.get(map_id)
+    if session is not None:
+        try:
+            session.upkeep()
+        except Exception:
+            log.exception("the upkeep of map %s failed", map_id)
 
 
 def snapshot_if_due(map_id: str) -> None:

@@ -121,7 +121,9 @@ class ReplayResult:
 
     slam: BearingSlam
     frame_ms: list[float] = field(default_factory=list)
-    """Processing time of each frame in order, milliseconds."""
+    """Processing time of each frame in order (until its result), milliseconds."""
+    upkeep_ms: list[float] = field(default_factory=list)
+    """The upkeep after each frame (SlamConfig.upkeep "after_frame"; ~0 otherwise), ms."""
     live_landmarks: list[int] = field(default_factory=list)
     """Live landmark count after each frame."""
     rss_mb: list[tuple[int, float]] = field(default_factory=list)
@@ -243,10 +245,14 @@ def replay(
         else:
             out = pipeline.step(item).outcome
         assert out is not None
-        result.frame_ms.append(1e3 * (time.perf_counter() - t0))
-        result.live_landmarks.append(out.live)
+        t1 = time.perf_counter()
+        pipeline.upkeep()
+        result.frame_ms.append(1e3 * (t1 - t0))
+        result.upkeep_ms.append(1e3 * (time.perf_counter() - t1))
+        result.live_landmarks.append(len(slam.landmarks))
         if slam.frame_count % rss_every == 0:
             result.rss_mb.append((slam.frame_count, current_rss_mb()))
             bar.set_postfix(live=out.live, ms=f"{np.median(result.frame_ms[-rss_every:]):.1f}")
+    slam.settle()
     log.info("replayed %d frames, %d removals", slam.frame_count, slam.removal_count)
     return result

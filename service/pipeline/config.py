@@ -20,6 +20,7 @@ from graph.config import (
     MarginalSparsification,
     Optimizer,
     SlamConfig,
+    Upkeep,
 )
 from graph.policies import POLICY_NAMES
 from service.pipeline.camera_config import (
@@ -281,6 +282,15 @@ class SolverConfig(StrictModel):
         le=2**31 - 1,
         description="iSAM2 checks for relinearisation every this many updates (GTSAM holds "
         "it in a 32-bit int), count",
+    )
+    upkeep: Upkeep = Field(
+        _DEFAULTS.upkeep,
+        description="when the work that keeps the map bounded runs: 'in_frame', before the "
+        "frame's result; 'budget_after_frame', the landmark budget's removals, a second "
+        "window exit and keyframe thinning once the result is sent, before the map's next "
+        "request; 'after_frame', iSAM2's relinearisation too (relinearize_skip then counts "
+        "upkeeps). With either, a frame's result lists the removals made after the frame "
+        "before it",
     )
     relative_marginals: bool = Field(
         _DEFAULTS.relative_marginals,

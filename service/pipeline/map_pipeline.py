@@ -242,6 +242,11 @@ class MapPipeline:
         recorded = seen.weighed if graph is None else self._recorded(frame, graph)
         return self._result(frame, graph, clock, recorded, result, robot, pose, cov)
 
+    def upkeep(self) -> None:
+        """The estimator's work the last frame left for after its result (see
+        SlamConfig.upkeep); `step` runs it first when nobody did."""
+        self.slam.upkeep()
+
     def _feeds_graph(self, frame: FrameInput) -> bool:
         """Whether the estimator takes the frame (before the localiser's step)."""
         if self.localiser is None:
