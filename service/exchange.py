@@ -23,12 +23,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from service.errors import ServiceError
+from service.frame_log import IMPORTED_FRONTEND
 from service.jsonio import loads_object
 from service.pipeline.config import MapConfig, Mode, slam_config_dict
 from service.pipeline.images import parse_state_doc
 from service.queries import Landmarks, Trajectory
 from service.requests import MapRequest
-from service.session import IMPORTED_FRONTEND, MapSession
+from service.session import MapSession
 
 EXPORT_FORMAT = "covslam.map"
 EXPORT_VERSION = 1
@@ -175,7 +176,5 @@ def import_frames(session: MapSession, frames: list[dict[str, Any]], frontend: A
             ) from exc
     if frontend is not None and session.pipeline.images is not None:
         session.pipeline.images.set_state_doc(frontend)
-        session.store.set_meta(
-            IMPORTED_FRONTEND, {"after": session._last_log_id, "state": frontend}
-        )
+        session.store.set_meta(IMPORTED_FRONTEND, {"after": session.last_log_id, "state": frontend})
     session.snapshot()
