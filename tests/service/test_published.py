@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 
+from service.balance import choose_move
+from service.events import Notifier
 from service.frames_io import frame_to_dict
-from service.maps import Notifier
 from service.offline.datasets.indoor_sim import make_world, simulate
-from service.pool import choose_move
 from service.published import ViewDelta, build_view
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
 from service.session import MapSession
