@@ -20,6 +20,7 @@ import numpy as np
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam
+from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.frame_log import FrameLog
@@ -164,21 +165,55 @@ class MapSession:
             self._check_image_frame(frame)
         if imported and self.vision is None:
             raise no_camera(self.record.id)
-        stored = self.store.find_frame(frame.robot, frame.seq)
-        if stored is not None:
-            if stored.body == text and stored.result is not None:
-                return FrameReply(stored.result, replayed=True)
-            raise ServiceError(
-                409,
-                "duplicate-seq",
-                "Duplicate frame",
-                f"seq: robot {frame.robot!r} already sent a different frame with seq "
-                f"{frame.seq}; a retry must repeat the frame exactly",
-                field="seq",
-            )
+        retry = self._retry_of(frame, text)
+        if retry is not None:
+            return retry
         pending = None
         if self.vision is not None and image is not None:
             pending = prefetched or self.vision.extract(image)
+        self._check_order(frame)
+        observations = observations_json(frame.observations) if imported else None
+        log_id = self.store.append_frame(frame.robot, frame.seq, text, image, observations)
+        t1 = time.perf_counter()
+        step, observed, vision_ms = self._step(frame, log_id, pending, imported=imported)
+        final = step.outcome
+        result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
+        t2 = time.perf_counter()
+        text = json.dumps(result)
+        events = self.frame_log.complete(self.slam, log_id, text, step, observed)
+        store_ms = 1e3 * (time.perf_counter() - t2)
+        self._last_log_id = log_id
+        self._timing.append(1e3 * (time.perf_counter() - t0))
+        self._count_frame()
+        return FrameReply(
+            text,
+            events=events,
+            timing_ms=result["timing_ms"],
+            store_ms=store_ms,
+            live=len(self.slam.landmarks),
+            marginalised=0 if final is None else len(final.marginalised),
+        )
+
+    def _retry_of(self, frame: FrameInput, text: str) -> FrameReply | None:
+        """The stored answer when the frame repeats a logged one exactly (an idempotent
+        retry); None for a new frame; 409 for a different frame with a logged seq."""
+        stored = self.store.find_frame(frame.robot, frame.seq)
+        if stored is None:
+            return None
+        if stored.body == text and stored.result is not None:
+            return FrameReply(stored.result, replayed=True)
+        raise ServiceError(
+            409,
+            "duplicate-seq",
+            "Duplicate frame",
+            f"seq: robot {frame.robot!r} already sent a different frame with seq "
+            f"{frame.seq}; a retry must repeat the frame exactly",
+            field="seq",
+        )
+
+    def _check_order(self, frame: FrameInput) -> None:
+        """Refuse a frame that does not follow its robot's last one (409) or is invalid
+        (422)."""
         last = self.pipeline.last_accepted().get(frame.robot)
         try:
             validate_frame(
@@ -191,15 +226,18 @@ class MapSession:
             raise out_of_order(exc.field, exc.detail) from exc
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
-        observations = observations_json(frame.observations) if imported else None
-        log_id = self.store.append_frame(frame.robot, frame.seq, text, image, observations)
-        t1 = time.perf_counter()
-        vision_ms: dict[str, float] = {}
+
+    def _step(
+        self, frame: FrameInput, log_id: int, pending: Pending | None, *, imported: bool
+    ) -> tuple[FrameStep, str | None, dict[str, float]]:
+        """The logged frame `log_id` through the pipeline (an image frame's features from
+        `pending`): (its step, the observations its image gave as JSON text, the front
+        end's timings ms). A refusal takes the frame out of the log again and leaves the
+        map as it was."""
         try:
             if pending is None:
-                step = self.pipeline.step(frame, landmark_covariances=not imported)
-            else:
-                step, observations, vision_ms = self._process_image(frame, pending)
+                return self.pipeline.step(frame, landmark_covariances=not imported), None, {}
+            return self._process_image(frame, pending)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -219,25 +257,6 @@ class MapSession:
             # A bug of ours, half way through the frame (the caller gets a 500).
             self._forget_frame(log_id)
             raise
-        final = step.outcome
-        result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
-        t2 = time.perf_counter()
-        text = json.dumps(result)
-        events = self.frame_log.complete(
-            self.slam, log_id, text, step, None if imported else observations
-        )
-        store_ms = 1e3 * (time.perf_counter() - t2)
-        self._last_log_id = log_id
-        self._timing.append(1e3 * (time.perf_counter() - t0))
-        self._count_frame()
-        return FrameReply(
-            text,
-            events=events,
-            timing_ms=result["timing_ms"],
-            store_ms=store_ms,
-            live=len(self.slam.landmarks),
-            marginalised=0 if final is None else len(final.marginalised),
-        )
 
     def _forget_frame(self, log_id: int) -> None:
         """Undo a frame the estimator failed on half way: the in-memory map may be half
@@ -247,7 +266,7 @@ class MapSession:
         self.frame_log.discard()
         self._load()
 
-    def _check_image_frame(self, frame: Any) -> None:
+    def _check_image_frame(self, frame: FrameInput) -> None:
         if self.vision is None:
             raise no_camera(self.record.id)
         try:
@@ -258,7 +277,7 @@ class MapSession:
             raise invalid_frame(exc.field, exc.detail) from exc
 
     def _process_image(
-        self, frame: Any, pending: Pending
+        self, frame: FrameInput, pending: Pending
     ) -> tuple[FrameStep, str, dict[str, float]]:
         """(the frame's step, the observations it is recorded with as JSON text, the
         front end's timings ms)."""
