@@ -53,12 +53,6 @@ class Notifier:
             return None
         return list(itertools.islice(feed, max(0, after + 1 - feed[0][0]), None))
 
-    def fed_after(self, map_id: str, after: int) -> EventRows | None:
-        """The fed events with id > `after`, or None when the feed does not reach back to
-        `after` (read the store)."""
-        fed = self._fed(map_id, after)
-        return None if fed is None else [(i, kind, data) for i, kind, data, _ in fed]
-
     def fed_sse(self, map_id: str, after: int) -> tuple[int, bytes] | None:
         """(the last id, the SSE bytes) of the fed events with id > `after` ((`after`,
         b"") if none), or None when the feed does not reach back to `after`."""
