@@ -25,11 +25,7 @@ from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.frame_log import FrameLog
 from service.frame_results import FrameReply, result_doc
-from service.frames_io import (
-    canonical_frame,
-    image_record,
-    observations_json,
-)
+from service.frames_io import canonical_frame, image_record, observations_json
 from service.image_frames import MapVision, Pending, image_refused, no_camera
 from service.pipeline import FrameStep, ImageFeatures
 from service.pipeline.config import MapConfig, slam_config
