@@ -23,12 +23,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from service.errors import ServiceError
+from service.frame_log import IMPORTED_FRONTEND
 from service.jsonio import loads_object
 from service.pipeline.config import MapConfig, Mode, slam_config_dict
 from service.pipeline.images import parse_state_doc
 from service.queries import Landmarks, Trajectory
 from service.requests import MapRequest
-from service.session import IMPORTED_FRONTEND, MapSession
+from service.session import MapSession
 
 EXPORT_FORMAT = "covslam.map"
 EXPORT_VERSION = 1
@@ -140,13 +141,7 @@ def import_frames(session: MapSession, frames: list[dict[str, Any]], frontend: A
     front end's state of a camera map (`frontend`, the export's; without it the
     front end starts afresh: its landmarks have no descriptors to match)."""
     if frontend is not None and session.vision is None:
-        raise ServiceError(
-            422,
-            "invalid-import",
-            "Invalid map document",
-            "frontend: a front-end state for a map without a camera",
-            field="frontend",
-        )
+        raise _bad_import("frontend", "a front-end state for a map without a camera")
     if frontend is not None and session.vision is not None:
         try:  # refuse a bad state before replaying anything
             parse_state_doc(frontend, session.vision.front_end.associator.config)
@@ -156,26 +151,12 @@ def import_frames(session: MapSession, frames: list[dict[str, Any]], frontend: A
             ) from exc
     for i, item in enumerate(frames):
         if not isinstance(item, dict) or not isinstance(item.get("frame"), dict):
-            raise ServiceError(
-                422,
-                "invalid-import",
-                "Invalid map document",
-                f"frames[{i}].frame: must be a frame object",
-                field=f"frames[{i}].frame",
-            )
+            raise _bad_import(f"frames[{i}].frame", "must be a frame object")
         try:
             session.submit(item["frame"], imported="image" in item["frame"])
         except ServiceError as exc:
-            raise ServiceError(
-                422,
-                "invalid-import",
-                "Invalid map document",
-                f"frames[{i}].frame: {exc.detail}",
-                field=f"frames[{i}].frame",
-            ) from exc
+            raise _bad_import(f"frames[{i}].frame", exc.detail) from exc
     if frontend is not None and session.pipeline.images is not None:
         session.pipeline.images.set_state_doc(frontend)
-        session.store.set_meta(
-            IMPORTED_FRONTEND, {"after": session._last_log_id, "state": frontend}
-        )
+        session.store.set_meta(IMPORTED_FRONTEND, {"after": session.last_log_id, "state": frontend})
     session.snapshot()

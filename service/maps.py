@@ -3,28 +3,28 @@
 `MapService` lives in the API process. It keeps the catalogue of maps (the store's),
 the engine that runs the maps (local worker processes, or Ray actors), each map's
 latest published view (service.published: reads are answered from it, never queued
-behind frames), and each map's event feed, which the frame answers fill and the event
-streams read from memory. Everything heavy happens in the workers.
+behind frames), and each map's event feed (service.events), which the frame answers
+fill and the event streams read from memory. Everything heavy happens in the workers.
 """
 
 from __future__ import annotations
 
 import asyncio
 import builtins
-import itertools
 import logging
 import secrets
 import time
-from collections import deque
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from service.engine import Engine
 from service.errors import ServiceError, unknown_map
+from service.events import EventRows, Notifier, sse_bytes
 from service.exchange import Export
 from service.frame_results import FrameReply
 from service.keys import key_hash, new_key, new_key_id, same_hash
 from service.pipeline.config import MapConfig, Mode, slam_config
-from service.pool import Engine, make_engine
+from service.pool import WorkerPool
 from service.published import MapView, ViewDelta
 from service.queries import Landmarks, SetMode, Summary, Trajectory
 from service.requests import (
@@ -42,68 +42,14 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-EventRows = list[tuple[int, str, str]]
-"""Stored events: (id, kind, data JSON), oldest first."""
 
+def make_engine(settings: Settings, *, on_restart: Callable[[int], None] | None = None) -> Engine:
+    """The engine `settings.engine` names."""
+    if settings.engine == "ray":
+        from service.ray_engine import RayEngine
 
-class Notifier:
-    """Wakes the waiters of a map when new events were stored for it, and keeps each
-    map's latest events in memory (a feed), so that any number of event streams read
-    them without a store query each."""
-
-    def __init__(self, feed_size: int = 1000) -> None:
-        self._events: dict[str, asyncio.Event] = {}
-        self._feeds: dict[str, deque[tuple[int, str, str, bytes]]] = {}
-        """Per map: (id, kind, data, the event as SSE bytes), ids consecutive."""
-        self._feed_size = feed_size
-
-    def handle(self, map_id: str) -> asyncio.Event:
-        """An event set at the next `notify(map_id)`; take it *before* reading the events."""
-        return self._events.setdefault(map_id, asyncio.Event())
-
-    def notify(self, map_id: str) -> None:
-        event = self._events.pop(map_id, None)
-        if event is not None:
-            event.set()
-
-    def publish(self, map_id: str, rows: EventRows) -> None:
-        """Events a frame stored (ids consecutive and after those fed before, else the
-        feed restarts with them), then wake the map's waiters."""
-        if rows:
-            feed = self._feeds.get(map_id)
-            if feed is None or not feed or feed[-1][0] + 1 != rows[0][0]:
-                feed = self._feeds[map_id] = deque(maxlen=self._feed_size)
-            feed.extend((*row, sse_bytes([row])) for row in rows)  # encoded once for all
-        self.notify(map_id)
-
-    def forget(self, map_id: str) -> None:
-        self._feeds.pop(map_id, None)
-        self.notify(map_id)
-
-    def _fed(self, map_id: str, after: int) -> list[tuple[int, str, str, bytes]] | None:
-        feed = self._feeds.get(map_id)
-        if not feed or feed[0][0] > after + 1:
-            return None
-        return list(itertools.islice(feed, max(0, after + 1 - feed[0][0]), None))
-
-    def fed_after(self, map_id: str, after: int) -> EventRows | None:
-        """The fed events with id > `after`, or None when the feed does not reach back to
-        `after` (read the store)."""
-        fed = self._fed(map_id, after)
-        return None if fed is None else [(i, kind, data) for i, kind, data, _ in fed]
-
-    def fed_sse(self, map_id: str, after: int) -> tuple[int, bytes] | None:
-        """(the last id, the SSE bytes) of the fed events with id > `after` ((`after`,
-        b"") if none), or None when the feed does not reach back to `after`."""
-        fed = self._fed(map_id, after)
-        if fed is None:
-            return None
-        return (fed[-1][0], b"".join(row[3] for row in fed)) if fed else (after, b"")
-
-
-def sse_bytes(rows: EventRows) -> bytes:
-    """Events as server-sent events (`id`, `event`, `data` lines each)."""
-    return "".join(f"id: {i}\nevent: {kind}\ndata: {data}\n\n" for i, kind, data in rows).encode()
+        return RayEngine(settings, on_restart=on_restart)
+    return WorkerPool(settings, on_restart=on_restart)
 
 
 def _imported_record(reply: dict[str, Any]) -> MapRecord:

@@ -9,14 +9,10 @@ Placement: new maps and the maps found at start are dealt out to the workers in 
 A map with no frame yet has no state to carry, so its first frame deals it again (a
 move that costs opening an empty map): to the worker with the fewest busy maps (a
 request in flight, or one that ended within ACTIVE_S), so that maps that start taking
-frames together are balanced from their first frame, however they were created. A
-map's load is the work it keeps in flight: the time-averaged number of its requests
-waiting or being computed (by Little's law its clients' rate times the time each
-request spends) times the worker time one of its requests takes. A worker serves its
-requests in turn, so equal loads give the maps of all workers the same rate. Every
-`workers.balance_interval_s` the pool compares the workers' loads; when they differ
-clearly and moving one map from the busiest to the least busy worker narrows the
-difference to 60 % or less, at two looks in a row (a measured load is noisy, and a move
+frames together are balanced from their first frame, however they were created. Every
+`workers.balance_interval_s` the pool compares the workers' loads (service.balance);
+when they differ clearly and moving one map from the busiest to the least busy worker
+narrows the difference to 60 % or less, at two looks in a row (a measured load is noisy, and a move
 costs a snapshot and a load), it moves it (then lets the loads settle for a few
 intervals): new calls for the map wait in the API process, the old worker answers what
 it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
@@ -50,15 +46,16 @@ import os
 import pickle
 import struct
 import time
-from collections.abc import Callable, Coroutine, Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 from service import worker
-from service.errors import ServiceError, WorkerUnavailable
-from service.published import ViewDelta
+from service.balance import MOVE_COOLDOWN_S, SETTLE_INTERVALS, MapLoad, choose_move
+from service.engine import EngineBase, reply_value
+from service.errors import WorkerUnavailable
 from service.requests import CloseMap, CreateMap, OpenMap, Ping, Request, SubmitFrame
 from service.settings import Settings
 
@@ -69,143 +66,8 @@ T = TypeVar("T")
 _HEADER = struct.Struct("!i")  # multiprocessing.Connection's framing (messages < 2 GiB)
 
 
-class Engine(Protocol):
-    """Runs the maps and answers calls on them: local worker processes (`WorkerPool`)
-    or Ray actors (service.ray_engine.RayEngine)."""
-
-    restarts: int
-    """Workers (or actors) seen to stop and come back."""
-    moves: int
-    """Maps moved from one worker to another (balancing)."""
-    shared: bool
-    """Other API processes may run maps of the same store (look maps up in the catalogue)."""
-    on_view: Callable[[ViewDelta], None] | None
-    """Called with each published view of a map, as sent (engines whose workers publish
-    them)."""
-
-    async def start(self, maps: Iterable[str]) -> None: ...
-    async def stop(self) -> None: ...
-    @property
-    def ready(self) -> bool: ...
-    def status(self) -> list[dict[str, Any]]: ...
-    def worker_of(self, map_id: str) -> int | None: ...
-    def busy(self, map_id: str) -> bool:
-        """The map's worker has requests in flight (a call would wait)."""
-        ...
-
-    def track(self, map_id: str) -> None: ...
-    def untrack(self, map_id: str) -> None: ...
-    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
-        """Carry out `request` on the map; its answer, or raise ServiceError /
-        WorkerUnavailable."""
-        ...
-
-
-def make_engine(settings: Settings, *, on_restart: Callable[[int], None] | None = None) -> Engine:
-    """The engine `settings.engine` names."""
-    if settings.engine == "ray":
-        from service.ray_engine import RayEngine
-
-        return RayEngine(settings, on_restart=on_restart)
-    return WorkerPool(settings, on_restart=on_restart)
-
-
-def reply_value(reply: dict[str, Any], *, retry_after_s: int) -> Any:
-    """A worker's answer (service.worker.call): its value, or its error raised;
-    `WorkerUnavailable` when the map's store could not be reached (retry later)."""
-    if reply["ok"]:
-        return reply["value"]
-    if reply.get("unavailable"):
-        raise WorkerUnavailable(reply["unavailable"], retry_after_s=retry_after_s)
-    raise ServiceError.from_dict(reply["error"])
-
-
 class _WorkerDied(Exception):
     pass
-
-
-MOVE_COOLDOWN_S = 10.0
-"""A map that moved stays where it is for at least this long (no ping-pong)."""
-SETTLE_INTERVALS = 4
-"""After a move, the balancer waits this many intervals (the loads it measures settle)."""
-MIN_LOAD_GAP = 0.005
-"""Loads (seconds of work in flight, time-averaged) two workers may differ by without a
-move..."""
-MIN_RELATIVE_GAP = 0.25
-"""...or by this fraction of the busiest worker's load."""
-ACTIVE_S = 1.0
-"""A map whose last request ended this recently counts as busy when a map is dealt at
-its first frame (a client between two frames)."""
-MOVE_GAIN = 0.6
-"""A move must leave at most this fraction of the gap it closes (6:2 equal maps -> 5:3
-leaves 1/2; a move that mostly swaps the roles of the two workers is no gain)."""
-
-
-@dataclass
-class MapLoad:
-    """A map's requests in flight integrated over time, and the worker time each takes:
-    the balancer's measure."""
-
-    inflight: int = 0
-    area: float = 0.0
-    """Integral of `inflight` over time since the last `sample`, request-seconds."""
-    since: float = field(default_factory=time.monotonic)
-    waiting: float = 0.0
-    """Smoothed time-averaged requests in flight."""
-    service_s: float = 0.0
-    """Smoothed worker time of one request, seconds."""
-    load: float = 0.0
-    """`waiting` x `service_s`: the work the map keeps in flight, seconds."""
-    moved: float = -MOVE_COOLDOWN_S
-    ended: float = -ACTIVE_S
-    """When its last request ended (time.monotonic)."""
-
-    def change(self, delta: int, now: float) -> None:
-        self.area += self.inflight * (now - self.since)
-        self.since = now
-        self.inflight += delta
-        if delta < 0:
-            self.ended = now
-
-    def active(self, now: float) -> bool:
-        """A request in flight, or one that ended within ACTIVE_S."""
-        return self.inflight > 0 or now - self.ended < ACTIVE_S
-
-    def served(self, seconds: float) -> None:
-        """A request of the map took the worker `seconds`."""
-        self.service_s = seconds if not self.service_s else 0.9 * self.service_s + 0.1 * seconds
-
-    def sample(self, now: float, interval_s: float) -> float:
-        """Fold the time since the last sample into `load` (half old, half new)."""
-        self.change(0, now)
-        self.waiting = 0.5 * self.waiting + 0.5 * self.area / max(interval_s, 1e-9)
-        self.area = 0.0
-        self.load = self.waiting * self.service_s
-        return self.load
-
-
-def choose_move(
-    totals: dict[int, float], movable: dict[int, dict[str, float]], *, min_gap: float = MIN_LOAD_GAP
-) -> tuple[str, int, int] | None:
-    """(map, from worker, to worker) that best evens out the busiest and the least busy
-    worker, or None. `totals`: each worker's load; `movable`: per worker, the loads of
-    the maps that may move. Only a gap g of at least `min_gap` and MIN_RELATIVE_GAP of
-    the busiest's load counts (measured loads are noisy), and only a move that narrows
-    it to MOVE_GAIN of itself or less: a map of load l leaves a gap |g - 2l|; the
-    smallest wins."""
-    if len(totals) < 2:
-        return None
-    busiest = max(totals, key=lambda w: totals[w])
-    idlest = min(totals, key=lambda w: totals[w])
-    gap = totals[busiest] - totals[idlest]
-    if gap < max(min_gap, MIN_RELATIVE_GAP * totals[busiest]):
-        return None
-    maps = movable.get(busiest, {})
-    candidates = [(abs(gap - 2 * load), m) for m, load in maps.items() if load > 0]
-    best = min(candidates, default=None)
-    if best is None or best[0] > MOVE_GAIN * gap:
-        return None
-    return best[1], busiest, idlest
 
 
 @dataclass
@@ -224,48 +86,6 @@ class _Slot:
     alive: bool = True
     up: bool = False
     """The worker answered its first ping (its imports are done)."""
-
-
-class EngineBase:
-    """What both engines keep: the maps they run, their background tasks, the restarts
-    they saw, and the time limits of a call."""
-
-    shared = False
-
-    def __init__(
-        self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
-    ) -> None:
-        self._settings = settings
-        self._maps: set[str] = set()
-        self._on_restart = on_restart
-        self._tasks: set[asyncio.Task[None]] = set()
-        self.restarts = 0
-        self.moves = 0
-        """Maps moved from one worker to another (balancing)."""
-        self.on_view: Callable[[ViewDelta], None] | None = None
-        """Called with every published view a worker sends (the local pool's workers)."""
-
-    def track(self, map_id: str) -> None:
-        self._maps.add(map_id)
-
-    def untrack(self, map_id: str) -> None:
-        self._maps.discard(map_id)
-
-    def _background(self, work: Coroutine[Any, Any, None]) -> None:
-        """Run `work` on the event loop, cancelled by `_cancel_background`."""
-        task = asyncio.get_running_loop().create_task(work)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
-    def _cancel_background(self) -> None:
-        for task in self._tasks:
-            task.cancel()
-
-    def _limits(self, timeout_s: float | None) -> tuple[float, int]:
-        """(a call's time limit, s; the Retry-After of a 503, s)."""
-        workers = self._settings.workers
-        timeout = timeout_s if timeout_s is not None else workers.request_timeout_s
-        return timeout, workers.retry_after_s
 
 
 class WorkerPool(EngineBase):

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from service import worker
+from service.engine import EngineBase, reply_value
 from service.errors import WorkerUnavailable
-from service.pool import EngineBase, reply_value
 from service.requests import CreateMap, DeleteMap, ImportMap, OpenMap, Request
 from service.settings import Settings
 from service.store import is_postgres_url
@@ -84,7 +84,7 @@ def _actor_errors() -> tuple[type[BaseException], ...]:
 
 
 class RayEngine(EngineBase):
-    """Routes calls to the maps' actors (service.pool.Engine)."""
+    """Routes calls to the maps' actors (service.engine.Engine)."""
 
     shared = True
 

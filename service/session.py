@@ -3,89 +3,42 @@
 A session lives in the worker process that owns the map. `submit` is the frame
 use case: parse, idempotency check, order check, append to the log (committed),
 process, store the result with its events and removals, snapshot periodically.
-`MapSession.open` rebuilds a map from its database: the latest snapshot, then
-the log's tail replayed through the estimator.
+Opening a session rebuilds the map from its store: the latest snapshot, then the
+log's tail replayed through the estimator (service.frame_log).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import pickle
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Any
 
 import numpy as np
 
 from frontend.errors import ImageError
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
-from graph.slam import BearingSlam, RemovalRecord
-from graph.snapshot import SnapshotError
-from graph.trajectory import PoseRow
+from graph.slam import BearingSlam
 from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
-from service.frame_results import FrameReply, frame_events, result_doc
-from service.frames_io import (
-    canonical_frame,
-    frame_from_dict,
-    frame_to_dict,
-    image_record,
-    observations_json,
-)
+from service.frame_log import FrameLog
+from service.frame_results import FrameReply, result_doc
+from service.frames_io import canonical_frame, image_record, observations_json
 from service.image_frames import MapVision, Pending, image_refused, no_camera
-from service.pipeline import FrameStep, ImageFeatures, MapPipeline
+from service.pipeline import FrameStep, ImageFeatures
 from service.pipeline.config import MapConfig, slam_config
-from service.pipeline.snapshot import fresh_pipeline, restore_pipeline, snapshot_pipeline
+from service.pipeline.snapshot import snapshot_pipeline
 from service.settings import StoreSettings
-from service.store import MapPlace, MapRecord, StoredFrame, as_place
+from service.store import MapPlace, MapRecord, as_place
 from service.store_sql import MapStore
 
 log = logging.getLogger(__name__)
 
 SNAPSHOT_OVERDUE = 5
 """A snapshot due for this many times `snapshot_every` frames is taken inside a request."""
-IMPORTED_FRONTEND = "imported_frontend"
-"""Meta key: an imported camera map's front-end state and the log frame it follows."""
-MAX_REPLAY_ATTEMPTS = 2
-"""Reloads that may retry an unfinished log frame before it is dropped as a poison pill."""
-
-
-_POSE_FLUSH = 4096
-"""Final trajectory rows a reload collects before it writes them (bounds its memory)."""
-
-
-T = TypeVar("T")
-
-
-class _Buffer(Generic[T]):
-    """Collects what the estimator's sinks hand out during one frame (removal records,
-    final trajectory rows), to be stored with the frame's result."""
-
-    def __init__(self) -> None:
-        self.items: list[T] = []
-
-    def append(self, item: T) -> None:
-        self.items.append(item)
-
-    def extend(self, items: list[T]) -> None:
-        self.items.extend(items)
-
-    def take(self) -> list[T]:
-        items, self.items = self.items, []
-        return items
-
-
-def _restore_imported_frontend(pipeline: MapPipeline, imported: Any, upto: int, last: int) -> None:
-    """Replaying an imported map's log without a snapshot from after its import: put
-    the export's front-end state back where the import did (after log frame `after`)."""
-    if imported is None or pipeline.images is None:
-        return
-    after = int(imported["after"])
-    if last == after and upto <= after:
-        pipeline.images.set_state_doc(imported["state"])
 
 
 class MapSession:
@@ -103,16 +56,16 @@ class MapSession:
                 500, "corrupt-map", "Map store incomplete", f"{self.place} has no map record"
             )
         self.record = MapRecord.from_dict(meta)
-        self._removals: _Buffer[RemovalRecord] = _Buffer()
-        self._poses: _Buffer[PoseRow] = _Buffer()
+        self.frame_log = FrameLog(self.store, self.place)
+        """Frames' completion and the map's reload (service.frame_log)."""
         self._timing: deque[float] = deque(maxlen=1000)
         self.replay_errors = 0
+        """Log frames that failed on replay at the loads so far."""
         self.loaded_from_snapshot = 0
         """Log id the snapshot used at the last load covered (0: none, whole log replayed)."""
-        self._removal_count: int | None = None
         self.vision = MapVision.for_config(self.record.config)
         """The front end of a map with a camera (image frames); None without one."""
-        self.pipeline, self._last_log_id, self._since_snapshot = self._load()
+        self._load()
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
@@ -143,140 +96,14 @@ class MapSession:
         """Id of the last frame in the map's log that the pipeline took."""
         return self._last_log_id
 
-    def _fresh(self) -> MapPipeline:
-        config = slam_config(self.record.config, self.record.mode)
-        slam = BearingSlam(
-            config,
-            rng=np.random.default_rng(self.seed()),
-            removal_sink=self._removals.append,
-            trajectory_sink=self._poses.extend,
-        )
-        front_end = None if self.vision is None else self.vision.front_end
-        return fresh_pipeline(slam, seed=self.seed(), front_end=front_end)
-
-    def _load(self) -> tuple[MapPipeline, int, int]:
-        """Latest snapshot + the log's tail: (pipeline, last log id, frames since
-        snapshot)."""
-        t0 = time.perf_counter()
-        snap = self.store.latest_snapshot()
-        pipeline, upto = None, 0
-        frontend = None if self.vision is None else self.store.latest_frontend_state()
-        if snap is not None and self.vision is not None and frontend is None:
-            log.warning(
-                "map %s: snapshot without front-end state, replaying the whole log", self.place
-            )
-            snap = None
-        if snap is not None:
-            try:
-                pipeline = restore_pipeline(
-                    snap[1],
-                    frontend,
-                    seed=self.seed(),
-                    front_end=None if self.vision is None else self.vision.front_end,
-                    removal_sink=self._removals.append,
-                    trajectory_sink=self._poses.extend,
-                )
-                pipeline.slam.config = slam_config(self.record.config, self.record.mode)
-                upto = snap[0]
-            except (SnapshotError, ValueError, pickle.UnpicklingError):
-                log.exception("map %s: unreadable snapshot, replaying the whole log", self.place)
-                pipeline, upto = None, 0
-        if pipeline is None:
-            pipeline = self._fresh()
-        tail = self.store.frames_after(upto)
-        self.loaded_from_snapshot = upto
-        last = upto
-        imported = None if self.vision is None else self.store.get_meta(IMPORTED_FRONTEND)
-        for stored in tail:
-            _restore_imported_frontend(pipeline, imported, upto, last)
-            self._replay(pipeline, stored)
-            last = stored.id
-            if len(self._poses.items) >= _POSE_FLUSH:
-                self.store.put_poses(self._poses.take())
-        _restore_imported_frontend(pipeline, imported, upto, last)
-        # Rows the tail made final again (replaced: a restored estimator may round a
-        # little differently from the one that first made them final).
-        self.store.put_poses(self._poses.take())
-        log.info(
-            "map %s: loaded snapshot up to frame %d + %d log frames in %.0f ms",
-            self.record.id,
-            upto,
-            len(tail),
-            1e3 * (time.perf_counter() - t0),
-        )
-        return pipeline, last, len(tail)
-
-    def _replay(self, pipeline: MapPipeline, stored: StoredFrame) -> None:
-        if stored.result is None:
-            # Logged but never finished: the process died while handling it. If that
-            # happened on every reload as well, the frame itself kills the worker
-            # (a poison pill): drop it instead of crashing forever.
-            if stored.attempts >= MAX_REPLAY_ATTEMPTS:
-                log.error(
-                    "map %s: dropping log frame %d (robot %s seq %d): the worker died "
-                    "%d times processing it",
-                    self.record.id,
-                    stored.id,
-                    stored.robot,
-                    stored.seq,
-                    stored.attempts + 1,
-                )
-                self.replay_errors += 1
-                self.store.delete_frame(stored.id)
-                return
-            self.store.count_attempt(stored.id)
-        doc = json.loads(stored.body)
-        frame = frame_from_dict(doc)
-        observations = None
-        try:
-            if "image" in doc:
-                step, observations = self._replay_image(pipeline, stored.id, frame)
-            else:
-                step = pipeline.step(frame)
-        except (InvalidFrame, EstimationError, ImageError):
-            self.replay_errors += 1
-            self._removals.take()
-            # The final rows collected so far stay for the load's flush: the estimator
-            # goes on without them, whatever this frame did before it failed.
-            if stored.result is None:  # never acknowledged: drop it
-                log.warning("map %s: dropping unprocessable log frame %d", self.place, stored.id)
-                self.store.delete_frame(stored.id)
-            else:
-                log.exception(
-                    "map %s: acknowledged frame %d failed on replay", self.place, stored.id
-                )
-            return
-        removals = self._removals.take()
-        if stored.result is None:  # appended but not completed before a crash
-            result = result_doc(pipeline.slam, step, stored.id, {})
-            self._complete(
-                pipeline.slam,
-                stored.id,
-                json.dumps(result),
-                step,
-                removals,
-                observations,
-                self._poses.take(),
-            )
-
-    def _replay_image(
-        self, pipeline: MapPipeline, log_id: int, frame: FrameInput
-    ) -> tuple[FrameStep, str | None]:
-        """A logged image frame again: through the front end from its image, or (an
-        imported frame, no image) from the observations its image gave. Returns the
-        frame's step and the observations as JSON text (None for an imported frame)."""
-        if self.vision is None:
-            raise InvalidFrame("image", f"log frame {log_id}: the map has no camera")
-        image = self.store.frame_image(log_id)
-        if image is None:
-            observations = self.store.image_observations(log_id)
-            if observations is None:
-                raise InvalidFrame("image", f"log frame {log_id}: image and observations missing")
-            observed = frame_from_dict({**frame_to_dict(frame), "observations": observations})
-            return pipeline.step(observed, landmark_covariances=False), None
-        features, sig, _ = self.vision.features_of(image)
-        step = pipeline.step(frame, image=ImageFeatures(features, sig))
-        return step, observations_json(step.observations)
+    def _load(self) -> None:
+        """(Re)build the pipeline from the map's latest snapshot and its log's tail."""
+        loaded = self.frame_log.load(self.record, self.vision, seed=self.seed())
+        self.pipeline = loaded.pipeline
+        self._last_log_id = loaded.last_log_id
+        self._since_snapshot = loaded.replayed
+        self.loaded_from_snapshot = loaded.from_snapshot
+        self.replay_errors += loaded.errors
 
     @property
     def snapshot_due(self) -> bool:
@@ -337,76 +164,22 @@ class MapSession:
             self._check_image_frame(frame)
         if imported and self.vision is None:
             raise no_camera(self.record.id)
-        stored = self.store.find_frame(frame.robot, frame.seq)
-        if stored is not None:
-            if stored.body == text and stored.result is not None:
-                return FrameReply(stored.result, replayed=True)
-            raise ServiceError(
-                409,
-                "duplicate-seq",
-                "Duplicate frame",
-                f"seq: robot {frame.robot!r} already sent a different frame with seq "
-                f"{frame.seq}; a retry must repeat the frame exactly",
-                field="seq",
-            )
+        retry = self._retry_of(frame, text)
+        if retry is not None:
+            return retry
         pending = None
         if self.vision is not None and image is not None:
             pending = prefetched or self.vision.extract(image)
-        last = self.pipeline.last_accepted().get(frame.robot)
-        try:
-            validate_frame(
-                frame,
-                last_seq=None if last is None else last[0],
-                last_stamp=None if last is None else last[1],
-                require_initial_pose=False,
-            )
-        except OutOfOrderFrame as exc:
-            raise out_of_order(exc.field, exc.detail) from exc
-        except InvalidFrame as exc:
-            raise invalid_frame(exc.field, exc.detail) from exc
+        self._check_order(frame)
         observations = observations_json(frame.observations) if imported else None
         log_id = self.store.append_frame(frame.robot, frame.seq, text, image, observations)
         t1 = time.perf_counter()
-        vision_ms: dict[str, float] = {}
-        try:
-            if pending is None:
-                step = self.pipeline.step(frame, landmark_covariances=not imported)
-            else:
-                step, observations, vision_ms = self._process_image(frame, pending)
-        except ImageError as exc:
-            self.store.delete_frame(log_id)
-            raise image_refused(exc) from exc
-        except InvalidFrame as exc:
-            self.store.delete_frame(log_id)
-            self._removals.take()
-            self._poses.take()
-            raise invalid_frame(exc.field, exc.detail) from exc
-        except EstimationError as exc:
-            self._forget_frame(log_id)
-            raise ServiceError(
-                422,
-                "estimation-failed",
-                "Estimation failed",
-                f"the estimator could not take this frame ({exc}); the map is as before",
-            ) from exc
-        except Exception:
-            # A bug of ours, half way through the frame (the caller gets a 500).
-            self._forget_frame(log_id)
-            raise
-        removals = self._removals.take()
+        step, observed, vision_ms = self._step(frame, log_id, pending, imported=imported)
         final = step.outcome
         result = result_doc(self.slam, step, log_id, {"log": 1e3 * (t1 - t0), **vision_ms})
         t2 = time.perf_counter()
         text = json.dumps(result)
-        events = self._complete(
-            self.slam,
-            log_id,
-            text,
-            step,
-            removals,
-            None if imported else observations,
-            self._poses.take(),
-        )
+        events = self.frame_log.complete(self.slam, log_id, text, step, observed)
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
         self._timing.append(1e3 * (time.perf_counter() - t0))
@@ -435,23 +208,83 @@ class MapSession:
             log.exception(
                 "map %s: the upkeep after log frame %d failed", self.place, self._last_log_id
             )
-            self._removals.take()
-            self._poses.take()
-            self._removal_count = None
-            self.pipeline, self._last_log_id, self._since_snapshot = self._load()
+            self.frame_log.discard()
+            self._load()
             self.slam.skip_upkeep()
+
+    def _retry_of(self, frame: FrameInput, text: str) -> FrameReply | None:
+        """The stored answer when the frame repeats a logged one exactly (an idempotent
+        retry); None for a new frame; 409 for a different frame with a logged seq."""
+        stored = self.store.find_frame(frame.robot, frame.seq)
+        if stored is None:
+            return None
+        if stored.body == text and stored.result is not None:
+            return FrameReply(stored.result, replayed=True)
+        raise ServiceError(
+            409,
+            "duplicate-seq",
+            "Duplicate frame",
+            f"seq: robot {frame.robot!r} already sent a different frame with seq "
+            f"{frame.seq}; a retry must repeat the frame exactly",
+            field="seq",
+        )
+
+    def _check_order(self, frame: FrameInput) -> None:
+        """Refuse a frame that does not follow its robot's last one (409) or is invalid
+        (422)."""
+        last = self.pipeline.last_accepted().get(frame.robot)
+        try:
+            validate_frame(
+                frame,
+                last_seq=None if last is None else last[0],
+                last_stamp=None if last is None else last[1],
+                require_initial_pose=False,
+            )
+        except OutOfOrderFrame as exc:
+            raise out_of_order(exc.field, exc.detail) from exc
+        except InvalidFrame as exc:
+            raise invalid_frame(exc.field, exc.detail) from exc
+
+    def _step(
+        self, frame: FrameInput, log_id: int, pending: Pending | None, *, imported: bool
+    ) -> tuple[FrameStep, str | None, dict[str, float]]:
+        """The logged frame `log_id` through the pipeline (an image frame's features from
+        `pending`): (its step, the observations its image gave as JSON text, the front
+        end's timings ms). A refusal takes the frame out of the log again and leaves the
+        map as it was."""
+        try:
+            if pending is None:
+                return self.pipeline.step(frame, landmark_covariances=not imported), None, {}
+            return self._process_image(frame, pending)
+        except ImageError as exc:
+            self.store.delete_frame(log_id)
+            raise image_refused(exc) from exc
+        except InvalidFrame as exc:
+            self.store.delete_frame(log_id)
+            self.frame_log.discard()
+            raise invalid_frame(exc.field, exc.detail) from exc
+        except EstimationError as exc:
+            self._forget_frame(log_id)
+            raise ServiceError(
+                422,
+                "estimation-failed",
+                "Estimation failed",
+                f"the estimator could not take this frame ({exc}); the map is as before",
+            ) from exc
+        except Exception:
+            # A bug of ours, half way through the frame (the caller gets a 500).
+            self._forget_frame(log_id)
+            raise
 
     def _forget_frame(self, log_id: int) -> None:
         """Undo a frame the estimator failed on half way: the in-memory map may be half
         updated. The frame was never acknowledged; it leaves the log and the map is
         reloaded as it was, so that the next frame meets a whole map."""
         self.store.delete_frame(log_id)
-        self._removals.take()
-        self._poses.take()
-        self._removal_count = None
-        self.pipeline, self._last_log_id, self._since_snapshot = self._load()
+        self.frame_log.discard()
+        self._load()
 
-    def _check_image_frame(self, frame: Any) -> None:
+    def _check_image_frame(self, frame: FrameInput) -> None:
         if self.vision is None:
             raise no_camera(self.record.id)
         try:
@@ -462,7 +295,7 @@ class MapSession:
             raise invalid_frame(exc.field, exc.detail) from exc
 
     def _process_image(
-        self, frame: Any, pending: Pending
+        self, frame: FrameInput, pending: Pending
     ) -> tuple[FrameStep, str, dict[str, float]]:
         """(the frame's step, the observations it is recorded with as JSON text, the
         front end's timings ms)."""
@@ -471,40 +304,9 @@ class MapSession:
         step = self.pipeline.step(frame, image=ImageFeatures(features, sig))
         return step, observations_json(step.observations), timing
 
-    def _complete(
-        self,
-        slam: BearingSlam,
-        log_id: int,
-        result_json: str,
-        step: FrameStep,
-        removals: list[RemovalRecord],
-        observations: str | None = None,
-        poses: list[PoseRow] | None = None,
-    ) -> list[tuple[int, str, str]]:
-        """Store the frame's result with its events, removals, archived landmarks and
-        final trajectory rows (one transaction); the events as stored (id, kind, data)."""
-        events, rows, archived = frame_events(slam, step, result_json, removals, log_id)
-        restored = () if step.outcome is None else step.outcome.restored
-        ids = self.store.complete_frame(
-            log_id,
-            result_json,
-            events,
-            rows,
-            observations,
-            poses,
-            archived=archived,
-            restored=restored,
-        )
-        if self._removal_count is not None:
-            self._removal_count += len(rows)
-        return [(i, kind, data) for i, (kind, data) in zip(ids, events, strict=True)]
-
     def removal_count(self) -> int:
-        """Rows of the map's removal log (counted once, then kept: a summary is
-        published with every frame, and counting grows with the log)."""
-        if self._removal_count is None:
-            self._removal_count = self.store.removal_count()
-        return self._removal_count
+        """Rows of the map's removal log."""
+        return self.frame_log.removal_count()
 
     def seed(self) -> int:
         """The map's seed (its config's)."""

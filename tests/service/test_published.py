@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 
+from service.balance import choose_move
+from service.events import Notifier, sse_bytes
 from service.frames_io import frame_to_dict
-from service.maps import Notifier
 from service.offline.datasets.indoor_sim import make_world, simulate
-from service.pool import choose_move
 from service.published import ViewDelta, build_view
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
 from service.session import MapSession
@@ -143,18 +143,21 @@ def test_final_rows_the_view_still_holds_are_not_doubled() -> None:
 
 
 def test_the_feed_hands_out_events_after_an_id_or_sends_to_the_store() -> None:
+    a, b, c, d, g = (
+        (i, "frame", name) for i, name in ((1, "a"), (2, "b"), (3, "c"), (4, "d"), (7, "g"))
+    )
     feed = Notifier(feed_size=3)
-    assert feed.fed_after("m", 0) is None  # nothing fed: the store
-    feed.publish("m", [(1, "frame", "a"), (2, "frame", "b")])
-    assert feed.fed_after("m", 0) == [(1, "frame", "a"), (2, "frame", "b")]
-    assert feed.fed_after("m", 1) == [(2, "frame", "b")]
-    assert feed.fed_after("m", 2) == []
-    feed.publish("m", [(3, "frame", "c"), (4, "frame", "d")])  # the oldest falls out
-    assert feed.fed_after("m", 0) is None
-    assert feed.fed_after("m", 1) == [(2, "frame", "b"), (3, "frame", "c"), (4, "frame", "d")]
-    feed.publish("m", [(7, "frame", "g")])  # a gap (events stored elsewhere): restart
-    assert feed.fed_after("m", 4) is None
-    assert feed.fed_after("m", 6) == [(7, "frame", "g")]
+    assert feed.fed_sse("m", 0) is None  # nothing fed: the store
+    feed.publish("m", [a, b])
+    assert feed.fed_sse("m", 0) == (2, sse_bytes([a, b]))
+    assert feed.fed_sse("m", 1) == (2, sse_bytes([b]))
+    assert feed.fed_sse("m", 2) == (2, b"")
+    feed.publish("m", [c, d])  # the oldest falls out
+    assert feed.fed_sse("m", 0) is None
+    assert feed.fed_sse("m", 1) == (4, sse_bytes([b, c, d]))
+    feed.publish("m", [g])  # a gap (events stored elsewhere): restart
+    assert feed.fed_sse("m", 4) is None
+    assert feed.fed_sse("m", 6) == (7, sse_bytes([g]))
 
 
 def test_the_feed_hands_out_sse_bytes_encoded_once() -> None:
