@@ -113,6 +113,10 @@ class IncrementalGraph:
         self.sparsifications_refused = 0
         """Marginal factors kept exact because their tree would lose a direction."""
         self.sparsification_kl: list[float] | None = None
+        self.relinearising = False
+        """Updates relinearise though iSAM2's interval says not to (BearingSlam sets it
+        during an upkeep with SlamConfig.upkeep "after_frame": the upkeep's updates then
+        relinearise as a frame's do, the frame's own update does not)."""
         """Set to a list, KL(exact || tree) in nats of every later sparsification is
         appended to it (an evaluation's measure; every tree computes it)."""
 
@@ -294,7 +298,9 @@ class IncrementalGraph:
         for factor in added:
             new.add(factor)
         try:
-            result = self._isam.update(new, values or gtsam.Values(), remove)
+            result = self._isam.update(
+                new, values or gtsam.Values(), remove, force_relinearize=self.relinearising
+            )
         except RuntimeError as exc:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
             qr = self._isam.params().getFactorization() == "QR"
             if "Indeterminate linear system" not in str(exc) or qr:
