@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import httpx
+import pytest
 
 from tests.e2e.conftest import Server, create_map, frame_dicts, sim_frames
 from tests.e2e.test_events_export import post_and_collect
@@ -10,8 +11,13 @@ from tests.e2e.test_events_export import post_and_collect
 FRAMES = frame_dicts(sim_frames(160, seed=3))
 
 
-def test_archived_landmarks_and_restore_events(server: Server, client: httpx.Client) -> None:
-    map_id = create_map(client, "archive", config={"landmark_cap": 4})
+@pytest.mark.parametrize("upkeep", ["in_frame", "after_frame"])
+def test_archived_landmarks_and_restore_events(
+    server: Server, client: httpx.Client, upkeep: str
+) -> None:
+    """Also with the budget in the worker's upkeep, once each frame's result is sent."""
+    config = {"landmark_cap": 4, "solver": {"upkeep": upkeep}}
+    map_id = create_map(client, f"archive-{upkeep}", config=config)
     _, events = post_and_collect(server, client, map_id, FRAMES)
 
     live = client.get(f"/v1/maps/{map_id}/landmarks")
