@@ -14,9 +14,11 @@ closed loop). Then the same frames go through ``MapSession.submit`` in one proce
 Reported per frame, ms: the API process, the workers, the in-process sessions, and the
 request path's cost outside the estimator: ``workers - in_process + api``.
 
-``--profile DIR``: the API process and each worker run under cProfile (CPU time);
-their stats go to ``DIR/api.prof`` and ``DIR/worker<i>.prof`` (read with pstats;
-the profiler's own overhead inflates the CPU figures of that run).
+``--profile DIR``: the API process and each worker sample their own stacks every
+0.5 ms of CPU time (SIGPROF; a deterministic profiler's per-call overhead would
+inflate exactly the many small Python calls this looks for); the samples go to
+``DIR/api.samples`` and ``DIR/worker<i>.samples``, and ``python -m bench.request_cpu
+--report DIR`` prints each function's share (self and with its callees).
 
 Writes ``<out>/request_cpu.json``.
 """
@@ -24,9 +26,10 @@ Writes ``<out>/request_cpu.json``.
 from __future__ import annotations
 
 import argparse
-import cProfile
+import collections
 import json
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -66,17 +69,52 @@ def _server_times(server: Server, client: httpx.Client) -> dict[str, dict[str, f
     return {"api": _times(server.proc.pid), "workers": workers}
 
 
+Stack = tuple[str, ...]
+
+
+class Sampler:
+    """The main thread's stacks every `interval_s` of the process's CPU time (ITIMER_PROF:
+    waiting is not sampled), each weighted with the CPU seconds since the sample before
+    it: Python runs a signal handler only between two bytecodes, so the timer's signals
+    during a long C call (GTSAM, the event loop) come as one, charged to the Python
+    function that runs next (the caller of a C function; the callback the event loop
+    runs after its own work)."""
+
+    def __init__(self, interval_s: float = 0.0005) -> None:
+        self.interval_s = interval_s
+        self.counts: dict[Stack, float] = collections.defaultdict(float)
+        self._last = 0.0
+
+    def _sample(self, signum: int, frame: Any) -> None:
+        now = time.process_time()
+        stack = []
+        while frame is not None:
+            code = frame.f_code
+            stack.append(f"{code.co_filename}:{code.co_firstlineno}({code.co_name})")
+            frame = frame.f_back
+        self.counts[tuple(stack)] += now - self._last
+        self._last = now
+
+    def start(self) -> None:
+        self._last = time.process_time()
+        signal.signal(signal.SIGPROF, self._sample)
+        signal.setitimer(signal.ITIMER_PROF, self.interval_s, self.interval_s)
+
+    def stop(self, path: Path) -> None:
+        signal.setitimer(signal.ITIMER_PROF, 0, 0)
+        path.write_bytes(pickle.dumps(dict(self.counts)))
+
+
 def profiled_worker(conn: Any, settings: dict[str, Any], index: int) -> None:
-    """`service.worker.serve` under cProfile (CPU time); stats to $PROFILE_ENV."""
+    """`service.worker.serve`, sampled (see `Sampler`); samples to $PROFILE_ENV."""
     from service import worker
 
-    profile = cProfile.Profile(time.process_time)
-    profile.enable()
+    sampler = Sampler()
+    sampler.start()
     try:
         worker.serve(conn, settings, index)
     finally:
-        profile.disable()
-        profile.dump_stats(str(Path(os.environ[PROFILE_ENV]) / f"worker{index}.prof"))
+        sampler.stop(Path(os.environ[PROFILE_ENV]) / f"worker{index}.samples")
 
 
 def _exit(signum: int, frame: Any) -> None:
@@ -84,22 +122,43 @@ def _exit(signum: int, frame: Any) -> None:
 
 
 def serve_profiled(argv: list[str]) -> None:
-    """`covslam serve argv` under cProfile, its workers too (see `profiled_worker`)."""
+    """`covslam serve argv`, sampled, its workers too (see `profiled_worker`)."""
     import types
 
     from api import cli
     from service import pool
 
     pool.worker = types.SimpleNamespace(serve=profiled_worker)  # type: ignore[assignment]
-    profile = cProfile.Profile(time.process_time)
-    profile.enable()
+    sampler = Sampler()
+    sampler.start()
     try:
         # uvicorn raises a SIGTERM again after its shutdown: end by SystemExit instead
         signal.signal(signal.SIGTERM, _exit)
         cli.main(["serve", *argv])
     finally:
-        profile.disable()
-        profile.dump_stats(str(Path(os.environ[PROFILE_ENV]) / "api.prof"))
+        sampler.stop(Path(os.environ[PROFILE_ENV]) / "api.samples")
+
+
+def report(folder: Path, top: int = 40) -> None:
+    """Each function's share of the sampled CPU time of each process kind (self: the
+    function was running; total: it was on the stack), %."""
+    for kind in ("api", "worker"):
+        counts: dict[Stack, float] = collections.defaultdict(float)
+        for path in sorted(folder.glob(f"{kind}*.samples")):
+            for stack, seconds in pickle.loads(path.read_bytes()).items():
+                counts[stack] += seconds
+        n = sum(counts.values())
+        own: dict[str, float] = collections.defaultdict(float)
+        total: dict[str, float] = collections.defaultdict(float)
+        for stack, c in counts.items():
+            own[stack[0]] += c
+            for name in set(stack):
+                total[name] += c
+        print(f"== {kind}: {n:.2f} CPU s sampled")
+        for title, table in (("self", own), ("total", total)):
+            print(f"-- {title}")
+            for name, c in sorted(table.items(), key=lambda item: -item[1])[:top]:
+                print(f"{100 * c / n:6.2f} %  {name.replace(os.getcwd() + '/', '')}")
 
 
 class ProfiledServer(Server):
@@ -186,6 +245,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 def main() -> None:
     if sys.argv[1:2] == ["--serve-profiled"]:
         serve_profiled(sys.argv[2:])
+        return
+    if sys.argv[1:2] == ["--report"]:
+        report(Path(sys.argv[2]))
         return
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
