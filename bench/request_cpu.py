@@ -5,7 +5,8 @@ CPU time (from /proc), not wall time: the machine is shared, and a process's CPU
 frame is much steadier than its throughput. Run from the repository root, niced::
 
     nice -n 10 python -m bench.request_cpu [--maps 8] [--clients 4] [--frames 150]
-                                           [--profile DIR] [--out bench/results]
+                                           [--profile DIR | --versus DIR]
+                                           [--out bench/results]
 
 A ``covslam serve --workers 2`` (SQLite, the default settings) gets `maps` maps (the
 load bench's config: landmark cap 50) and `clients` clients per map post their
@@ -13,6 +14,12 @@ simulated frames (the load bench's frames, one keep-alive connection per client,
 closed loop). Then the same frames go through ``MapSession.submit`` in one process.
 Reported per frame, ms: the API process, the workers, the in-process sessions, and the
 request path's cost outside the estimator: ``workers - in_process + api``.
+
+``--versus DIR``: a server of this tree and one of the checkout DIR (e.g. ``git worktree
+add DIR <commit>``) side by side, the same frames posted to both at the same time
+(`maps` maps and `clients` clients each): the CPU per frame of each one's API process
+and workers, paired in time, so that the machine's load moves both alike (printed, not
+written).
 
 ``--profile DIR``: the API process and each worker sample their own stacks every
 0.5 ms of CPU time (SIGPROF; a deterministic profiler's per-call overhead would
@@ -34,6 +41,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -161,6 +169,28 @@ def report(folder: Path, top: int = 40) -> None:
                 print(f"{100 * c / n:6.2f} %  {name.replace(os.getcwd() + '/', '')}")
 
 
+def _launch(server: Server, argv: list[str], env: dict[str, str], cwd: Path | None = None) -> float:
+    """Start `python argv` as `server`'s process (its port, data directory, two
+    workers); seconds until /readyz answered 200."""
+    t0 = time.monotonic()
+    with server.log.open("ab") as out:
+        server.proc = subprocess.Popen(
+            [sys.executable, *argv, "--port", str(server.port), "--data-dir", str(server.data),
+             "--workers", "2"],
+            cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+        )  # fmt: skip
+    while time.monotonic() - t0 < 120:
+        if server.proc.poll() is not None:
+            raise RuntimeError(server.log.read_text()[-2000:])
+        try:
+            if httpx.get(server.url + "/readyz", timeout=1).status_code == 200:
+                return time.monotonic() - t0
+        except httpx.TransportError:
+            pass
+        time.sleep(0.02)
+    raise TimeoutError(server.log.read_text()[-2000:])
+
+
 class ProfiledServer(Server):
     def __init__(self, data: Path, log: Path, profile: Path) -> None:
         super().__init__(data, log)
@@ -168,23 +198,83 @@ class ProfiledServer(Server):
 
     def start(self) -> float:
         env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning", PROFILE_ENV: str(self.profile)}
-        t0 = time.monotonic()
-        with self.log.open("ab") as out:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "bench.request_cpu", "--serve-profiled", "--port",
-                 str(self.port), "--data-dir", str(self.data), "--workers", "2"],
-                env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
-            )  # fmt: skip
-        while time.monotonic() - t0 < 120:
-            if self.proc.poll() is not None:
-                raise RuntimeError(self.log.read_text()[-2000:])
-            try:
-                if httpx.get(self.url + "/readyz", timeout=1).status_code == 200:
-                    return time.monotonic() - t0
-            except httpx.TransportError:
-                pass
-            time.sleep(0.02)
-        raise TimeoutError(self.log.read_text()[-2000:])
+        return _launch(self, ["-m", "bench.request_cpu", "--serve-profiled"], env)
+
+
+class TreeServer(Server):
+    """`covslam serve --workers 2` from the source tree `tree` (another checkout)."""
+
+    def __init__(self, data: Path, log: Path, tree: Path) -> None:
+        super().__init__(data, log)
+        self.tree = tree
+
+    def start(self) -> float:
+        env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning"}
+        env.pop("PYTHONPATH", None)
+        return _launch(self, ["-m", "api.cli", "serve"], env, cwd=self.tree)
+
+
+def versus(args: argparse.Namespace) -> dict[str, Any]:
+    """This tree's server and `args.versus`'s side by side, the same frames posted to both
+    at the same time (each gets `maps` maps, `clients` clients each): a change's effect
+    on the CPU per frame of each process, paired in time (the machine's load swings
+    move both alike)."""
+    frames = make_frames(args.maps, args.clients, args.frames)
+    work = Path(tempfile.mkdtemp(prefix="covslam-cpu-"))
+    trees = {"this": Path.cwd(), "versus": args.versus.resolve()}
+    servers = {
+        name: TreeServer(work / name / "data", work / f"{name}.log", tree)
+        for name, tree in trees.items()
+    }
+    try:
+        for server in servers.values():
+            server.start()
+        clients = {name: httpx.Client(base_url=s.url, timeout=120) for name, s in servers.items()}
+        maps = {
+            name: [
+                c.post("/v1/maps", json={"name": f"m{i}", "config": MAP_CONFIG}).json()["id"]
+                for i in range(args.maps)
+            ]
+            for name, c in clients.items()
+        }
+        cpu0 = {name: _server_times(servers[name], c) for name, c in clients.items()}
+        runs: dict[str, dict[str, Any]] = {}
+
+        def post(name: str) -> None:
+            runs[name] = post_all(servers[name].port, maps[name], frames, limit_s=600)[0]
+
+        threads = [threading.Thread(target=post, args=(name,)) for name in servers]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        cpu1 = {name: _server_times(servers[name], c) for name, c in clients.items()}
+    finally:
+        for server in servers.values():
+            server.kill()
+    out: dict[str, Any] = {
+        "command": "nice -n 10 python -m bench.request_cpu " + " ".join(sys.argv[1:]),
+        "maps": args.maps,
+        "clients_per_map": args.clients,
+        "loadavg": runs["this"]["loadavg"],
+    }
+    for name in servers:
+        n = runs[name]["frames"]
+        out[name] = {
+            "tree": str(trees[name]),
+            "frames": n,
+            "frames_per_s": runs[name]["frames_per_s"],
+            "cpu_ms_per_frame": {
+                who: round(
+                    1e3
+                    * sum(cpu1[name][who][k] - cpu0[name][who][k] for k in ("user", "system"))
+                    / n,
+                    3,
+                )
+                for who in ("api", "workers")
+            },
+        }
+    return out
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -254,8 +344,12 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--frames", type=int, default=150, help="per client")
     parser.add_argument("--profile", type=Path, default=None)
+    parser.add_argument("--versus", type=Path, default=None, help="another checkout")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
+    if args.versus is not None:
+        print(json.dumps(versus(args), indent=2), flush=True)
+        return
     result = run(args)
     print(json.dumps(result, indent=2), flush=True)
     if args.profile is None:
