@@ -143,6 +143,8 @@ def _optional_object(value: object) -> object:
 
 
 def _unicode(text: str) -> str:
+    if text.isascii():  # nearly every name and label: no surrogate to look for
+        return text
     for i, ch in enumerate(text):
         if "\ud800" <= ch <= "\udfff":
             raise _refuse(
