@@ -67,6 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
     app.state.settings = settings
     errors.install(app)
+    app.add_middleware(frames.FramesLane)  # inside BodyLimit: the body limits apply
     app.add_middleware(
         errors.BodyLimit,
         max_bytes=settings.api.max_body_bytes,
