@@ -134,6 +134,17 @@ def _check_map(who: Principal, map_id: str, scope: Scope) -> Principal:
     return who
 
 
+async def may_write(request: Request, map_id: str) -> Principal:
+    """What the `MapWrite` dependency does, called directly (the frames lane,
+    api.routes.frames.FramesLane): the request's key, then its map and scope.
+
+    Raises AuthError as the dependency does."""
+    credentials = await bearer(request)
+    token = None if credentials is None else credentials.credentials
+    who = identify(request.app.state.settings, request.app.state.service, token)
+    return _check_map(who, map_id, "write")
+
+
 async def map_read(map_id: MapId, who: PrincipalDep) -> Principal:
     return _check_map(who, map_id, "read")
 

@@ -27,7 +27,9 @@ async def get_metrics(request: Request) -> Metrics:
 
 ServiceDep = Annotated[MapService, Depends(get_service)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
-MapId = Annotated[str, Path(description="the map's id (from POST /v1/maps)", max_length=64)]
+MAP_ID_MAX = 64
+"""The longest map id a path may name (a longer one is a 422)."""
+MapId = Annotated[str, Path(description="the map's id (from POST /v1/maps)", max_length=MAP_ID_MAX)]
 
 
 def media_type(request: Request) -> str:

@@ -48,34 +48,44 @@ def _loc(loc: tuple[Any, ...]) -> str:
     return out or ".".join(str(p) for p in loc)
 
 
+def service_problem(request: Request, exc: ServiceError) -> JSONResponse:
+    """The answer to a ServiceError."""
+    headers: dict[str, str] = dict(getattr(exc, "headers", None) or {})
+    if exc.status >= 500:
+        headers["Connection"] = "close"  # the server is in doubt: a fresh connection
+    return problem(
+        exc.status,
+        exc.slug,
+        exc.title,
+        exc.detail,
+        instance=request.url.path,
+        headers=headers or None,
+        **exc.extra,
+    )
+
+
+def unavailable_problem(request: Request, exc: WorkerUnavailable) -> JSONResponse:
+    """The answer to a WorkerUnavailable: 503 with Retry-After."""
+    return problem(
+        503,
+        "worker-unavailable",
+        "Worker unavailable",
+        exc.detail,
+        instance=request.url.path,
+        headers={"Retry-After": str(exc.retry_after_s)},
+    )
+
+
 def install(app: FastAPI) -> None:
     """Exception handlers that answer problem+json."""
 
     @app.exception_handler(ServiceError)
     async def _service(request: Request, exc: ServiceError) -> JSONResponse:
-        headers: dict[str, str] = dict(getattr(exc, "headers", None) or {})
-        if exc.status >= 500:
-            headers["Connection"] = "close"  # the server is in doubt: a fresh connection
-        return problem(
-            exc.status,
-            exc.slug,
-            exc.title,
-            exc.detail,
-            instance=request.url.path,
-            headers=headers or None,
-            **exc.extra,
-        )
+        return service_problem(request, exc)
 
     @app.exception_handler(WorkerUnavailable)
     async def _unavailable(request: Request, exc: WorkerUnavailable) -> JSONResponse:
-        return problem(
-            503,
-            "worker-unavailable",
-            "Worker unavailable",
-            exc.detail,
-            instance=request.url.path,
-            headers={"Retry-After": str(exc.retry_after_s)},
-        )
+        return unavailable_problem(request, exc)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
@@ -55,21 +56,40 @@ class Metrics:
             ["status"],
             registry=self.registry,
         )
+        # Every frame updates a dozen series: their children are looked up once (a
+        # `labels` call checks and locks each time).
+        self._stages: dict[str, Any] = {}
+        self._maps: dict[str, tuple[Any, Any, Any]] = {}
+
+    def _stage(self, stage: str) -> Any:
+        child = self._stages.get(stage)
+        if child is None:
+            child = self._stages[stage] = self.stage.labels(stage)
+        return child
 
     def record_frame(self, map_id: str, reply: FrameReply, http_ms: float) -> None:
         if reply.replayed:
             self.replayed.labels(map_id).inc()
             return
-        self.frames.labels(map_id).inc()
+        series = self._maps.get(map_id)
+        if series is None:
+            series = self._maps[map_id] = (
+                self.frames.labels(map_id),
+                self.live.labels(map_id),
+                self.marginalisations.labels(map_id),
+            )
+        frames, live, marginalisations = series
+        frames.inc()
         for stage, ms in reply.timing_ms.items():
-            self.stage.labels(stage).observe(ms)
-        self.stage.labels("store").observe(reply.store_ms)
-        self.stage.labels("http").observe(http_ms)
-        self.live.labels(map_id).set(reply.live)
-        self.marginalisations.labels(map_id).inc(reply.marginalised)
+            self._stage(stage).observe(ms)
+        self._stage("store").observe(reply.store_ms)
+        self._stage("http").observe(http_ms)
+        live.set(reply.live)
+        marginalisations.inc(reply.marginalised)
 
     def forget(self, map_id: str) -> None:
         """Drop a deleted map's series."""
+        self._maps.pop(map_id, None)
         for metric in (self.frames, self.replayed, self.live, self.marginalisations):
             with contextlib.suppress(KeyError):  # no series yet for this map
                 metric.remove(map_id)

@@ -133,6 +133,8 @@ def _optional_number(value: object) -> float | None:
 
 
 def _object(value: object) -> object:
+    if type(value) is dict:  # decoded JSON: no ABC check needed
+        return value
     if not isinstance(value, Mapping):
         raise _refuse(f"must be an object, got {_json_type(value)}")
     return value
@@ -143,6 +145,8 @@ def _optional_object(value: object) -> object:
 
 
 def _unicode(text: str) -> str:
+    if text.isascii():  # nearly every name and label: no surrogate to look for
+        return text
     for i, ch in enumerate(text):
         if "\ud800" <= ch <= "\udfff":
             raise _refuse(
@@ -291,7 +295,7 @@ class ObservationIn(BaseModel):
     def _label_or_marker(cls, data: Any) -> Any:
         """A missing (or null) label gets a marker, so that its error names the label
         and says whether a descriptor stood in for it."""
-        if isinstance(data, Mapping) and data.get("label") is None:
+        if (type(data) is dict or isinstance(data, Mapping)) and data.get("label") is None:
             marker = _DESCRIPTOR_ONLY_LABEL if "descriptor" in data else _MISSING_LABEL
             return {**data, "label": marker}
         return data

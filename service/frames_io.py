@@ -110,16 +110,27 @@ def image_digest(image: bytes) -> dict[str, Any]:
 
 
 def canonical_frame(
-    body: dict[str, Any], image: bytes | None = None, digest: dict[str, Any] | None = None
+    body: dict[str, Any],
+    image: bytes | None = None,
+    digest: dict[str, Any] | None = None,
+    *,
+    limits: FrameLimits | None = None,
 ) -> tuple[Any, str]:
     """Parse a frame object; (FrameInput, canonical JSON text used for idempotency).
 
     An image frame's text records the image's digest (``"image"``; given as `digest`
     for an imported frame, whose image is not at hand), so a retry must repeat the
     image too. The text of an image frame has no observations (they come from the
-    image)."""
+    image).
+
+    `limits`: a posted frame, checked as `admit_frame` checks it (its bounds; a JSON
+    frame must not name an image), so that one parse both checks and reads it.
+    """
     try:
-        frame = frame_from_dict(body)
+        if limits is not None and image is None and digest is None:
+            frame = parse_frame(body, limits=limits)  # a posted JSON frame
+        else:
+            frame = frame_from_dict(body, limits=limits)
     except InvalidFrame as exc:
         raise invalid_frame(exc.field, exc.detail) from exc
     doc = frame_to_dict(frame)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import itertools
 import os
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -110,7 +110,12 @@ class ViewDelta:
             return MapView(**self.fields)
         if current is None or current.serial != self.base:
             return None
-        return replace(current, **self.fields)
+        # dataclasses.replace(current, **fields), without its per-call introspection (the
+        # API process applies a delta with every frame)
+        view = object.__new__(MapView)
+        view.__dict__.update(current.__dict__)
+        view.__dict__.update(self.fields)
+        return view
 
 
 def build_view(

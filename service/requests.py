@@ -106,7 +106,8 @@ class ImportMap(WorkerRequest[Doc]):
 # ------------------------------------------------------------ one map
 @dataclass(frozen=True)
 class SubmitFrame(MapRequest[FrameReply]):
-    """One frame object (with `image`: an image frame's meta and its bytes)."""
+    """One frame object (with `image`: an image frame's meta and its bytes). A worker
+    checks it against its settings' frame limits as it parses it (service.worker)."""
 
     frame: Doc
     image: bytes | None = None

@@ -25,6 +25,7 @@ from graph.types import FrameInput
 from graph.validation import validate_frame
 from service.errors import ServiceError, invalid_frame, out_of_order
 from service.frame_log import FrameLog
+from service.frame_model import FrameLimits
 from service.frame_results import FrameReply, result_doc
 from service.frames_io import canonical_frame, image_record, observations_json
 from service.image_frames import MapVision, Pending, image_refused, no_camera
@@ -145,13 +146,19 @@ class MapSession:
 
     # ------------------------------------------------------------ the frame use case
     def submit(
-        self, body: dict[str, Any], image: bytes | None = None, *, imported: bool = False
+        self,
+        body: dict[str, Any],
+        image: bytes | None = None,
+        *,
+        imported: bool = False,
+        limits: FrameLimits | None = None,
     ) -> FrameReply:
         """Take one frame object (with `image`: the meta of an image frame and its bytes).
 
         `imported`: `body` is an image frame of an export document: the image's digest
         (``"image"``) and the observations the front end made of it, which go to the
-        estimator as they are.
+        estimator as they are. `limits`: a posted frame, checked against them too
+        (service.frames_io.canonical_frame).
 
         Returns the frame result as stored (an idempotent retry: as stored before) with
         what the runtime reports of it (service.frame_results.FrameReply).
@@ -159,7 +166,7 @@ class MapSession:
         t0 = time.perf_counter()
         prefetched = None if self.vision is None or image is None else self.vision.take(image)
         digest = image_record(body.get("image"), "image") if imported else None
-        frame, text = canonical_frame(body, image, digest)
+        frame, text = canonical_frame(body, image, digest, limits=limits)
         if image is not None:
             self._check_image_frame(frame)
         if imported and self.vision is None:

@@ -188,6 +188,8 @@ def _import(map_id: str, request: ImportMap) -> dict[str, Any]:
 
 def carry_out(map_id: str, request: Request[Any]) -> Any:
     """The answer to `request` on map `map_id` (errors raised)."""
+    if isinstance(request, SubmitFrame):  # a posted frame: its limits are checked here
+        return _session(map_id).submit(request.frame, request.image, limits=_cfg().frames)
     if isinstance(request, MapRequest):
         return request.answer(_session(map_id))
     if isinstance(request, Ping):

@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 
 from graph.errors import InvalidFrame
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
+from service.errors import ServiceError
 from service.frame_model import FrameLimits, parse_frame
-from service.frames_io import frame_from_dict, frame_to_dict
+from service.frames_io import admit_frame, canonical_frame, frame_from_dict, frame_to_dict
 from service.offline.frame_files import FrameFileError, read_frames, write_frames
 from service.settings import Settings
 
@@ -329,3 +330,32 @@ def test_limits_are_settings(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("COVSLAM_FRAMES__MAX_LABEL_CHARS", "0")
     with pytest.raises(ValueError, match="max_label_chars"):
         Settings()
+
+
+@pytest.mark.parametrize(
+    "doc",
+    [
+        _with("robot", "r" * 129),
+        _with("odometry.dx", 100.5),
+        _with("observations[0].label", "l" * 65),
+        {**DESIGN_EXAMPLE, "image": {"sha256": "0" * 64, "bytes": 1}},  # not in a JSON frame
+        _with("seq", -1),
+    ],
+)
+def test_a_posted_frame_is_refused_by_its_one_parse_as_by_admit_frame(doc: dict[str, Any]) -> None:
+    """The worker parses a posted JSON frame once, with the limits: the same 422 as the
+    API process's check gave (an image member included), and never a frame it refuses."""
+    with pytest.raises(ServiceError) as admitted:
+        admit_frame(doc, LIMITS)
+    with pytest.raises(ServiceError) as parsed:
+        canonical_frame(doc, limits=LIMITS)
+    assert parsed.value.as_dict() == admitted.value.as_dict()
+    assert parsed.value.status == 422
+
+
+def test_an_image_frames_meta_is_checked_against_the_limits_too() -> None:
+    meta = {k: v for k, v in _with("robot", "r" * 129).items() if k != "observations"}
+    with pytest.raises(ServiceError, match="robot: must be at most 128"):
+        canonical_frame(meta, b"\x89PNG", limits=LIMITS)
+    frame, text = canonical_frame({**meta, "robot": "r1"}, b"\x89PNG", limits=LIMITS)
+    assert frame.robot == "r1" and '"image":{"bytes":4' in text

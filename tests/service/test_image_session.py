@@ -224,7 +224,11 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
 ) -> None:
     from service import worker
     from service.requests import SubmitFrame
+    from service.settings import Settings
 
+    # a worker's settings (its frame limits check each posted frame)
+    settings = Settings(data_dir=tmp_path / "unused", workers={"nice": 0})
+    worker.init_worker(settings.model_dump(mode="json"), 0, own_signals=False)
     session = _new(tmp_path / "cam.sqlite")
     assert session.vision is not None
     worker._sessions["cam"] = session
@@ -248,6 +252,7 @@ def test_worker_reader_keeps_arrival_order_and_prefetches_the_features_of_waitin
         ]
     finally:
         worker._sessions.pop("cam")
+        worker._settings = None
         session.close()
         worker_end.close()
 
