@@ -348,14 +348,14 @@ class _CholeskyRefusesOnce:
         self.inner = inner
         self.refused = False
 
-    def update(self, *args: object) -> gtsam.ISAM2Result:
+    def update(self, *args: object, **kwargs: object) -> gtsam.ISAM2Result:
         if not self.refused:
             self.refused = True
             raise RuntimeError(
                 "\nIndeterminate linear system detected while working near variable\n"
                 "8646911284551353449 (Symbol: x1129).\n"
             )
-        return self.inner.update(*args)
+        return self.inner.update(*args, **kwargs)
 
     def __getattr__(self, name: str) -> object:
         return getattr(self.inner, name)
