@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 Optimizer = Literal["dogleg", "gauss_newton"]
 """The iSAM2 step (see SlamConfig.optimizer)."""
 BearingLoss = Literal["huber", "geman_mcclure"]
 """The robust loss of bearing factors (see SlamConfig.bearing_loss)."""
 MarginalSparsification = Literal["thin_keyframes", "chow_liu"]
+"""How marginal factors are kept sparse (see SlamConfig.marginal_sparsification)."""
 KeyframePlacement = Literal["spacing", "area"]
+"""Which keyframes a pose leaving the window is compared with (see
+SlamConfig.keyframe_placement)."""
 Upkeep = Literal["in_frame", "budget_after_frame", "after_frame"]
 """When the work that keeps a map bounded runs (see SlamConfig.upkeep)."""
-"""How marginal factors are kept sparse (see SlamConfig.marginal_sparsification)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -381,8 +383,8 @@ class SlamConfig:
         ):
             if optional is not None and not (optional > 0 and math.isfinite(optional)):
                 raise ValueError(f"{name} must be a positive finite number or None")
-        if self.upkeep not in ("in_frame", "budget_after_frame", "after_frame"):
-            raise ValueError("upkeep must be 'in_frame', 'budget_after_frame' or 'after_frame'")
+        if self.upkeep not in get_args(Upkeep):
+            raise ValueError(f"upkeep must be one of {get_args(Upkeep)}")
         if self.relinearize_threshold < 0 or self.relinearize_skip < 1:
             raise ValueError("need relinearize_threshold >= 0 and relinearize_skip >= 1")
         if self.keyframe_distance_m < 0 or self.gate_min_age_frames < 0:

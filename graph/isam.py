@@ -113,12 +113,12 @@ class IncrementalGraph:
         self.sparsifications_refused = 0
         """Marginal factors kept exact because their tree would lose a direction."""
         self.sparsification_kl: list[float] | None = None
+        """Set to a list, KL(exact || tree) in nats of every later sparsification is
+        appended to it (an evaluation's measure; every tree computes it)."""
         self.relinearising = False
         """Updates relinearise though iSAM2's interval says not to (BearingSlam sets it
         during an upkeep with SlamConfig.upkeep "after_frame": the upkeep's updates then
         relinearise as a frame's do, the frame's own update does not)."""
-        """Set to a list, KL(exact || tree) in nats of every later sparsification is
-        appended to it (an evaluation's measure; every tree computes it)."""
 
     # ------------------------------------------------------------------ queries
     def __contains__(self, key: int) -> bool:

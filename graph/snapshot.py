@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import pickle
 from collections.abc import Callable
-from dataclasses import fields
+from dataclasses import asdict, fields
 from typing import Any
 
 import gtsam
@@ -77,7 +77,7 @@ def capture(slam: BearingSlam, *, extra: Any = None) -> bytes:
         "linpoint": linpoint.serialize(),
         "slam": {
             **{k: v for k, v in vars(slam).items() if k not in _SLAM_SPECIAL},
-            "config": {f.name: getattr(slam.config, f.name) for f in fields(SlamConfig)},
+            "config": asdict(slam.config),
         },
         "graph": {k: v for k, v in vars(inner).items() if k not in _GRAPH_SPECIAL},
         "extra": extra,
