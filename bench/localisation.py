@@ -45,6 +45,7 @@ import datetime as dt
 import json
 import math
 import os
+import pickle
 import platform
 import shutil
 import tempfile
@@ -56,7 +57,10 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from bench.batch import _graph as batch_graph
+from bench.batch import batch_solve
 from graph.angles import wrap_angle
+from graph.factors import is_landmark_key, landmark_key, pose_key
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
 from graph.types import FrameInput, Odometry, Pose2D
@@ -65,7 +69,13 @@ from service.frames_io import frame_to_dict
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.offline.evaluation import Trajectory, align_se2, fit_landmarks, interpolate
 from service.pipeline.config import DEFAULT_LANDMARK_CAP, MapConfig
-from service.pipeline.localiser import landmark_map, map_localiser_config
+from service.pipeline.localiser import (
+    landmark_covariances,
+    landmark_ids,
+    landmark_map,
+    map_localiser_config,
+)
+from service.pipeline.snapshot import snapshot_pipeline
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
@@ -511,26 +521,65 @@ def _copy_store(src: Path, dst: Path) -> None:
         shutil.copyfile(f, dst.parent / (dst.name + f.name[len(src.name) :]))
 
 
+MAP_SOURCES = ("session", "batch", "surveyed")
+"""Where the online protocol's map comes from (``--online-map``): `session`, the map the
+mapper built through the service; `batch`, the same map with its landmarks at a batch
+Levenberg-Marquardt solution of the mapper's whole run (bench.batch) and that solution's
+joint landmark marginal; `surveyed`, the surveyed landmarks with that same marginal."""
+
+
 def build_online_map(
-    directory: Path, mapper: int, where: Path, config: dict[str, Any]
+    directory: Path, mapper: int, where: Path, config: dict[str, Any], source: str = "session"
 ) -> dict[str, Any]:
     """The map one robot builds through the service from its true initial pose (its
-    whole run), stored at `where` with a snapshot; its landmarks fitted to the survey."""
+    whole run), stored at `where` with a snapshot; its landmarks fitted to the survey.
+    `source` other than "session" replaces the map's estimate before it is stored (see
+    MAP_SOURCES and `_replaced_map`)."""
     data = load_mrclam(directory, mapper)
     assert data.landmarks is not None
     surveyed = {str(int(s)): np.array([x, y]) for s, x, y in data.landmarks}
-    frames, _ = mrclam_frames(data)
+    frames, gt = mrclam_frames(data)
     record = MapRecord("m", "online", "mapping", config, time.time())
-    session = MapSession.create(where, record, StoreSettings(snapshot_every=100_000))
+    settings = StoreSettings(snapshot_every=100_000)
+    session = MapSession.create(where, record, settings)
     t0 = time.perf_counter()
     for f in frames:
         session.submit(frame_to_dict(f))
     seconds = time.perf_counter() - t0
+    replaced: dict[str, Any] = {}
+    if source != "session":
+        replaced = _replaced_map(session, frames, source, surveyed, gt)
+    else:
+        session.snapshot()
+    session.close()
+    session = MapSession(where, settings)  # the map as the starts will load it
     landmarks = landmark_map(session.slam)
+    sigma = {
+        k: float(np.sqrt(np.linalg.eigvalsh(c)[-1]))
+        for k, c in landmark_covariances(session.slam).items()
+    }
     assert session.pipeline.localiser is not None
     places = len(session.pipeline.localiser.localiser.places.places)
-    session.snapshot()
     session.close()
+    fitted = _fitted(landmarks, surveyed)
+    return {
+        "source": source,
+        "mapper": mapper,
+        "frames": len(frames),
+        "seconds": seconds,
+        "landmarks": len(landmarks),
+        "places": places,
+        **fitted,
+        "map_landmarks": {k: [float(v[0]), float(v[1])] for k, v in landmarks.items()},
+        "landmark_sigma_m": sigma,
+        **replaced,
+    }
+
+
+def _fitted(landmarks: dict[str, np.ndarray], surveyed: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The rigid fit of a map's landmarks to the surveyed ones: its figures, each
+    landmark's distance from its surveyed position after the fit (in the map's frame),
+    and the motion (`_rot`, `_trans`: x_survey = rot @ x_map + trans)."""
     fit = fit_landmarks(landmarks, surveyed)
     common = list(fit.labels)
     rot, trans = align_se2(
@@ -538,20 +587,133 @@ def build_online_map(
     )
     residual = {k: float(np.hypot(*(rot @ landmarks[k] + trans - surveyed[k]))) for k in common}
     return {
-        "mapper": mapper,
-        "frames": len(frames),
-        "seconds": seconds,
-        "landmarks": len(landmarks),
-        "places": places,
         "landmarks_fitted": len(common),
         "frame_rotation_deg": math.degrees(fit.rotation_rad),
         "frame_shift_m": fit.shift_m,
         "landmark_rmse_m": fit.rmse_m,
         "landmark_rmse_in_map_frame_m": fit.rmse_aligned_m,
-        "map_landmarks": {k: [float(v[0]), float(v[1])] for k, v in landmarks.items()},
         "landmark_error_in_map_frame_m": residual,
         "_rot": rot,
         "_trans": trans,
+    }
+
+
+def _stored_trajectory(session: MapSession, robot: str, frames: int) -> Trajectory | None:
+    """A robot's whole trajectory in a session's map (the store's final rows and the
+    graph's held ones); None unless it has one row per frame."""
+    rows: dict[int, np.ndarray] = {}
+    for source in (session.store.poses(robot), session.slam.trajectory(robot)):
+        rows.update({int(r[0]): r for r in source.get(robot, np.zeros((0, 5)))})
+    if len(rows) != frames:
+        return None
+    table = np.array([rows[k] for k in sorted(rows)])
+    return Trajectory.from_poses(table[:, 1], table[:, 2:5])
+
+
+def _replaced_map(
+    session: MapSession,
+    frames: list[FrameInput],
+    source: str,
+    surveyed: dict[str, np.ndarray],
+    gt: Trajectory,
+) -> dict[str, Any]:
+    """Store a snapshot of `session` whose estimate is replaced (the map's records, places
+    and the mapper's pose window stay): a batch Levenberg-Marquardt solution of the
+    mapper's whole run (bench.batch, from dead reckoning and from the session's own
+    trajectory) is marginalised onto the map's landmarks, and that joint marginal becomes
+    the graph's only landmark factor, centred at the batch's landmarks (`batch`) or at the
+    surveyed ones (`surveyed`). The mapper's live poses keep their batch marginal each as
+    a prior, at the batch pose or the true one, unlinked from the landmarks (the mapper
+    sends no more frames). Returns what was replaced: the session's landmarks and the
+    batch's figures."""
+    slam = session.slam
+    robot = frames[0].robot
+    before = landmark_map(slam)
+    ids = landmark_ids(slam)
+    solved = batch_solve(
+        frames, slam.config, online=_stored_trajectory(session, robot, len(frames))
+    ).per_start
+    # Costs compare only between solutions of the same landmarks: a start that could not
+    # triangulate a landmark leaves its bearings out (dead reckoning misses landmark 18).
+    most = max(len(r.landmark_xy) for r in solved.values())
+    batch = min((r for r in solved.values() if len(r.landmark_xy) == most), key=lambda r: r.cost)
+    missing = sorted(set(ids) - set(batch.landmark_xy))
+    if missing:
+        raise RuntimeError(f"the batch solution has no landmarks {missing}")
+    labels = dict(ids)
+    for label in batch.landmark_xy:  # the batch's landmarks the map does not hold
+        labels.setdefault(label, max(labels.values()) + 1)
+    graph = batch_graph(frames, slam.config, {k: labels[k] for k in batch.landmark_xy})
+    values = gtsam.Values()
+    for k, (x, y, theta) in enumerate(batch.trajectory.poses()):
+        values.insert(pose_key(0, k), gtsam.Pose2(float(x), float(y), float(theta)))
+    for label, xy in batch.landmark_xy.items():
+        values.insert(landmark_key(labels[label]), np.array(xy, dtype=np.float64))
+    kept = {landmark_key(i) for i in ids.values()}
+    others = [k for k in values.keys() if k not in kept]
+    _, remaining = graph.linearize(values).eliminatePartialMultifrontal(gtsam.Ordering(others))
+    at = gtsam.Values()  # where the replaced estimate is centred
+    for label, i in ids.items():
+        centre = surveyed[label] if source == "surveyed" else np.array(batch.landmark_xy[label])
+        at.insert(landmark_key(i), np.asarray(centre, dtype=np.float64))
+    factors = gtsam.NonlinearFactorGraph()
+    for i in range(remaining.size()):
+        factor = remaining.at(i)
+        if factor is not None and len(factor.keys()) > 0:
+            point = gtsam.Values()
+            for key in factor.keys():
+                point.insert(key, at.atPoint2(key))
+            factors.add(gtsam.LinearContainerFactor(factor, point))
+    containers = factors.size()
+    marginals = gtsam.Marginals(graph, values)
+    for key in slam.graph.linearization_point().keys():
+        if is_landmark_key(key):
+            continue
+        k = gtsam.Symbol(key).index()  # the mapper's slot is 0, its pose index the frame's
+        pose = values.atPose2(key)
+        truth = _truth_at(gt, frames[k].stamp) if source == "surveyed" else None
+        if truth is not None:
+            pose = gtsam.Pose2(*map(float, truth))
+        at.insert(key, pose)
+        noise = gtsam.noiseModel.Gaussian.Covariance(marginals.marginalCovariance(key))
+        factors.add(gtsam.PriorFactorPose2(key, pose, noise))
+    blob, _ = snapshot_pipeline(session.pipeline)
+    state = pickle.loads(blob)
+    state["factors"] = factors.serialize()
+    state["relative"] = []
+    state["linpoint"] = at.serialize()
+    state["graph"].update(
+        _marginals=set(range(containers)),
+        marginal_keys=[],
+        _pose_cache={},
+        _point_cache={},
+        _cov_cache={},
+    )
+    session.store.save_snapshot(session.last_log_id, pickle.dumps(state), keep=1)
+    # The session's landmarks against the batch's, after the rigid fit of one to the other.
+    rot, trans = align_se2(
+        np.array([before[k] for k in ids]),
+        np.array([batch.landmark_xy[k] for k in ids], dtype=np.float64),
+    )
+    return {
+        "session_landmarks": {k: [float(v[0]), float(v[1])] for k, v in before.items()},
+        "session_landmark_rmse_in_map_frame_m": _fitted(before, surveyed)[
+            "landmark_rmse_in_map_frame_m"
+        ],
+        "batch_start": batch.start,
+        "batch_cost": batch.cost,
+        "batch_starts": {
+            name: {"cost": r.cost, "landmarks": len(r.landmark_xy)} for name, r in solved.items()
+        },
+        "batch_landmarks": len(batch.landmark_xy),
+        "batch_landmark_sigma_m": {
+            k: float(np.sqrt(np.linalg.eigvalsh(c)[-1]))
+            for k, c in ((k, marginals.marginalCovariance(landmark_key(labels[k]))) for k in ids)
+        },
+        "session_minus_batch_m": {
+            k: float(np.hypot(*(rot @ before[k] + trans - np.asarray(batch.landmark_xy[k]))))
+            for k in ids
+        },
     }
 
 
@@ -651,12 +813,14 @@ def online_localisation(
     max_frames: int,
     seeds: list[int],
     bound: bool = True,
+    source: str = "session",
 ) -> dict[str, Any]:
     """One robot maps through the service (a REST client's default config, its true
     initial pose); the other robots then enter the map without an initial pose, each
     from `starts_per_robot` random frames per seed. Judged in the map's own frame: ground
     truth moved by the fit of the map's landmarks to the surveyed ones. Beside each first
-    `relocalised`, the pose the map itself implies there (see _against_the_map)."""
+    `relocalised`, the pose the map itself implies there (see _against_the_map).
+    `source`: the map's estimate replaced before the starts (MAP_SOURCES)."""
     config = rest_config()
     runs = {r: mrclam_frames(load_mrclam(directory, r)) for r in range(1, 6) if r != mapper}
     rows: list[dict[str, Any]] = []
@@ -664,7 +828,7 @@ def online_localisation(
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         where = tmp / "map.sqlite"
-        built = build_online_map(directory, mapper, where, config)
+        built = build_online_map(directory, mapper, where, config, source)
         rot, trans = built.pop("_rot"), built.pop("_trans")
         residual = built["landmark_error_in_map_frame_m"]
         map_xy = {k: np.array(v) for k, v in built["map_landmarks"].items()}
@@ -1350,9 +1514,16 @@ def main() -> None:
     parser.add_argument("--online-starts", type=int, default=5, help="online: starts per robot")
     parser.add_argument("--online-seeds", type=int, nargs="*", default=[0, 1])
     parser.add_argument(
-        "--online-key", default="online", help="online: the key its figures go under"
+        "--online-key", default=None, help="online: the key its figures go under (online)"
     )
     parser.add_argument("--no-bound", action="store_true", help="online: skip the bound")
+    parser.add_argument(
+        "--online-map",
+        choices=MAP_SOURCES,
+        default="session",
+        help="online: the map the starts enter (see MAP_SOURCES); figures under "
+        "online_<this>_map unless --online-key is given",
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--data", type=Path, default=None)
     args = parser.parse_args()
@@ -1401,7 +1572,10 @@ def main() -> None:
         )
         print(json.dumps({k: v for k, v in doc["information_bound"].items() if k != "runs"}))
     if "online" in args.parts:
-        doc["runs_of_parts"][args.online_key] = _stamp()
+        key = args.online_key or (
+            "online" if args.online_map == "session" else f"online_{args.online_map}_map"
+        )
+        doc["runs_of_parts"][key] = _stamp()
         online = online_localisation(
             directory,
             args.mapper,
@@ -1409,12 +1583,13 @@ def main() -> None:
             args.max_frames,
             args.online_seeds,
             bound=not args.no_bound,
+            source=args.online_map,
         )
         online["runs"] = {
             "n": len(online["runs"]),
             "per_item": "not kept (regenerated by the bench; wrong_convergences lists those)",
         }
-        doc[args.online_key] = online
+        doc[key] = online
         print(json.dumps(online))
     if "online-kidnap" in args.parts:
         doc["runs_of_parts"]["online_kidnap"] = _stamp()
