@@ -77,7 +77,15 @@ STARVED_SHARE = 0.3
 the robot's running average..."""
 STARVED_MIN_AVERAGE = 15.0
 """... provided that average is at least this (a robot that usually sees few landmarks
-says nothing by seeing few)."""
+says nothing by seeing few), or `STARVED_LIVE_SHARE` of the map's live landmarks if that
+is fewer..."""
+STARVED_LIVE_SHARE = 0.3
+"""... (a landmark cap keeps few live, and the pose-gated association matches live
+landmarks only: a robot that usually matches 12 of a cap's 30 sees much of what the map
+holds; at cap 30 the average stays near 12 and a kidnap went unnoticed)..."""
+STARVED_FLOOR = 8.0
+"""... but never below this: a robot that usually matches a handful of landmarks sees
+none by chance now and then (Poisson, mean 8: 2 or fewer in 1.4 % of frames)."""
 AVERAGE_RATE = 0.1
 """Weight of a frame in the running average of landmark matches."""
 TOP_HINTS = 3
@@ -310,7 +318,7 @@ class MapPipeline:
             assoc = graph.association
             kinds = zip(assoc.observations, assoc.kind, strict=True)
             matched = [o for o, k in kinds if k == "landmark"]
-        if graph is None or _starved(robot, len(matched)):
+        if graph is None or _starved(robot, len(matched), len(slam.landmarks)):
             weighed, quality = associator.match_without_pose(
                 image.features, sorted(landmarks), limit=MAX_FILTER_OBSERVATIONS
             )
@@ -478,17 +486,23 @@ def _spread(n: int, limit: int) -> NDArray[np.int64]:
     return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
 
 
-def _starved(robot: RobotState, matches: int) -> bool:
-    """Whether a tracked frame with `matches` pose-gated landmark matches is starved
-    (see STARVED_SHARE); the robot's running average takes the frame in unless it is
-    starved: a robot carried elsewhere stays starved until the filter has found it
-    (a capped camera map, ~17 matches a frame: the average decayed below
-    STARVED_MIN_AVERAGE two frames after the jump, and the kidnap went unnoticed)."""
+def _starved(robot: RobotState, matches: int, live: int) -> bool:
+    """Whether a tracked frame with `matches` pose-gated landmark matches, in a map of
+    `live` live landmarks, is starved (see STARVED_SHARE); the robot's running average
+    takes the frame in unless it is starved: a robot carried elsewhere stays starved until
+    the filter has found it (a capped camera map, ~17 matches a frame: the average decayed
+    below STARVED_MIN_AVERAGE two frames after the jump, and the kidnap went unnoticed)."""
     average = robot.landmark_matches
     starved = (
-        average is not None and average >= STARVED_MIN_AVERAGE and matches < STARVED_SHARE * average
+        average is not None and average >= starved_floor(live) and matches < STARVED_SHARE * average
     )
     if not starved:
         n = float(matches)
         robot.landmark_matches = n if average is None else average + AVERAGE_RATE * (n - average)
     return starved
+
+
+def starved_floor(live: int) -> float:
+    """The running average of matches below which no frame is starved, in a map of `live`
+    live landmarks (STARVED_MIN_AVERAGE, STARVED_LIVE_SHARE, STARVED_FLOOR)."""
+    return max(STARVED_FLOOR, min(STARVED_MIN_AVERAGE, STARVED_LIVE_SHARE * live))
