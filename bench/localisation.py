@@ -706,6 +706,7 @@ def _replaced_map(
             name: {"cost": r.cost, "landmarks": len(r.landmark_xy)} for name, r in solved.items()
         },
         "batch_landmarks": len(batch.landmark_xy),
+        "batch_map_landmarks": {k: [float(v) for v in batch.landmark_xy[k]] for k in ids},
         "batch_landmark_sigma_m": {
             k: float(np.sqrt(np.linalg.eigvalsh(c)[-1]))
             for k, c in ((k, marginals.marginalCovariance(landmark_key(labels[k]))) for k in ids)
