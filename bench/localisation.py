@@ -26,7 +26,10 @@
    information bound of 2b on the map's own landmarks, and at its first `relocalised`
    the pose the map itself implies (the frames since the start solved against the map's
    landmarks from the truth): a reported pose within tolerance of that one but not of
-   the truth is the map's error there, not the localiser's.
+   the truth is the map's error there, not the localiser's. ``--online-map batch`` /
+   ``surveyed``: the same with the map's estimate replaced by a batch LM solution of the
+   mapper's run, or by the surveyed landmarks (MAP_SOURCES): what the mapper's data
+   allow, and a control.
 2d. Window check (``--parts check``): global localisation on the surveyed map with and
    without graph.window_check, per seed: wrong convergences, starts never relocalised.
 3b. Online kidnap (``--parts online-kidnap``): kidnapping in the map of 2c.
@@ -35,6 +38,7 @@
 
     python -m bench.localisation [--starts 50] [--out bench/results]
         [--parts pf global check study bound online online-kidnap kidnap tracking]
+        [--online-map session|batch|surveyed] [--online-seeds 0 1 2]
 """
 
 from __future__ import annotations
