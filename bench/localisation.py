@@ -565,6 +565,15 @@ def build_online_map(
     assert session.pipeline.localiser is not None
     places = len(session.pipeline.localiser.localiser.places.places)
     session.close()
+    if source != "session":  # the stored map holds what was put there
+        centre = surveyed if source == "surveyed" else replaced["batch_map_landmarks"]
+        off = {k: float(np.hypot(*(v - np.asarray(centre[k])))) for k, v in landmarks.items()}
+        wide = replaced["batch_landmark_sigma_m"]
+        # Within what LM left of the gradient (the marginal's linear term: a Gauss-Newton
+        # step from where LM stopped).
+        if max(off.values()) > 0.02 or any(abs(sigma[k] / wide[k] - 1) > 1e-3 for k in wide):
+            raise RuntimeError(f"the replaced map moved: {off}, sigmas {sigma} against {wide}")
+        replaced["landmarks_off_centre_max_m"] = max(off.values())
     fitted = _fitted(landmarks, surveyed)
     return {
         "source": source,
