@@ -23,7 +23,7 @@ def test_a_shared_noise_model_gives_the_error_and_jacobian_of_a_model_of_its_own
     x, lm = pose_key(0, 1), landmark_key(4)
     shared = bearing_factor(x, lm, 0.3, 0.02, huber_k, loss)
     assert shared.noiseModel() is bearing_noise(0.02, huber_k, loss)
-    base = gtsam.noiseModel.Isotropic.Sigma(1, 0.02)
+    base: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(1, 0.02)
     if huber_k is not None:
         est = gtsam.noiseModel.mEstimator
         kernel = est.Huber if loss == "huber" else est.GemanMcClure
@@ -49,9 +49,9 @@ def test_a_lifelong_map_holds_one_bearing_noise_model_however_many_frames() -> N
         if i % 150 == 0:
             graph = slam.graph.nonlinear_graph()
             bearings = [
-                graph.at(j)
+                factor
                 for j in range(graph.size())
-                if isinstance(graph.at(j), gtsam.BearingFactor2D)
+                if isinstance(factor := graph.at(j), gtsam.BearingFactor2D)
             ]
             models = [b.noiseModel() for b in bearings]  # held: ids stay distinct
             seen.append((len(bearings), len({id(m) for m in models})))
