@@ -80,10 +80,10 @@ def _sparse(indices: set[int]) -> bool:
     A Python set never shrinks its table when elements are discarded. A landmark's set
     of factor indices grows with the bearings of every keyframe that saw it (hundreds
     on the dense lifelong world) and kept that table once those factors had left: after
-    that run's busiest stretch the index held ~1.2 MiB of tables for ~0.3 MiB of
-    indices. A set that grew by insertion has at most 8 slots per element, so only a
-    set that lost most of its elements is rebuilt (to 2-4 slots per element). Where a
-    set's elements sit in its table matters nowhere: its readers sort or intersect."""
+    that run's busiest stretch the index's sets took ~1.2 MiB, ~0.3 MiB as fresh
+    copies. A set that grew by insertion has at most 8 slots per element, so only a set
+    that lost most of its elements is rebuilt (to 2-4 slots per element). Where a set's
+    elements sit in its table matters nowhere: its readers sort or intersect."""
     size = sys.getsizeof(indices)
     return size > 1024 and size > 256 * len(indices) + _EMPTY_SET_BYTES
 
