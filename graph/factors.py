@@ -7,6 +7,7 @@ slot; its k-th pose is X(slot * POSES_PER_ROBOT + k), so one X chain per robot.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import gtsam
 import numpy as np
@@ -72,11 +73,23 @@ def pose_prior_factor(key: int, pose: Pose2D, config: SlamConfig) -> gtsam.Prior
     return gtsam.PriorFactorPose2(key, to_pose2(pose), noise)
 
 
+BEARING_NOISE_MODELS = 256
+"""Distinct bearing noise models kept for sharing (see `bearing_noise`): a map's
+configured sigma takes one; front ends that give each feature its own sigma miss."""
+
+
+@lru_cache(maxsize=BEARING_NOISE_MODELS)
 def bearing_noise(
     sigma_rad: float, huber_k: float | None, loss: BearingLoss = "huber"
 ) -> gtsam.noiseModel.Base:
     """Isotropic noise of one bearing, robust with `loss` at `huber_k` sigmas (None:
-    Gaussian)."""
+    Gaussian).
+
+    One model per distinct argument, shared by every factor built with it (the last
+    BEARING_NOISE_MODELS kept): a GTSAM noise model is immutable, and a model of its own
+    cost each bearing factor ~0.4 KiB of heap (the isotropic base, the robust kernel
+    and their vectors), i.e. a few MiB of a lifelong map's resident memory when its
+    window holds thousands of bearings."""
     base = gtsam.noiseModel.Isotropic.Sigma(1, sigma_rad)
     if huber_k is None:
         return base

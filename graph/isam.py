@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 from collections.abc import Callable, Iterable, Sequence
 from itertools import chain
 
@@ -68,6 +69,23 @@ def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.I
     params.relinearizeSkip = _NEVER if config.upkeep == "after_frame" else config.relinearize_skip
     params.findUnusedFactorSlots = True
     return gtsam.ISAM2(params)
+
+
+_EMPTY_SET_BYTES = sys.getsizeof(set())
+
+
+def _sparse(indices: set[int]) -> bool:
+    """Whether a set's hash table has more than 16 slots per element (and over 1 KiB).
+
+    A Python set never shrinks its table when elements are discarded. A landmark's set
+    of factor indices grows with the bearings of every keyframe that saw it (hundreds
+    on the dense lifelong world) and kept that table once those factors had left: after
+    that run's busiest stretch the index's sets took ~1.2 MiB, ~0.3 MiB as fresh
+    copies. A set that grew by insertion has at most 8 slots per element, so only a set
+    that lost most of its elements is rebuilt (to 2-4 slots per element). Where a set's
+    elements sit in its table matters nowhere: its readers sort or intersect."""
+    size = sys.getsizeof(indices)
+    return size > 1024 and size > 256 * len(indices) + _EMPTY_SET_BYTES
 
 
 def _copy_value(target: gtsam.Values, key: int, source: gtsam.Values) -> None:
@@ -312,12 +330,15 @@ class IncrementalGraph:
         # delta behind the MAP. A stale cache here made a restored map (rebuilt with a
         # full step) diverge from the original by centimetres.
         self._forget_estimate()
+        shrunk: set[int] = set()
         for index in remove:
             self._marginals.discard(index)
             for key in self._factors.pop(index).keys():
                 keyed = self._key_factors[key]
                 keyed.discard(index)
-                if not keyed:
+                if keyed:
+                    shrunk.add(key)
+                else:
                     del self._key_factors[key]
         for index, factor in zip(result.getNewFactorsIndices(), added, strict=True):
             self._factors[index] = factor
@@ -325,6 +346,9 @@ class IncrementalGraph:
                 self._marginals.add(index)
             for key in factor.keys():
                 self._key_factors.setdefault(key, set()).add(index)
+        for key in shrunk.intersection(self._key_factors):
+            if _sparse(self._key_factors[key]):
+                self._key_factors[key] = set(self._key_factors[key])
 
     def _rebuild_with_qr(
         self,
