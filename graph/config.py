@@ -17,8 +17,6 @@ KeyframePlacement = Literal["spacing", "area"]
 SlamConfig.keyframe_placement)."""
 Upkeep = Literal["in_frame", "budget_after_frame", "after_frame"]
 """When the work that keeps a map bounded runs (see SlamConfig.upkeep)."""
-RestoreAtCap = Literal["triangulated", "first_ray"]
-"""When an archived landmark comes back at a full cap (see SlamConfig.restore_at_cap)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,22 +121,6 @@ class SlamConfig:
     19 707 removals in 10 000 frames without it, 1 055 with it. Off by default: at cap 8
     on MRCLAM-6 it made the coverage policy's mean ATE 0.389 m against 0.305 (worse on
     four of five robots; docs/measurements.md)."""
-    restore_at_cap: RestoreAtCap = "first_ray"
-    """How an archived landmark comes back while the live count is at landmark_cap (below
-    it, restore_after_frames and restore_min_rays decide alone). "triangulated": only
-    once its rays since the removal triangulate it as a new landmark's would; until then
-    they wait in its candidate track, and come back with it as factors. "first_ray": at
-    its first observation once the hysteresis allows. Restored by one bearing, a
-    landmark holds nothing of its own but the weak restore_prior_sigma_m prior, so it is
-    the least informative live landmark and an information-based policy removes it in
-    the same frame, bearing and all: at cap 8 on MRCLAM-6, coverage policy, robot 2,
-    125 of 131 restorations went so under "first_ray". Under "triangulated", 53 of 65
-    did, but with the rays that triangulate them, so that their marginal holds those
-    bearings; and the removals halve (72 against 138). "first_ray" stays the default:
-    at cap 8 on MRCLAM-6, in the frame, the two are as accurate (mean ATE over the five
-    robots 0.293 m against 0.305; over fifteen later starts 0.716 against 0.624, median
-    ratio 1.03). With upkeep "after_frame" the rule is what makes that mode as accurate
-    as the frame (0.292 m with Chow-Liu, 0.341 without the rule; docs/measurements.md)."""
     restore_prior_sigma_m: float = 5.0
     """Weak prior (isotropic, metres) at the archived estimate on a restored landmark:
     with a single bearing a landmark is unobservable along the ray, and this keeps
@@ -403,8 +385,6 @@ class SlamConfig:
                 raise ValueError(f"{name} must be a positive finite number or None")
         if self.upkeep not in get_args(Upkeep):
             raise ValueError(f"upkeep must be one of {get_args(Upkeep)}")
-        if self.restore_at_cap not in get_args(RestoreAtCap):
-            raise ValueError(f"restore_at_cap must be one of {get_args(RestoreAtCap)}")
         if self.relinearize_threshold < 0 or self.relinearize_skip < 1:
             raise ValueError("need relinearize_threshold >= 0 and relinearize_skip >= 1")
         if self.keyframe_distance_m < 0 or self.gate_min_age_frames < 0:

@@ -643,8 +643,6 @@ class BearingSlam:
                     backoff=cfg.restore_backoff,
                 ):
                     tri = self._triangulate(rays, key, predicted)
-                    if tri is None and self._at_cap():
-                        continue  # its rays wait in the candidate track (restore_at_cap)
                     used = self._restore(archived, rays, values, factors, tri)
                     restored.append((archived.id, used))
                 continue
@@ -677,16 +675,6 @@ class BearingSlam:
             promoted,
             leaving,
             restored=tuple(restored),
-        )
-
-    def _at_cap(self) -> bool:
-        """Whether an archived landmark needs rays that triangulate it to come back now
-        (SlamConfig.restore_at_cap): the live count is at the cap."""
-        cap = self.config.landmark_cap
-        return (
-            self.config.restore_at_cap == "triangulated"
-            and cap is not None
-            and len(self._landmarks) >= cap
         )
 
     def _restore(

@@ -17,7 +17,6 @@ from graph.config import (
     BearingLoss,
     KeyframePlacement,
     MarginalSparsification,
-    RestoreAtCap,
     SlamConfig,
     Upkeep,
 )
@@ -315,13 +314,6 @@ class ArchiveConfig(StrictModel):
         description="each removal of a landmark doubles its hysteresis (removed k times: "
         "restore_after_frames and restore_min_rays times 2^(k-1)), so that a landmark in "
         "view of dense frames does not churn in and out of the graph",
-    )
-    restore_at_cap: RestoreAtCap = Field(
-        _DEFAULTS.restore_at_cap,
-        description="while the live count is at the cap, an archived landmark comes back "
-        "only once its new rays triangulate it ('triangulated'), or at its first "
-        "observation ('first_ray'): restored by one bearing it is the least informative "
-        "landmark and is removed again at once",
     )
     restore_prior_sigma_m: float = Field(
         _DEFAULTS.restore_prior_sigma_m,

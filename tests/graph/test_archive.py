@@ -14,15 +14,8 @@ from graph.slam import BearingSlam
 from graph.snapshot import capture, restore
 from tests.graph._world import circle_frames
 
-_CFG = SlamConfig(
-    landmark_cap=6,
-    pose_window=20,
-    restore_after_frames=0,
-    restore_min_rays=1,
-    restore_at_cap="first_ray",
-)
-"""Restoration at a landmark's first observation after its removal (no hysteresis), at
-the cap too."""
+_CFG = SlamConfig(landmark_cap=6, pose_window=20, restore_after_frames=0, restore_min_rays=1)
+"""Restoration at a landmark's first observation after its removal (no hysteresis)."""
 
 
 def _labels(frame) -> set[str]:
@@ -122,31 +115,6 @@ def _label_errors(slam: BearingSlam, truth: np.ndarray) -> np.ndarray:
     est = {e.label: np.array(e.position) for e in sorted(slam.archive, key=lambda e: e.id)}
     est.update((r.label, slam.landmark_position(lid)) for lid, r in slam.landmarks.items())
     return np.array([np.linalg.norm(p - truth[int(label)]) for label, p in est.items()])
-
-
-def test_at_a_full_cap_a_landmark_comes_back_only_with_rays_that_triangulate_it() -> None:
-    """restore_at_cap="triangulated": at the cap no landmark comes back with a single
-    bearing (its waiting rays come back with it as factors), so the policy removes
-    fewer landmarks than when each returns at its first ray and is removed again."""
-    frames, _, _ = circle_frames(300, seed=3, n_landmarks=30)
-    counts = {}
-    for rule in ("triangulated", "first_ray"):
-        cfg = dataclasses.replace(_CFG, restore_at_cap=rule)
-        slam = BearingSlam(cfg, rng=np.random.default_rng(0))
-        rays_at_cap = []
-        for f in frames:
-            full = len(slam.landmarks) >= cfg.landmark_cap
-            before = {e.id: e.count for e in slam.archive}
-            out = slam.process(f, with_covariance=False)
-            for lid in out.restored if full else ():
-                record = slam.landmarks.get(lid) or slam.archive.get(lid)
-                assert record is not None
-                rays_at_cap.append(record.count - before[lid])  # E(X) grew by its rays
-        counts[rule] = (slam.restoration_count, slam.removal_count, min(rays_at_cap))
-    assert counts["triangulated"][2] >= 2  # never back on one bearing at the cap
-    assert counts["first_ray"][2] == 1
-    assert 0 < counts["triangulated"][0] < counts["first_ray"][0] / 2
-    assert counts["triangulated"][1] < counts["first_ray"][1] / 2
 
 
 def test_without_restoration_a_returning_landmark_gets_a_new_id_and_both_stay_archived() -> None:
