@@ -101,17 +101,23 @@ def _frames(directory: Path, robot: int, limit: int | None) -> tuple[list[Any], 
 
 
 def run_uncapped(
-    robot: int, noise: str, directory: Path, limit: int | None = None
+    robot: int,
+    noise: str,
+    directory: Path,
+    limit: int | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Dead reckoning, covslam uncapped (every pose; bounded), and the batch reference."""
+    """Dead reckoning, covslam uncapped (every pose; bounded), and the batch reference.
+    `extra`: estimator settings for covslam's two uncapped maps (each method's own
+    settings, e.g. every pose's window, take precedence)."""
     frames, gt = _frames(directory, robot, limit)
     surveyed = surveyed_landmarks(directory)
     name = f"r{robot}"
     out: dict[str, Any] = {"dead_reckoning": _judge(dead_reckoning(frames), gt, {}, surveyed)}
     online: dict[str, Trajectory] = {}
-    for method, extra in UNCAPPED_CONFIG.items():
+    for method, method_extra in UNCAPPED_CONFIG.items():
         t = time.perf_counter()
-        cfg = SlamConfig(landmark_cap=None, **_noise(noise), **extra)
+        cfg = SlamConfig(landmark_cap=None, **_noise(noise), **{**(extra or {}), **method_extra})
         res = replay(frames, config=cfg, progress=False)
         online[method] = res.trajectory(name)
         out[method] = _judge(online[method], gt, map_landmarks(res), surveyed)
@@ -255,6 +261,13 @@ def main() -> None:
         help="estimator settings for the capped maps, as JSON (e.g. '{\"spare_observed\": true}')",
     )
     parser.add_argument(
+        "--uncapped-config",
+        type=json.loads,
+        default={},
+        help="estimator settings for covslam's uncapped maps (every pose kept, bounded), as "
+        'JSON (e.g. \'{"upkeep": "after_frame"}\'), to judge a setting on them too',
+    )
+    parser.add_argument(
         "--capped-from",
         type=Path,
         default=None,
@@ -287,7 +300,9 @@ def main() -> None:
                 )
         else:
             for r in robots:
-                job = pool.submit(run_uncapped, r, args.noise, args.data, args.frames)
+                job = pool.submit(
+                    run_uncapped, r, args.noise, args.data, args.frames, args.uncapped_config
+                )
                 futures[job] = (f"r{r}", None)
         for r in robots:
             for p in policies:
@@ -331,6 +346,7 @@ def main() -> None:
             "policies": policies,
             "capped_rows_reused_from": None if args.capped_from is None else str(args.capped_from),
             "capped_config": args.capped_config,
+            "uncapped_config": args.uncapped_config,
             "noise": args.noise,
             "cap": CAP,
             "jobs": args.jobs,
