@@ -318,6 +318,9 @@ class ParticleFilter:
     w_slow: float = 0.0
     w_fast: float = 0.0
     last_injected: int = 0
+    unweighed: int = 0
+    """The last this-many particles were injected and no observation has weighed them
+    yet (see `estimate`)."""
     last_stages: int = 1
     """Stages the last update applied its observation in (see _temper)."""
 
@@ -408,6 +411,7 @@ class ParticleFilter:
         if cfg.tempering_ess_fraction > 0:
             loglik = self._temper(loglik, likelihood, rng=rng)
         self.log_weights = normalise_log_weights(self.log_weights + loglik)
+        self.unweighed = 0
         inject = 0.0
         if injector is not None and self.w_slow > 0:
             ratio = self.w_fast / (cfg.injection_ratio * self.w_slow)
@@ -552,6 +556,7 @@ class ParticleFilter:
         self.particles = kept
         self.log_weights = np.full(len(kept), -math.log(len(kept)))
         self.last_injected = n_inject
+        self.unweighed = n_inject
 
     def kld_size(self, weights: FloatArray, *, rng: np.random.Generator) -> int:
         """Particles needed for the current weighted set (Fox's KLD sampling, vectorised:
@@ -586,9 +591,21 @@ class ParticleFilter:
         tighter than ``converged_sigma_m`` / ``converged_sigma_rad`` (a few stray
         particles far away do not hide a converged filter, as they would inflate a
         whole-set covariance).
+
+        Particles injected at the last resampling and not weighed by an observation since
+        (`unweighed`) are left out: they are the search's proposals, not the belief. With
+        their uniform share of the weight counted, a filter that still injects (its
+        long-run likelihood average remembers a scene with more landmarks, as after a
+        kidnap) held its main mode at 0.15-0.23 m from the truth for 24 frames without
+        ever reaching ``converged_weight`` (MRCLAM-6 robot 5 given robot 2's frames:
+        0.35-0.83 of the weight in the core while 500-2 500 of 5 000 particles were
+        injected a frame).
         """
         cfg = self.config
         w = np.exp(self.log_weights)
+        if 0 < self.unweighed < self.size:
+            w[self.size - self.unweighed :] = 0.0
+            w /= float(w.sum())
         cells = np.floor(self.particles[:, :2] / cfg.mode_cell_m).astype(np.int64)
         key = (cells[:, 0] + (1 << 24)) * (1 << 26) + (cells[:, 1] + (1 << 24))
         _, inverse = np.unique(key, return_inverse=True)

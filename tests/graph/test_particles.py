@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -263,6 +264,29 @@ def test_recovers_after_a_kidnap() -> None:
     assert recovered[0] - kidnap <= 25
     dist, yaw = _error(history[-1][0], history[-1][1].pose_xytheta)
     assert dist < 0.2 and yaw < math.radians(5)
+
+
+def test_injected_particles_count_in_the_estimate_only_once_an_observation_weighed_them() -> None:
+    """A tight belief that a resampling topped up with 30 % injected poses is converged:
+    the injected poses are the search's proposals until an observation weighs them."""
+    rng = np.random.default_rng(3)
+    truth = np.array([3.0, 2.5, 0.4])
+    cloud = truth + rng.normal(0.0, [0.02, 0.02, math.radians(1.0)], (1000, 3))
+    pf = ParticleFilter.from_poses(cloud, FilterConfig(max_particles=1000))
+    assert pf.estimate().converged
+    pf.resample(rng=rng, injector=uniform_injector((0.0, 0.0, 6.0, 5.0)), inject_fraction=0.3)
+    assert pf.unweighed == pf.last_injected == 300
+    est = pf.estimate()
+    assert est.converged and est.core_weight == pytest.approx(1.0)
+    np.testing.assert_allclose(est.pose_xytheta[:2], truth[:2], atol=0.01)
+    # Counted with their uniform share (as before), the core held 70 % of the weight.
+    counted = dataclasses.replace(pf, unweighed=0).estimate()
+    assert not counted.converged and counted.core_weight == pytest.approx(0.7, abs=0.02)
+    # An observation weighs them all: none is left out any more.
+    z = predicted_bearings(truth[None, :], LANDMARKS)[0].astype(np.float64)
+    pf.update(LANDMARKS, z, rng=rng)
+    assert pf.unweighed == 0
+    assert pf.estimate().converged
 
 
 # --------------------------------------------------------------------------- sharp updates
