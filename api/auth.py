@@ -139,10 +139,7 @@ async def may_write(request: Request, map_id: str) -> Principal:
     api.routes.frames.FramesLane): the request's key, then its map and scope.
 
     Raises AuthError as the dependency does."""
-    credentials = await bearer(request)
-    token = None if credentials is None else credentials.credentials
-    who = identify(request.app.state.settings, request.app.state.service, token)
-    return _check_map(who, map_id, "write")
+    return await map_write(map_id, await principal(request, await bearer(request)))
 
 
 async def map_read(map_id: MapId, who: PrincipalDep) -> Principal:

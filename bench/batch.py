@@ -50,7 +50,9 @@ def _xy(point: np.ndarray) -> tuple[float, float]:
     return float(point[0]), float(point[1])
 
 
-def _graph(frames: Sequence[FrameInput], config: SlamConfig, labels: dict[str, int]):
+def batch_graph(frames: Sequence[FrameInput], config: SlamConfig, labels: dict[str, int]):
+    """Every factor of a robot's run (its first pose's prior, odometry, bearings to the
+    landmarks `labels` numbers), as the batch solves them."""
     graph = gtsam.NonlinearFactorGraph()
     for k, f in enumerate(frames):
         key = pose_key(0, k)
@@ -122,7 +124,7 @@ def batch_solve(
                 continue
             labels.setdefault(label, len(labels))
             values.insert(landmark_key(labels[label]), tri.point)
-        graph = _graph(
+        graph = batch_graph(
             frames, config, {lb: i for lb, i in labels.items() if values.exists(landmark_key(i))}
         )
         params = gtsam.LevenbergMarquardtParams()

@@ -61,8 +61,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from bench.batch import _graph as batch_graph
-from bench.batch import batch_solve
+from bench.batch import batch_graph, batch_solve
 from graph.angles import wrap_angle
 from graph.factors import is_landmark_key, landmark_key, pose_key
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
@@ -431,7 +430,7 @@ def frames_to_information(
                     )
                 )  # fmt: skip
         cov = gtsam.Marginals(graph, values).marginalCovariance(xk(k))
-        pos = math.sqrt(float(np.linalg.eigvalsh(cov[:2, :2]).max()))
+        pos = _major_sigma(cov[:2, :2])
         head = math.sqrt(float(cov[2, 2]))
         for t in BOUND_THRESHOLDS_M:
             if found[t] is None and pos <= t and head <= heading_per_m * t:
@@ -558,10 +557,7 @@ def build_online_map(
     session.close()
     session = MapSession(where, settings)  # the map as the starts will load it
     landmarks = landmark_map(session.slam)
-    sigma = {
-        k: float(np.sqrt(np.linalg.eigvalsh(c)[-1]))
-        for k, c in landmark_covariances(session.slam).items()
-    }
+    sigma = {k: _major_sigma(c) for k, c in landmark_covariances(session.slam).items()}
     assert session.pipeline.localiser is not None
     places = len(session.pipeline.localiser.localiser.places.places)
     session.close()
@@ -587,6 +583,11 @@ def build_online_map(
         "landmark_sigma_m": sigma,
         **replaced,
     }
+
+
+def _major_sigma(covariance: np.ndarray) -> float:
+    """One-sigma along the major axis of a (2, 2) position covariance, metres."""
+    return float(np.sqrt(np.linalg.eigvalsh(covariance)[-1]))
 
 
 def _fitted(landmarks: dict[str, np.ndarray], surveyed: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -721,8 +722,7 @@ def _replaced_map(
         "batch_landmarks": len(batch.landmark_xy),
         "batch_map_landmarks": {k: [float(v) for v in batch.landmark_xy[k]] for k in ids},
         "batch_landmark_sigma_m": {
-            k: float(np.sqrt(np.linalg.eigvalsh(c)[-1]))
-            for k, c in ((k, marginals.marginalCovariance(landmark_key(labels[k]))) for k in ids)
+            k: _major_sigma(marginals.marginalCovariance(landmark_key(labels[k]))) for k in ids
         },
         "session_minus_batch_m": {
             k: float(np.hypot(*(rot @ before[k] + trans - np.asarray(batch.landmark_xy[k]))))

@@ -141,8 +141,11 @@ class FrameLog:
 
     # ------------------------------------------------------------ reload
     def load(self, record: MapRecord, vision: MapVision | None, *, seed: int) -> LoadedMap:
-        """The map's pipeline: its latest snapshot + the log's tail."""
+        """The map's pipeline: its latest snapshot + the log's tail. What the sinks
+        collected before (a frame or an upkeep that failed on the map being replaced) is
+        dropped first: it would otherwise be stored with the reload's rows."""
         t0 = time.perf_counter()
+        self.discard()
         self._removal_count = None
         snap = self.store.latest_snapshot()
         pipeline, upto = None, 0

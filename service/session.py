@@ -215,7 +215,6 @@ class MapSession:
             log.exception(
                 "map %s: the upkeep after log frame %d failed", self.place, self._last_log_id
             )
-            self.frame_log.discard()
             self._load()
             self.slam.skip_upkeep()
 
@@ -288,7 +287,6 @@ class MapSession:
         updated. The frame was never acknowledged; it leaves the log and the map is
         reloaded as it was, so that the next frame meets a whole map."""
         self.store.delete_frame(log_id)
-        self.frame_log.discard()
         self._load()
 
     def _check_image_frame(self, frame: FrameInput) -> None:
