@@ -595,18 +595,14 @@ def _fitted(landmarks: dict[str, np.ndarray], surveyed: dict[str, np.ndarray]) -
     landmark's distance from its surveyed position after the fit (in the map's frame),
     and the motion (`_rot`, `_trans`: x_survey = rot @ x_map + trans)."""
     fit = fit_landmarks(landmarks, surveyed)
-    common = list(fit.labels)
-    rot, trans = align_se2(
-        np.array([landmarks[k] for k in common]), np.array([surveyed[k] for k in common])
-    )
-    residual = {k: float(np.hypot(*(rot @ landmarks[k] + trans - surveyed[k]))) for k in common}
+    rot, trans = fit.motion
     return {
-        "landmarks_fitted": len(common),
+        "landmarks_fitted": len(fit.labels),
         "frame_rotation_deg": math.degrees(fit.rotation_rad),
         "frame_shift_m": fit.shift_m,
         "landmark_rmse_m": fit.rmse_m,
         "landmark_rmse_in_map_frame_m": fit.rmse_aligned_m,
-        "landmark_error_in_map_frame_m": residual,
+        "landmark_error_in_map_frame_m": fit.errors_by_label(),
         "_rot": rot,
         "_trans": trans,
     }

@@ -43,7 +43,7 @@ def default_reference_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "shared" / "reference"
 
 
-def judge(ref: Any, directory: Path, robot: int, run: str) -> dict[str, float]:
+def judge(ref: Any, directory: Path, robot: int, run: str) -> dict[str, Any]:
     """One robot through one of the reference's estimators, judged on its final
     estimate (the first call of its ``ate`` and ``landmark_rmse`` in a run)."""
     seen: dict[str, Any] = {}
@@ -79,6 +79,7 @@ def judge(ref: Any, directory: Path, robot: int, run: str) -> dict[str, float]:
         "rmse_m": fit.rmse_m,
         "rmse_aligned_m": fit.rmse_aligned_m,
         "landmarks": len(fit.labels),
+        "landmark_error_aligned_m": fit.errors_by_label(),
     }
 
 
@@ -98,7 +99,7 @@ def main() -> None:
     for robot in (int(r) for r in args.robots.split(",")):
         rows[f"r{robot}"] = {run: judge(ref, args.data, robot, run) for run in RUNS}
         for run, row in rows[f"r{robot}"].items():
-            figures = ", ".join(f"{k} {v:.3f}" for k, v in row.items())
+            figures = ", ".join(f"{k} {v:.3f}" for k, v in row.items() if isinstance(v, float))
             print(f"r{robot} {run}: {figures}", flush=True)
     doc = {
         "rows": rows,

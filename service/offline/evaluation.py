@@ -157,6 +157,8 @@ class MapFit:
         shift_m: |R c + t - c| for the estimated landmarks' centroid c, metres.
         rmse_m: RMS distance estimated -> surveyed, unaligned, metres.
         rmse_aligned_m: RMS distance after the best rigid fit, metres.
+        errors_aligned_m: each landmark's distance after the fit (``labels``' order), metres.
+        motion: the fit itself, (R (2, 2), t (2,)): surveyed ~ R @ estimated + t.
     """
 
     labels: tuple[str, ...]
@@ -164,6 +166,12 @@ class MapFit:
     shift_m: float
     rmse_m: float
     rmse_aligned_m: float
+    errors_aligned_m: tuple[float, ...]
+    motion: tuple[NDArray[np.float64], NDArray[np.float64]]
+
+    def errors_by_label(self) -> dict[str, float]:
+        """`errors_aligned_m` by landmark label, metres."""
+        return dict(zip(self.labels, self.errors_aligned_m, strict=True))
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -188,12 +196,15 @@ def fit_landmarks(estimated: Mapping[str, ArrayLike], surveyed: Mapping[str, Arr
     rot, trans = align_se2(est, ref)
     centroid = est.mean(axis=0)
     moved = est @ rot.T + trans
+    errors = np.hypot(*(moved - ref).T)
     return MapFit(
         labels=labels,
         rotation_rad=math.atan2(float(rot[1, 0]), float(rot[0, 0])),
         shift_m=float(np.linalg.norm(rot @ centroid + trans - centroid)),
         rmse_m=float(np.sqrt(np.mean(np.sum((est - ref) ** 2, axis=1)))),
-        rmse_aligned_m=float(np.sqrt(np.mean(np.sum((moved - ref) ** 2, axis=1)))),
+        rmse_aligned_m=float(np.sqrt(np.mean(errors**2))),
+        errors_aligned_m=tuple(float(e) for e in errors),
+        motion=(rot, trans),
     )
 
 
