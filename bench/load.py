@@ -158,14 +158,20 @@ class Server:
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> float:
-        """Seconds until /readyz answered 200."""
-        env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning"}
+        """`covslam serve` with two workers; seconds until /readyz answered 200."""
+        return self.launch(
+            ["-m", "api.cli", "serve"], {**os.environ, "COVSLAM_LOG_LEVEL": "warning"}
+        )
+
+    def launch(self, argv: list[str], env: dict[str, str], cwd: Path | None = None) -> float:
+        """Start `python argv` as this server's process (its port, data directory, two
+        workers); seconds until /readyz answered 200."""
         t0 = time.monotonic()
         with self.log.open("ab") as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "api.cli", "serve", "--port", str(self.port),
-                 "--data-dir", str(self.data), "--workers", "2"],
-                env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                [sys.executable, *argv, "--port", str(self.port), "--data-dir", str(self.data),
+                 "--workers", "2"],
+                cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
             )  # fmt: skip
         while time.monotonic() - t0 < 120:
             if self.proc.poll() is not None:

@@ -38,7 +38,6 @@ import json
 import os
 import pickle
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -169,28 +168,6 @@ def report(folder: Path, top: int = 40) -> None:
                 print(f"{100 * c / n:6.2f} %  {name.replace(os.getcwd() + '/', '')}")
 
 
-def _launch(server: Server, argv: list[str], env: dict[str, str], cwd: Path | None = None) -> float:
-    """Start `python argv` as `server`'s process (its port, data directory, two
-    workers); seconds until /readyz answered 200."""
-    t0 = time.monotonic()
-    with server.log.open("ab") as out:
-        server.proc = subprocess.Popen(
-            [sys.executable, *argv, "--port", str(server.port), "--data-dir", str(server.data),
-             "--workers", "2"],
-            cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
-        )  # fmt: skip
-    while time.monotonic() - t0 < 120:
-        if server.proc.poll() is not None:
-            raise RuntimeError(server.log.read_text()[-2000:])
-        try:
-            if httpx.get(server.url + "/readyz", timeout=1).status_code == 200:
-                return time.monotonic() - t0
-        except httpx.TransportError:
-            pass
-        time.sleep(0.02)
-    raise TimeoutError(server.log.read_text()[-2000:])
-
-
 class ProfiledServer(Server):
     def __init__(self, data: Path, log: Path, profile: Path) -> None:
         super().__init__(data, log)
@@ -198,7 +175,7 @@ class ProfiledServer(Server):
 
     def start(self) -> float:
         env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning", PROFILE_ENV: str(self.profile)}
-        return _launch(self, ["-m", "bench.request_cpu", "--serve-profiled"], env)
+        return self.launch(["-m", "bench.request_cpu", "--serve-profiled"], env)
 
 
 class TreeServer(Server):
@@ -211,7 +188,7 @@ class TreeServer(Server):
     def start(self) -> float:
         env = {**os.environ, "COVSLAM_LOG_LEVEL": "warning"}
         env.pop("PYTHONPATH", None)
-        return _launch(self, ["-m", "api.cli", "serve"], env, cwd=self.tree)
+        return self.launch(["-m", "api.cli", "serve"], env, cwd=self.tree)
 
 
 def versus(args: argparse.Namespace) -> dict[str, Any]:
