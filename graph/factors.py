@@ -17,7 +17,7 @@ from graph.config import BearingLoss, SlamConfig
 from graph.types import Odometry, Pose2D
 
 POSES_PER_ROBOT = 1 << 40
-_LANDMARK_CHR = ord("l")
+LANDMARK_CHR = ord("l")
 
 
 def pose_key(robot_slot: int, index: int) -> int:
@@ -31,7 +31,7 @@ def landmark_key(landmark_id: int) -> int:
 
 
 def is_landmark_key(key: int) -> bool:
-    return gtsam.Symbol(key).chr() == _LANDMARK_CHR
+    return gtsam.Symbol(key).chr() == LANDMARK_CHR
 
 
 def to_pose2(pose: Pose2D) -> gtsam.Pose2:

@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from graph.config import SlamConfig
 from graph.errors import EstimationError
-from graph.factors import is_landmark_key
+from graph.factors import LANDMARK_CHR, is_landmark_key
 from graph.relative import RelativeMarginalFactor, choose_reference, relative_marginal
 from graph.sparsify import tree_factors
 
@@ -133,6 +133,10 @@ class IncrementalGraph:
         self.sparsification_kl: list[float] | None = None
         """Set to a list, KL(exact || tree) in nats of every later sparsification is
         appended to it (an evaluation's measure; every tree computes it)."""
+        self.held_back_updates = 0
+        """Updates that held variables back from relinearisation (relinearise_budget)."""
+        self.holding = False
+        """The last update held variables back (relinearise_budget)."""
         self.relinearising = False
         """Updates relinearise though iSAM2's interval says not to (BearingSlam sets it
         during an upkeep with SlamConfig.upkeep "after_frame": the upkeep's updates then
@@ -257,16 +261,63 @@ class IncrementalGraph:
         return self._theta
 
     # ------------------------------------------------------------------ update
-    def relinearise(self) -> None:
+    def relinearise(self, *, budgeted: bool = True) -> None:
         """Relinearise, in a step of its own, the variables whose delta exceeds the
         relinearisation threshold (with SlamConfig.upkeep "after_frame", updates do
-        not)."""
+        not); `budgeted` False: all of them, whatever relinearise_budget says."""
         try:
-            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+            self._isam.update(
+                gtsam.NonlinearFactorGraph(),
+                gtsam.Values(),
+                force_relinearize=True,
+                noRelinKeys=self._held_back() if budgeted else None,
+            )
+            if not budgeted:
+                self.holding = False
         except RuntimeError as exc:  # gtsam's IndeterminantLinearSystem etc.
             raise EstimationError(str(exc)) from exc
         finally:
             self._forget_estimate()
+
+    def _relinearises(self) -> bool:
+        """Whether the next update relinearises (iSAM2 checks every update when
+        relinearize_skip is 1; BearingSlam forces it in an "after_frame" upkeep)."""
+        return self.relinearising or (
+            self._config.upkeep != "after_frame" and self._config.relinearize_skip == 1
+        )
+
+    def _held_back(self) -> gtsam.KeyList | None:
+        """The variables past the relinearisation threshold that the next update must not
+        relinearise (SlamConfig.relinearise_budget), or None: the farthest-moved first
+        (in units of the threshold), until the relative marginals on them would exceed the
+        budget; a variable that adds none of them is never held back, nor the first."""
+        budget = self._config.relinearise_budget
+        if budget is None or self._config.upkeep == "in_frame" or not self._marginals:
+            return None
+        keys = np.fromiter(self._theta.keys(), dtype=np.uint64)
+        if keys.size == 0:
+            return None
+        moved = np.abs(self._isam.getDelta().vector())
+        dims = np.where((keys >> np.uint64(56)) == np.uint64(LANDMARK_CHR), 2, 3)
+        starts = np.concatenate([[0], np.cumsum(dims)[:-1]])
+        largest = np.maximum.reduceat(moved, starts)
+        over = np.flatnonzero(largest >= self._config.relinearize_threshold)
+        if over.size == 0:
+            return None
+        taken: set[int] = set()
+        held = gtsam.KeyList()
+        for i in over[np.argsort(-largest[over], kind="stable")]:
+            key = int(keys[i])
+            more = self._marginals.intersection(self._key_factors.get(key, ())) - taken
+            if taken and len(taken) + len(more) > budget:
+                held.push_back(key)
+            else:
+                taken |= more
+        if not held.size():
+            return None
+        self.held_back_updates += 1
+        self.holding = True
+        return held
 
     def _forget_estimate(self) -> None:
         self._estimate = None
@@ -317,7 +368,11 @@ class IncrementalGraph:
             new.add(factor)
         try:
             result = self._isam.update(
-                new, values or gtsam.Values(), remove, force_relinearize=self.relinearising
+                new,
+                values or gtsam.Values(),
+                remove,
+                force_relinearize=self.relinearising,
+                noRelinKeys=self._held_back() if self._relinearises() else None,
             )
         except RuntimeError as exc:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
             qr = self._isam.params().getFactorization() == "QR"

@@ -390,7 +390,8 @@ class BearingSlam:
     def upkeep(self) -> None:
         """The work the last frame left (see SlamConfig.upkeep; nothing with "in_frame"):
         the landmark budget, a second window exit and keyframe thinning, then
-        iSAM2's relinearisation ("after_frame"). The service calls it once
+        iSAM2's relinearisation ("after_frame", or of the variables the frame's update
+        held back: SlamConfig.relinearise_budget). The service calls it once
         the frame's result is sent; `process` calls it first when nobody did, so a
         sequence of frames gives the same map however the upkeeps were timed. Raises
         EstimationError as `process` does."""
@@ -413,8 +414,12 @@ class BearingSlam:
             self._bound_window(self._robots[frame.robot])
         finally:
             self._graph.relinearising = False
-        if relinearise:
-            self._graph.relinearise()
+        if relinearise or self._graph.holding:
+            # Also what the frame's update held back (relinearise_budget), now that its
+            # answer is sent: after the removals, whose Schur complements are then taken
+            # where a frame's are. Before them, on the dense lifelong world (4 000
+            # frames): ATE 0.231 m (0.085 aligned) against 0.181 (0.071).
+            self._graph.relinearise(budgeted=False)
 
     def skip_upkeep(self) -> None:
         """Drop the pending upkeep (after it failed: the next frame's upkeep takes the

@@ -270,7 +270,7 @@ class MapConfig(StrictModel):
         noise = self.noise.model_copy(
             update={k: v for k, v in RANDOM_WALK_NOISE_DEFAULTS.items() if k not in given}
         )
-        update: dict[str, Any] = {"noise": noise}
+        update: dict[str, Any] = {"noise": noise, **self._new_estimator_defaults()}
         if "window_marginals" not in self.model_fields_set:
             update["window_marginals"] = _DEFAULTS.window_marginals
         if self.camera is None:
@@ -282,6 +282,23 @@ class MapConfig(StrictModel):
             # Loss and scale go together: a client who gave a huber_k meant Huber's.
             update["noise"] = noise.model_copy(update=CAMERA_NOISE_DEFAULTS)
         return config.model_copy(update=update)
+
+    def _new_estimator_defaults(self) -> dict[str, Any]:
+        """The keyframes and solver groups with the estimator's current defaults where
+        the client gave none: Chow-Liu sparsification, the upkeep after the frame and its
+        relinearisation budget (a stored config without them keeps what it was built
+        with: thinning, everything in the frame)."""
+        solver, keyframes = self.solver, self.keyframes
+        upkeep = solver.upkeep if "upkeep" in solver.model_fields_set else _DEFAULTS.upkeep
+        solver_update: dict[str, Any] = {"upkeep": upkeep}
+        if "relinearise_budget" not in solver.model_fields_set and upkeep != "in_frame":
+            solver_update["relinearise_budget"] = _DEFAULTS.relinearise_budget
+        out: dict[str, Any] = {"solver": solver.model_copy(update=solver_update)}
+        if "marginal_sparsification" not in keyframes.model_fields_set:
+            out["keyframes"] = keyframes.model_copy(
+                update={"marginal_sparsification": _DEFAULTS.marginal_sparsification}
+            )
+        return out
 
     def with_default_cap(self, default_cap: int | None) -> MapConfig:
         """This config with the service's default cap if the client gave none."""

@@ -244,10 +244,12 @@ class KeyframeConfig(StrictModel):
         "candidate's first ray (keeps the widest baseline for its triangulation)",
     )
     marginal_sparsification: MarginalSparsification = Field(
-        _DEFAULTS.marginal_sparsification,
+        "thin_keyframes",
         description="how a marginal factor linking more than max_linked_keyframes "
         "keyframes is kept sparse: 'thin_keyframes' marginalises its oldest keyframes, "
-        "'chow_liu' replaces it by its Chow-Liu tree (every keyframe kept)",
+        "'chow_liu' replaces it by its Chow-Liu tree (every keyframe kept). A map created "
+        f"without it gets {_DEFAULTS.marginal_sparsification!r}; a stored config without "
+        "it, 'thin_keyframes'",
     )
 
 
@@ -268,14 +270,26 @@ class SolverConfig(StrictModel):
         description="iSAM2 checks for relinearisation every this many updates (GTSAM holds "
         "it in a 32-bit int), count",
     )
+    relinearise_budget: int | None = Field(
+        None,
+        ge=1,
+        le=1_000_000,
+        description="with an upkeep after the frame: the most relative marginal factors "
+        "one iSAM2 update relinearises, count; the variables beyond (the least moved) "
+        "keep their linearisation point until the upkeep relinearises them, once the "
+        "frame's result is sent. null: no limit. A map created without it gets "
+        f"{_DEFAULTS.relinearise_budget} (none if its upkeep is 'in_frame'); a stored "
+        "config without it, none",
+    )
     upkeep: Upkeep = Field(
-        _DEFAULTS.upkeep,
+        "in_frame",
         description="when the work that keeps the map bounded runs: 'in_frame', before the "
         "frame's result; 'budget_after_frame', the landmark budget's removals, a second "
         "window exit and keyframe thinning once the result is sent, before the map's next "
         "request; 'after_frame', iSAM2's relinearisation too (relinearize_skip then counts "
         "upkeeps). With either, a frame's result lists the removals made after the frame "
-        "before it",
+        f"before it. A map created without it gets {_DEFAULTS.upkeep!r}; a stored config "
+        "without it, 'in_frame'",
     )
     relative_marginals: bool = Field(
         _DEFAULTS.relative_marginals,
