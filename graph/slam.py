@@ -323,8 +323,6 @@ class BearingSlam:
         new robot) or of the odometry (a robot that was lost: its chain is re-anchored;
         the odometry across the gap is kept only as a vague link).
         """
-        self.upkeep()
-        t0 = time.perf_counter()
         robot = self._robots.get(frame.robot)
         validate_frame(
             frame,
@@ -332,6 +330,8 @@ class BearingSlam:
             last_stamp=robot.last_stamp if robot else None,
             require_initial_pose=anchor is None,
         )
+        self.upkeep()  # after the checks: a refused frame leaves a pending upkeep pending
+        t0 = time.perf_counter()
         motion = None
         if robot is not None and anchor is None and self.config.graph_frame_distance_m is not None:
             motion = self._motion(robot, frame)

@@ -61,9 +61,13 @@ class LandmarkChanges(BaseModel):
     added: list[int] = Field(description="ids of landmarks this frame initialised")
     marginalised: list[int] = Field(
         description="ids the landmark budget removed after it, or, with the map's "
-        "solver.upkeep 'after_frame', after the frame before it"
+        "solver.upkeep after the frame (new maps: 'budget_after_frame'), after the frame "
+        "before it"
     )
-    live: int = Field(description="live landmarks after the frame")
+    live: int = Field(
+        description="live landmarks after the frame (with solver.upkeep after the frame, "
+        "before the removals that follow it)"
+    )
 
 
 class FrameResult(BaseModel):

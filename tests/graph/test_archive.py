@@ -14,8 +14,15 @@ from graph.slam import BearingSlam
 from graph.snapshot import capture, restore
 from tests.graph._world import circle_frames
 
-_CFG = SlamConfig(landmark_cap=6, pose_window=20, restore_after_frames=0, restore_min_rays=1)
-"""Restoration at a landmark's first observation after its removal (no hysteresis)."""
+_CFG = SlamConfig(
+    landmark_cap=6,
+    pose_window=20,
+    restore_after_frames=0,
+    restore_min_rays=1,
+    upkeep="in_frame",
+)
+"""Restoration at a landmark's first observation after its removal (no hysteresis);
+a frame's removals in its own outcome (everything in the frame)."""
 
 
 def _labels(frame) -> set[str]:
@@ -89,7 +96,13 @@ def test_an_archive_entry_holds_the_landmarks_last_state() -> None:
 
 def test_hysteresis_declines_a_landmark_removed_a_moment_ago() -> None:
     frames, _, _ = circle_frames(300, seed=3, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=6, pose_window=20, restore_after_frames=40, restore_min_rays=3)
+    cfg = SlamConfig(
+        landmark_cap=6,
+        pose_window=20,
+        restore_after_frames=40,
+        restore_min_rays=3,
+        upkeep="in_frame",  # the archive as it stands before each frame's own removals
+    )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     seen_since: dict[int, int] = {}
     for k, f in enumerate(frames):

@@ -38,8 +38,9 @@ def test_bounded_graph_over_many_seeds(seed: int, policy: str) -> None:
     ever: set[int] = set()
     for f in frames:
         out = slam.process(f, with_covariance=False)
-        assert out.live <= 8
+        slam.upkeep()  # what the service does once the frame's result is sent
         live = set(slam.landmarks)
+        assert len(live) <= 8
         assert not (set(out.added) & ever), "a landmark id was reused"
         ever |= set(out.added)
         assert len(live) < slam.graph.num_variables <= 15 + 5 + len(live)
@@ -145,6 +146,8 @@ def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> Non
         keyframe_distance_m=0.2,
         max_linked_keyframes=6,
         policy="coverage_paper",  # its choices exercise removal thinning on this run
+        marginal_sparsification="thin_keyframes",
+        upkeep="in_frame",  # the removal's own update, inside the frame
     )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     # A removal that would link too many keyframes takes the oldest with it in the
@@ -368,7 +371,9 @@ def test_an_update_cholesky_refuses_is_redone_with_qr(at: int) -> None:
     iSAM2 over every factor, its bookkeeping stays whole, and the run ends as accurate
     as one that never met the refusal."""
     frames, truth, _ = circle_frames(160, seed=2, n_landmarks=30)
-    cfg = SlamConfig(landmark_cap=8, pose_window=15, window_observations=None, max_keyframes=5)
+    cfg = SlamConfig(
+        landmark_cap=8, pose_window=15, window_observations=None, max_keyframes=5, upkeep="in_frame"
+    )
     clean = _run(frames, cfg)
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     for k, f in enumerate(frames):
@@ -450,6 +455,7 @@ def test_a_window_grows_while_its_poses_hold_few_factors(bound: int | None) -> N
         window_observations=bound,
         uncapped_window_observations=None,
         max_pose_window=80,
+        upkeep="in_frame",  # the window's second exit inside the frame it counts
     )
     slam = BearingSlam(cfg, rng=np.random.default_rng(0))
     lengths, held_over, was_over = [], 0, False
@@ -595,7 +601,7 @@ def test_a_removal_margin_removes_below_the_cap_in_one_update(margin: int) -> No
     frames, _, _ = circle_frames(240, seed=5, n_landmarks=30)
     cap = 8
     slam = BearingSlam(
-        SlamConfig(landmark_cap=cap, pose_window=20, removal_margin=margin),
+        SlamConfig(landmark_cap=cap, pose_window=20, removal_margin=margin, upkeep="in_frame"),
         rng=np.random.default_rng(0),
     )
     steps = 0
@@ -607,7 +613,7 @@ def test_a_removal_margin_removes_below_the_cap_in_one_update(margin: int) -> No
             assert out.live == len(slam.landmarks) == cap - margin
     assert steps > 0
     if margin:
-        plain = _run(frames, SlamConfig(landmark_cap=cap, pose_window=20))
+        plain = _run(frames, SlamConfig(landmark_cap=cap, pose_window=20, upkeep="in_frame"))
         assert steps < len({r.frame for r in plain.removals})
 
 
@@ -620,7 +626,13 @@ def test_spare_observed_never_removes_a_landmark_the_frame_saw(policy: str) -> N
     removed_in_view = {}
     for spare in (False, True):
         slam = BearingSlam(
-            SlamConfig(landmark_cap=cap, pose_window=20, policy=policy, spare_observed=spare),
+            SlamConfig(
+                landmark_cap=cap,
+                pose_window=20,
+                policy=policy,
+                spare_observed=spare,
+                upkeep="in_frame",  # a frame's removals in its own outcome
+            ),
             rng=np.random.default_rng(0),
         )
         count = 0

@@ -205,6 +205,7 @@ def _bounded_run(sparsification: str, bound: int = 6, frames: int = 260) -> Bear
     slam.graph.sparsification_kl = []
     for f in run:
         slam.process(f, with_covariance=False)
+        slam.upkeep()  # the sparsifications a frame leaves (as the service runs it)
         keyframes = {k for k, _ in slam._robots["r1"].keyframes}
         graph = slam.graph.nonlinear_graph()
         linked = [len(keyframes.intersection(graph.at(i).keys())) for i in range(graph.size())]

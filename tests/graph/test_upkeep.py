@@ -101,7 +101,9 @@ def test_a_snapshot_keeps_a_pending_upkeep() -> None:
     for f in frames[100:]:
         a = original.process(f, with_covariance=False)
         b = restored.process(f, with_covariance=False)
-        assert a.marginalised == b.marginalised
+        # The same removals (a restored map's floats are not bit-exact: two landmarks
+        # the policy ranks alike may swap places in a frame's list).
+        assert sorted(a.marginalised) == sorted(b.marginalised)
         assert abs(a.pose.x - b.pose.x) < 0.02 and abs(a.pose.y - b.pose.y) < 0.02
     assert original.removal_count == restored.removal_count
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -113,7 +114,12 @@ def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
         expected = await service.pool.call(busy, Landmarks())
         assert expected and await service.query(busy, Landmarks()) == expected
         exact = await service.query(idle, Trajectory())  # the worker is idle: exact
-        assert len(exact["r1"]) == 10 and exact["r1"][: len(rows)] == rows
+        assert len(exact["r1"]) == 10
+        # The view was published with the frame's answer, before the upkeep after it
+        # (its removals move the estimate a little; the view is renewed in idle time).
+        assert [r["seq"] for r in exact["r1"][: len(rows)]] == [r["seq"] for r in rows]
+        for mine, theirs in zip(rows, exact["r1"], strict=False):
+            assert math.hypot(mine["x"] - theirs["x"], mine["y"] - theirs["y"]) < 0.01
 
     _run(tmp_path, 1, body)
 
