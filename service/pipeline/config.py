@@ -284,21 +284,15 @@ class MapConfig(StrictModel):
         return config.model_copy(update=update)
 
     def _new_estimator_defaults(self) -> dict[str, Any]:
-        """The keyframes and solver groups with the estimator's current defaults where
-        the client gave none: Chow-Liu sparsification, the upkeep after the frame and its
-        relinearisation budget (a stored config without them keeps what it was built
-        with: thinning, everything in the frame)."""
-        solver, keyframes = self.solver, self.keyframes
+        """The solver group with the estimator's current defaults where the client gave
+        none: the upkeep after the frame and its relinearisation budget (a stored config
+        without them keeps what it was built with: everything in the frame)."""
+        solver = self.solver
         upkeep = solver.upkeep if "upkeep" in solver.model_fields_set else _DEFAULTS.upkeep
         solver_update: dict[str, Any] = {"upkeep": upkeep}
         if "relinearise_budget" not in solver.model_fields_set and upkeep != "in_frame":
             solver_update["relinearise_budget"] = _DEFAULTS.relinearise_budget
-        out: dict[str, Any] = {"solver": solver.model_copy(update=solver_update)}
-        if "marginal_sparsification" not in keyframes.model_fields_set:
-            out["keyframes"] = keyframes.model_copy(
-                update={"marginal_sparsification": _DEFAULTS.marginal_sparsification}
-            )
-        return out
+        return {"solver": solver.model_copy(update=solver_update)}
 
     def with_default_cap(self, default_cap: int | None) -> MapConfig:
         """This config with the service's default cap if the client gave none."""

@@ -244,12 +244,11 @@ class KeyframeConfig(StrictModel):
         "candidate's first ray (keeps the widest baseline for its triangulation)",
     )
     marginal_sparsification: MarginalSparsification = Field(
-        "thin_keyframes",
+        _DEFAULTS.marginal_sparsification,
         description="how a marginal factor linking more than max_linked_keyframes "
         "keyframes is kept sparse: 'thin_keyframes' marginalises its oldest keyframes, "
-        "'chow_liu' replaces it by its Chow-Liu tree (every keyframe kept). A map created "
-        f"without it gets {_DEFAULTS.marginal_sparsification!r}; a stored config without "
-        "it, 'thin_keyframes'",
+        "'chow_liu' replaces it by its Chow-Liu tree (every keyframe kept; the frames' "
+        "tail is shorter on dense maps, the map less accurate on sparse ones)",
     )
 
 

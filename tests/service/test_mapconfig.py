@@ -373,8 +373,8 @@ def test_every_estimator_parameter_at_once_and_the_defaults_are_the_estimators()
 def test_a_config_stored_before_the_groups_loads_with_the_estimators_defaults() -> None:
     loaded = slam_config(LEGACY_STORED_CONFIG, "mapping")
     # As it was built: no odometry random walks, a capped window that does not grow (and
-    # no bound by marginals), the optimizer it stored (dogleg, the default then), keyframe
-    # thinning and everything in the frame.
+    # no bound by marginals), the optimizer it stored (dogleg, the default then) and
+    # everything in the frame.
     assert loaded == replace(
         SlamConfig(),
         window_observations=None,
@@ -382,7 +382,6 @@ def test_a_config_stored_before_the_groups_loads_with_the_estimators_defaults() 
         optimizer="dogleg",
         odometry_sigma_per_sqrt_metre=(0.0, 0.0, 0.0),
         odometry_sigma_per_sqrt_radian=0.0,
-        marginal_sparsification="thin_keyframes",
         upkeep="in_frame",
         relinearise_budget=None,
     )
