@@ -152,9 +152,9 @@ class SlamConfig:
     linearisation point; the upkeep relinearises them once the frame's answer is sent,
     after its removals. A loop correction's relinearisation (every marginal factor on
     the moved poses re-evaluated in Python) then no longer lands on the frame's answer.
-    On MRCLAM-6 at cap 8 a budget of 40 holds variables back in 0-273 of a robot's
-    1 376-2 498 frames; without the upkeep's catch-up (held variables waiting for later
-    frames) robot 5's ATE went from 0.308 to 0.394 m."""
+    On MRCLAM-6 at cap 8 (coverage) a budget of 40 holds variables back in 0-527 of a
+    robot's 1 376-2 498 frames; without the upkeep's catch-up (held variables waiting for
+    later frames) robot 5's ATE went from 0.308 to 0.394 m, with it 0.269."""
     upkeep: Upkeep = "budget_after_frame"
     """When the work that keeps the map bounded runs. "in_frame": all inside
     `BearingSlam.process`. "budget_after_frame": the landmark budget's removals, a second

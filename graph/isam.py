@@ -55,6 +55,12 @@ _NEVER = 2**31 - 1
 """An iSAM2 relinearisation interval no map reaches."""
 
 
+def _relinearize_interval(config: SlamConfig) -> int:
+    """iSAM2's relinearizeSkip for `config`: with upkeep "after_frame" the upkeep
+    relinearises (IncrementalGraph.relinearise), never an update."""
+    return _NEVER if config.upkeep == "after_frame" else config.relinearize_skip
+
+
 def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.ISAM2:
     """iSAM2 for `config`; `factorization` "CHOLESKY" (iSAM2's default, the faster) or
     "QR" (see IncrementalGraph.update)."""
@@ -65,8 +71,7 @@ def make_isam(config: SlamConfig, *, factorization: str = "CHOLESKY") -> gtsam.I
     else:
         params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams())
     params.setRelinearizeThreshold(config.relinearize_threshold)
-    # Relinearised in the upkeep (IncrementalGraph.relinearise): never inside an update.
-    params.relinearizeSkip = _NEVER if config.upkeep == "after_frame" else config.relinearize_skip
+    params.relinearizeSkip = _relinearize_interval(config)
     params.findUnusedFactorSlots = True
     return gtsam.ISAM2(params)
 
@@ -261,19 +266,13 @@ class IncrementalGraph:
         return self._theta
 
     # ------------------------------------------------------------------ update
-    def relinearise(self, *, budgeted: bool = True) -> None:
-        """Relinearise, in a step of its own, the variables whose delta exceeds the
+    def relinearise(self) -> None:
+        """Relinearise, in a step of its own, every variable whose delta exceeds the
         relinearisation threshold (with SlamConfig.upkeep "after_frame", updates do
-        not); `budgeted` False: all of them, whatever relinearise_budget says."""
+        not; with relinearise_budget, those the updates held back too)."""
         try:
-            self._isam.update(
-                gtsam.NonlinearFactorGraph(),
-                gtsam.Values(),
-                force_relinearize=True,
-                noRelinKeys=self._held_back() if budgeted else None,
-            )
-            if not budgeted:
-                self.holding = False
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+            self.holding = False
         except RuntimeError as exc:  # gtsam's IndeterminantLinearSystem etc.
             raise EstimationError(str(exc)) from exc
         finally:
@@ -282,14 +281,12 @@ class IncrementalGraph:
     def _relinearises(self) -> bool:
         """Whether the next update relinearises (iSAM2 checks every update when
         relinearize_skip is 1; BearingSlam forces it in an "after_frame" upkeep)."""
-        return self.relinearising or (
-            self._config.upkeep != "after_frame" and self._config.relinearize_skip == 1
-        )
+        return self.relinearising or _relinearize_interval(self._config) == 1
 
     def _held_back(self) -> gtsam.KeyList | None:
         """The variables past the relinearisation threshold that the next update must not
-        relinearise (SlamConfig.relinearise_budget), or None: the farthest-moved first
-        (in units of the threshold), until the relative marginals on them would exceed the
+        relinearise (SlamConfig.relinearise_budget), or None: the farthest-moved first,
+        until the relative marginals on them would exceed the
         budget; a variable that adds none of them is never held back, nor the first."""
         budget = self._config.relinearise_budget
         if budget is None or self._config.upkeep == "in_frame" or not self._marginals:

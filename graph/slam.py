@@ -419,7 +419,7 @@ class BearingSlam:
             # answer is sent: after the removals, whose Schur complements are then taken
             # where a frame's are. Before them, on the dense lifelong world (4 000
             # frames): ATE 0.231 m (0.085 aligned) against 0.181 (0.071).
-            self._graph.relinearise(budgeted=False)
+            self._graph.relinearise()
 
     def skip_upkeep(self) -> None:
         """Drop the pending upkeep (after it failed: the next frame's upkeep takes the

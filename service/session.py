@@ -200,15 +200,16 @@ class MapSession:
             marginalised=0 if final is None else len(final.marginalised),
         )
 
-    def upkeep(self) -> None:
+    def upkeep(self) -> bool:
         """The estimator's work the last frame left for after its result was sent
-        (SlamConfig.upkeep "after_frame"): the worker calls it before its next request.
+        (SlamConfig.upkeep after the frame): the worker calls it before its next request.
         What it removes is stored, sent and published with the next frame's result; a
         snapshot meanwhile keeps it pending. If it fails, the map is reloaded from its
         store (the log's frames replayed) and this upkeep is skipped: the next frame's
-        upkeep brings the map back under its cap."""
+        upkeep brings the map back under its cap. Whether there was one (the map
+        changed)."""
         if not self.slam.upkeep_pending:
-            return
+            return False
         try:
             self.pipeline.upkeep()
         except EstimationError:
@@ -217,6 +218,7 @@ class MapSession:
             )
             self._load()
             self.slam.skip_upkeep()
+        return True
 
     def _retry_of(self, frame: FrameInput, text: str) -> FrameReply | None:
         """The stored answer when the frame repeats a logged one exactly (an idempotent

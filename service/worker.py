@@ -344,11 +344,14 @@ def _published(map_id: str, request: Request[Any], value: Any) -> ViewDelta | No
 def upkeep(map_id: str) -> None:
     """The open map's upkeep after a frame whose result was sent (MapSession.upkeep)."""
     session = _sessions.get(map_id)
-    if session is not None and session.slam.upkeep_pending:
-        try:
-            session.upkeep()
-        except Exception:
-            log.exception("the upkeep of map %s failed", map_id)
+    if session is None:
+        return
+    try:
+        changed = session.upkeep()
+    except Exception:
+        log.exception("the upkeep of map %s failed", map_id)
+        changed = True
+    if changed:
         # The view published with the frame's answer predates the upkeep's removals and
         # the estimate they moved: renewed in idle time, or with the next frame.
         _stale.add(map_id)
