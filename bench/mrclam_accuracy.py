@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import math
 import os
 import platform
 import time
@@ -80,7 +81,13 @@ def _judge(
         row.update(fit_landmarks(landmarks, surveyed).as_dict())
     if live is not None and len(set(live) & set(surveyed)) >= 2:
         fit = fit_landmarks(live, surveyed)
-        row.update(live_rmse_m=fit.rmse_m, live_rmse_aligned_m=fit.rmse_aligned_m)
+        row.update(
+            live_rmse_m=fit.rmse_m,
+            live_rmse_aligned_m=fit.rmse_aligned_m,
+            # Where the map a client reads (GET /landmarks: the live ones) puts its frame.
+            live_rotation_deg=math.degrees(fit.rotation_rad),
+            live_shift_m=fit.shift_m,
+        )
     return row
 
 
@@ -164,6 +171,8 @@ MEASURES = (
     "shift_m",
     "live_rmse_m",
     "live_rmse_aligned_m",
+    "live_rotation_deg",
+    "live_shift_m",
 )
 
 
