@@ -146,6 +146,14 @@ class IncrementalGraph:
         """Updates relinearise though iSAM2's interval says not to (BearingSlam sets it
         during an upkeep with SlamConfig.upkeep "after_frame": the upkeep's updates then
         relinearise as a frame's do, the frame's own update does not)."""
+        self.root_keys: tuple[int, ...] = ()
+        """Variables the updates keep at the Bayes tree's root (BearingSlam sets them
+        during an upkeep: the keys the next frame's factors will touch). iSAM2 orders the
+        variables an update re-eliminates with those of its new factors last, at the root;
+        an upkeep's new factors are marginals on old keyframes and landmarks, so without
+        this the robot's latest pose sinks below them and the next frame's odometry
+        factor re-eliminates everything above it: on the dense lifelong world the whole
+        tree (~210-240 variables, 45-65 ms) where a frame takes ~1-2 ms."""
 
     # ------------------------------------------------------------------ queries
     def __contains__(self, key: int) -> bool:
@@ -271,12 +279,30 @@ class IncrementalGraph:
         relinearisation threshold (with SlamConfig.upkeep "after_frame", updates do
         not; with relinearise_budget, those the updates held back too)."""
         try:
-            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+            self._isam.update(
+                gtsam.NonlinearFactorGraph(),
+                gtsam.Values(),
+                constrainedKeys=self._root_groups(()),
+                force_relinearize=True,
+            )
             self.holding = False
         except RuntimeError as exc:  # gtsam's IndeterminantLinearSystem etc.
             raise EstimationError(str(exc)) from exc
         finally:
             self._forget_estimate()
+
+    def _root_groups(self, leaving: Iterable[int]) -> gtsam.KeyGroupMap | None:
+        """root_keys still in the graph after an update that removes `leaving`, as
+        iSAM2's constrained ordering (group 1: eliminated last); None when there are none
+        (iSAM2 then puts the new factors' variables last)."""
+        gone = set(leaving)
+        keys = [k for k in self.root_keys if k in self._key_factors and k not in gone]
+        if not keys:
+            return None
+        groups = gtsam.KeyGroupMap()
+        for key in keys:
+            groups.insert2(key, 1)
+        return groups
 
     def _relinearises(self) -> bool:
         """Whether the next update relinearises (iSAM2 checks every update when
@@ -368,6 +394,7 @@ class IncrementalGraph:
                 new,
                 values or gtsam.Values(),
                 remove,
+                constrainedKeys=self._root_groups([*marginalise, *then_marginalise]),
                 force_relinearize=self.relinearising,
                 noRelinKeys=self._held_back() if self._relinearises() else None,
             )

@@ -155,6 +155,9 @@ class _Plan:
     """Poses (key, frame) marginalised this frame: `exiting` or the oldest keyframe."""
     restored: tuple[tuple[int, tuple[Ray, ...]], ...] = ()
     """Archived landmarks (id, the rays that got a factor) coming back this frame."""
+    exit_due: bool = False
+    """The robot's oldest window pose leaves in the upkeep after this frame (see
+    SlamConfig.window_exit_after_frame), not in the frame's update."""
 
 
 class BearingSlam:
@@ -216,6 +219,9 @@ class BearingSlam:
         with SlamConfig.window_factor_bound)."""
         self._pending: FrameInput | None = None
         """The frame whose upkeep has not run yet (see SlamConfig.upkeep)."""
+        self._exit_due = False
+        """The pending upkeep starts with the window exit its frame left (see
+        SlamConfig.window_exit_after_frame)."""
         self._upkeeps = 0
         self._unreported: list[RemovalRecord] = []
         self._final_rows: list[list[PoseRow]] = []
@@ -355,6 +361,7 @@ class BearingSlam:
         if self.config.upkeep != "in_frame":
             self._note_exit(plan)
             self._pending = frame
+            self._exit_due = plan.exit_due
         else:
             self._enforce_budget(frame)
             self._note_exit(plan)
@@ -398,6 +405,7 @@ class BearingSlam:
         frame, self._pending = self._pending, None
         if frame is None:
             return
+        exit_due, self._exit_due = self._exit_due, False
         relinearise = False
         if self.config.upkeep == "after_frame":
             self._upkeeps += 1
@@ -409,22 +417,38 @@ class BearingSlam:
         # 0.519 m. The last step stands for the relinearisation at the start of the next
         # frame's update, which no longer does it.
         self._graph.relinearising = relinearise
+        robot = self._robots[frame.robot]
+        if self._exits_after_frame:
+            # What the next frame's factors touch stays at the Bayes tree's root.
+            self._graph.root_keys = (
+                robot.window[-1][0],
+                *(landmark_key(lid) for lid in self._in_view(frame)),
+            )
         try:
+            if exit_due:  # first, where the frame's own update would have made it
+                self._exit_oldest(robot)
             self._enforce_budget(frame)
-            self._bound_window(self._robots[frame.robot])
+            self._bound_window(robot)
+            if relinearise or self._graph.holding:
+                # Also what the frame's update held back (relinearise_budget), now that
+                # its answer is sent: after the removals, whose Schur complements are then
+                # taken where a frame's are. Before them, on the dense lifelong world
+                # (4 000 frames): ATE 0.231 m (0.085 aligned) against 0.181 (0.071).
+                self._graph.relinearise()
         finally:
             self._graph.relinearising = False
-        if relinearise or self._graph.holding:
-            # Also what the frame's update held back (relinearise_budget), now that its
-            # answer is sent: after the removals, whose Schur complements are then taken
-            # where a frame's are. Before them, on the dense lifelong world (4 000
-            # frames): ATE 0.231 m (0.085 aligned) against 0.181 (0.071).
-            self._graph.relinearise()
+            self._graph.root_keys = ()
 
     def skip_upkeep(self) -> None:
         """Drop the pending upkeep (after it failed: the next frame's upkeep takes the
         budget up again)."""
         self._pending = None
+        self._exit_due = False
+
+    @property
+    def _exits_after_frame(self) -> bool:
+        """Does a frame's window exit wait for its upkeep (SlamConfig.window_exit_after_frame)?"""
+        return self.config.upkeep != "in_frame" and self.config.window_exit_after_frame
 
     @property
     def upkeep_pending(self) -> bool:
@@ -578,6 +602,7 @@ class BearingSlam:
             exiting: tuple[int, int] | None = None
             promoted = False
             leaving: tuple[tuple[int, int], ...] = ()
+            exit_due = False
         else:
             key = pose_key(robot.slot, robot.next_index)
             assert frame.odometry is not None  # validated
@@ -605,7 +630,8 @@ class BearingSlam:
                     )
                 )
             full = self._window_full(robot)
-            exiting = robot.window[0] if full else None
+            exit_due = full and self._exits_after_frame
+            exiting = robot.window[0] if full and not exit_due else None
             promoted, leaving = self._window_exit(robot, exiting)
         values.insert(key, predicted)
 
@@ -680,6 +706,7 @@ class BearingSlam:
             promoted,
             leaving,
             restored=tuple(restored),
+            exit_due=exit_due,
         )
 
     def _restore(
@@ -1066,6 +1093,11 @@ class BearingSlam:
             most is None or self._window_marginals(robot) <= most + most // _SHRINK_SLACK
         ):
             return
+        self._exit_oldest(robot)
+
+    def _exit_oldest(self, robot: _Robot) -> None:
+        """The robot's oldest window pose leaves the window in an update of its own (as a
+        keyframe, or marginalised)."""
         exiting = robot.window[0]
         promoted, leaving = self._window_exit(robot, exiting)
         before = self._poses_before_exit(robot, exiting, promoted, leaving)

@@ -290,6 +290,13 @@ class SolverConfig(StrictModel):
         f"before it. A map created without it gets {_DEFAULTS.upkeep!r}; a stored config "
         "without it, 'in_frame'",
     )
+    window_exit_after_frame: bool = Field(
+        _DEFAULTS.window_exit_after_frame,
+        description="with an upkeep after the frame: the pose leaving a robot's window "
+        "with a frame leaves in the upkeep, once the frame's result is sent (the window "
+        "holds one more pose until then), and the upkeep keeps what the next frame "
+        "touches at the root of iSAM2's tree; the frame's answer is faster",
+    )
     relative_marginals: bool = Field(
         _DEFAULTS.relative_marginals,
         description="marginals of old poses are kept relative to the next pose rather "
