@@ -178,17 +178,9 @@ class SlamConfig:
     updates keep the robot's latest pose and the landmarks its frame saw at the Bayes
     tree's root (graph.isam.IncrementalGraph.root_keys), where the next frame's factors
     land. Marginalising the leaving pose reaches the tree's old part, where the removed
-    landmarks' marginals are: on the dense lifelong world (first 1 500 frames) frames
-    with a pose leaving took a median of 10.9 ms against 1.6 without, and every frame
-    above the p99 was one of them. With this setting the frame's answer there takes a
-    median of 1.4 ms against 6.0 and a p99 of 40 ms against 62; the p99 frames still
-    re-eliminate the whole tree (a restored landmark's rays or a relinearised keyframe
-    reach the thinned keyframes' dense marginals). The window holds one more pose
-    between a frame and its upkeep. The map is as accurate within the spread between
-    worlds (dense world, four worlds over 2 000 frames: aligned ATE 0.092 / 0.102 /
-    0.069 / 0.144 m against 0.182 / 0.067 / 0.071 / 0.068; MRCLAM-6 at cap 8 mean ATE
-    0.289 m against 0.288). Opt-in until the whole MRCLAM bench has run on it
-    (docs/measurements.md)."""
+    landmarks' marginals are; without it the frame's answer no longer waits for that.
+    The window holds one more pose between a frame and its upkeep. Opt-in; its figures
+    (dense lifelong world, MRCLAM-6) are in docs/measurements.md."""
     relative_marginals: bool = True
     """Marginals of old poses are kept relative to the next pose (see graph.relative)
     rather than as linear factors in absolute coordinates."""

@@ -152,8 +152,7 @@ class IncrementalGraph:
         variables an update re-eliminates with those of its new factors last, at the root;
         an upkeep's new factors are marginals on old keyframes and landmarks, so without
         this the robot's latest pose sinks below them and the next frame's odometry
-        factor re-eliminates everything above it: on the dense lifelong world the whole
-        tree (~210-240 variables, 45-65 ms) where a frame takes ~1-2 ms."""
+        factor re-eliminates everything above it."""
 
     # ------------------------------------------------------------------ queries
     def __contains__(self, key: int) -> bool:
@@ -295,6 +294,8 @@ class IncrementalGraph:
         """root_keys still in the graph after an update that removes `leaving`, as
         iSAM2's constrained ordering (group 1: eliminated last); None when there are none
         (iSAM2 then puts the new factors' variables last)."""
+        if not self.root_keys:
+            return None
         gone = set(leaving)
         keys = [k for k in self.root_keys if k in self._key_factors and k not in gone]
         if not keys:
@@ -394,7 +395,7 @@ class IncrementalGraph:
                 new,
                 values or gtsam.Values(),
                 remove,
-                constrainedKeys=self._root_groups([*marginalise, *then_marginalise]),
+                constrainedKeys=self._root_groups((*marginalise, *then_marginalise)),
                 force_relinearize=self.relinearising,
                 noRelinKeys=self._held_back() if self._relinearises() else None,
             )

@@ -60,7 +60,7 @@ def test_the_map_is_the_one_the_exit_in_the_frame_gives(seed: int) -> None:
     a = maps["frame"].trajectory("r1")["r1"][:, 2:]  # x, y, theta
     b = maps["after"].trajectory("r1")["r1"][:, 2:]
     assert a.shape == b.shape == (len(data), 3)
-    # Same keyframes, removals and window: the same decisions, one update later.
+    # Same keyframes and removals: the same decisions, one update later.
     assert maps["frame"].keyframe_count == maps["after"].keyframe_count
     assert maps["frame"].removal_count == maps["after"].removal_count
     err_a = np.hypot(*(a[:, :2] - truth[:, :2]).T)
