@@ -120,7 +120,7 @@ class SlamConfig:
     fixed restore_min_rays within a second and churns: on the dense lifelong world,
     19 707 removals in 10 000 frames without it, 1 055 with it. Off by default: at cap 8
     on MRCLAM-6 it made the coverage policy's mean ATE 0.389 m against 0.305 (worse on
-    four of five robots; docs/measurements.md)."""
+    four of five robots; docs/measurements/lifelong.md)."""
     restore_prior_sigma_m: float = 5.0
     """Weak prior (isotropic, metres) at the archived estimate on a restored landmark:
     with a single bearing a landmark is unobservable along the ray, and this keeps
@@ -136,7 +136,7 @@ class SlamConfig:
     along one ray only slide along it, unobserved, by 2.4-5.6 m, flipping from one
     side to the other at every update (robot 5, frames 1 984-2 214): live-landmark RMSE
     0.997 m against 0.479 with Gauss-Newton, mean ATE 0.276 against 0.293 m
-    (docs/measurements.md). An early Gauss-Newton (before the relative marginals and
+    (docs/estimator.md). An early Gauss-Newton (before the relative marginals and
     the innovation gate) threw robot 5 off for good (2.57 m ATE)."""
     relinearize_threshold: float = 0.01
     """iSAM2 relinearises a variable whose linear delta exceeds this (metres or radians,
@@ -180,7 +180,8 @@ class SlamConfig:
     land. Marginalising the leaving pose reaches the tree's old part, where the removed
     landmarks' marginals are; without it the frame's answer no longer waits for that.
     The window holds one more pose between a frame and its upkeep. Opt-in; its figures
-    (dense lifelong world, MRCLAM-6) are in docs/measurements.md."""
+    (dense lifelong world, MRCLAM-6) are in docs/measurements/lifelong.md and
+    docs/measurements.md."""
     relative_marginals: bool = True
     """Marginals of old poses are kept relative to the next pose (see graph.relative)
     rather than as linear factors in absolute coordinates."""
@@ -305,7 +306,7 @@ class SlamConfig:
     are met at once) and is removed again: on the dense lifelong world, 1 646 removals
     in 1 000 frames, 1 548 of them restored, against 166 and 69 with this rule. Off by
     default: at cap 8 on MRCLAM-6 (~1.7 bearings a frame) it made the coverage policy's
-    mean ATE 0.415 m against 0.305, worse on every robot (docs/measurements.md): there,
+    mean ATE 0.415 m against 0.305, worse on every robot (docs/measurements/lifelong.md): there,
     removing the newest, least-known landmark is what keeps the established ones."""
 
     graph_frame_distance_m: float | None = None
