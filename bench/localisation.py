@@ -816,6 +816,40 @@ def map_implied_pose(
     return np.asarray(got.pose_xytheta, dtype=np.float64)
 
 
+def map_admitted_success(
+    frames: list[FrameInput],
+    gt_map: Trajectory,
+    k0: int,
+    from_frame: int | None,
+    max_frames: int,
+    landmarks: dict[str, np.ndarray],
+    filter_config: FilterConfig,
+) -> int | None:
+    """The first frame k in [`from_frame`, `max_frames`] (counted from the start at `k0`)
+    from which the pose the map implies (map_implied_pose over the frames since the start)
+    lies within the success tolerance of the truth for HOLD_FRAMES frames in a row: the
+    earliest a localiser that reports where the map puts the robot could succeed. None
+    when no such run starts by `max_frames`, or when `from_frame` is None. Start it at the
+    information bound's frame: before it the frames do not fix the pose, and a solve from
+    the truth stays near the truth. Optimistic (each solve starts at the truth), so the
+    share of starts it admits bounds any map-trusting localiser's success from above."""
+    if from_frame is None:
+        return None
+    run = 0
+    for k in range(from_frame, min(max_frames + HOLD_FRAMES, len(frames) - k0)):
+        truth = _truth_at(gt_map, frames[k0 + k].stamp)
+        ok = False
+        if truth is not None:
+            implied = map_implied_pose(frames[k0 : k0 + k + 1], landmarks, truth, filter_config)
+            ok = _within(_errors(implied, truth))
+        run = run + 1 if ok else 0
+        if run == HOLD_FRAMES:
+            return k - HOLD_FRAMES + 1
+        if k - run >= max_frames:
+            return None
+    return None
+
+
 def online_localisation(
     directory: Path,
     mapper: int,
@@ -866,6 +900,9 @@ def online_localisation(
                             frames, gt_map, k0, max_frames, map_xy, bound_cfg, None
                         )
                         row["frames_to_information"] = got[0.25]
+                        row["map_admits_success_at"] = map_admitted_success(
+                            frames, gt_map, k0, got[0.25], max_frames, map_xy, implied_cfg
+                        )
                     rows.append(row)
                     print(
                         {k: v for k, v in row.items() if k not in ("relocalised", "labels_seen")},
@@ -929,6 +966,17 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
             1 for r in rows if not r["success"] and any(e["within"] for e in r["relocalised"])
         ),
         "never_relocalised": sum(1 for r in rows if not r["relocalised"]),
+        # The map's own bound on success (map_admitted_success): the share of starts at
+        # which the pose the map implies holds within the tolerance for HOLD_FRAMES frames
+        # from the information bound on, and the localiser's successes among them.
+        "map_admits_success_rate": _share([r.get("map_admits_success_at") for r in rows], rows),
+        "success_where_map_admits": _share(
+            [r["success"] or None for r in rows if r.get("map_admits_success_at") is not None],
+            [r for r in rows if r.get("map_admits_success_at") is not None],
+        ),
+        "wrong_where_map_does_not_admit": sum(
+            r["wrong_relocalised"] > 0 for r in rows if r.get("map_admits_success_at") is None
+        ),
         "wrong_convergences": [
             {
                 "robot": r["robot"],
@@ -965,6 +1013,11 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
     }
 
 
+def _share(values: list[Any], rows: list[Any]) -> float | None:
+    """The share of `rows` whose value in `values` is not None (None for no rows)."""
+    return sum(v is not None for v in values) / len(rows) if rows else None
+
+
 def _per_robot(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """One robot's starts: success, wrong convergences, median frames to success and the
     bound's median frames."""
@@ -974,6 +1027,7 @@ def _per_robot(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "wrong_convergence_rate": float(np.mean([r["wrong_relocalised"] > 0 for r in rows])),
         "median_frames_to_success": _median([r["frames_to_success"] for r in rows if r["success"]]),
         "median_frames_to_information": _median([r.get("frames_to_information") for r in rows]),
+        "map_admits_success_rate": _share([r.get("map_admits_success_at") for r in rows], rows),
     }
 
 
