@@ -23,7 +23,9 @@ same world. Map config: landmark cap 50, the default policy.
    landmarks, trajectory and the summary of an idle map and of a busy map, a round
    every 0.25 s: p50/p99 per target.
 2. ``cpu_bound``: exactly the frames the clients posted, through ``MapSession.submit``
-   in-process, the maps dealt to two processes (one per core, at a worker's
+   in-process, each map with the config the service created the HTTP maps with (read
+   from their record: the estimator's defaults for a new map filled in, e.g. the upkeep
+   after the frame), the maps dealt to two processes (one per core, at a worker's
    niceness), each map's robots interleaved frame by frame, while the server idles:
    frames/s = all frames / (the processes' wall times summed / 2), every core busy.
    ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this. CPU time per frame
@@ -107,9 +109,24 @@ def make_frames(maps: int, clients: int, frames: int) -> list[list[list[dict[str
 
 
 # ------------------------------------------------------------------ 1. CPU bound
-def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, float]:
+def created_config(config: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The config the service creates a map with when a client posts `config` (default
+    MAP_CONFIG): MapConfig.for_new_map with the service's default caps (the estimator's
+    current defaults, e.g. the upkeep after the frame, where the client gave none)."""
+    from service.pipeline.config import MapConfig
+    from service.settings import Settings
+
+    settings = Settings()
+    doc = MapConfig.model_validate(MAP_CONFIG if config is None else config)
+    new = doc.for_new_map(settings.default_landmark_cap, settings.default_camera_landmark_cap)
+    return new.model_dump(mode="json")
+
+
+def _in_process(
+    maps: list[list[list[dict[str, Any]]]], config: dict[str, Any]
+) -> tuple[int, float, float]:
     """(frames, wall s, CPU s) of these maps' frames through MapSession.submit, one
-    process."""
+    process, each map created with `config` (as stored in the map's record)."""
     from service.session import MapSession
     from service.settings import StoreSettings, WorkerSettings
     from service.store import MapRecord
@@ -119,7 +136,7 @@ def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, flo
     work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
     sessions = []
     for i, _ in enumerate(maps):
-        record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(MAP_CONFIG), time.time())
+        record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(config), time.time())
         sessions.append(MapSession.create(work / f"m{i}.sqlite", record, StoreSettings()))
     t0, c0 = time.perf_counter(), time.process_time()
     n = 0
@@ -132,12 +149,18 @@ def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, flo
     return n, time.perf_counter() - t0, time.process_time() - c0
 
 
-def cpu_bound(frames: list[list[list[dict[str, Any]]]], cores: int = 2) -> dict[str, Any]:
+def cpu_bound(
+    frames: list[list[list[dict[str, Any]]]], cores: int = 2, config: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The frames through MapSession.submit in `cores` processes; `config`: the maps'
+    config as the service stored it (default: `created_config()`, what a map posted with
+    MAP_CONFIG gets), so that the bound runs the estimator the HTTP maps run."""
     load0 = _loadavg()
+    config = created_config() if config is None else config
     shares = [frames[i::cores] for i in range(cores)]
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(cores, mp_context=ctx) as pool:
-        results = list(pool.map(_in_process, shares))
+        results = list(pool.map(_in_process, shares, [config] * cores))
     n = sum(r[0] for r in results)
     busy = sum(r[1] for r in results)
     # the bound: every core busy all the time (the processes' wall times summed, shared
@@ -396,7 +419,9 @@ def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
         [run[:n] for run, n in zip(runs, ns, strict=True)]
         for runs, ns in zip(main, posted, strict=True)
     ]
-    result["cpu_bound"] = cpu_bound(done)
+    # the maps' config as the service created them (the estimator's defaults filled in)
+    config = client.get(f"/v1/maps/{maps[0]}").json()["config"]
+    result["cpu_bound"] = cpu_bound(done, config=config)
     print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
         http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3
