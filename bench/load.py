@@ -4,7 +4,7 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 (the one-minute load average is recorded with every phase). Run from the repository
 root, niced (2 cores, shared)::
 
-    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 150] [--load-s 30]
+    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
                                     [--event-maps 2] [--event-frames 40]
                                     [--subscribers 200] [--out bench/results]
 
@@ -17,7 +17,9 @@ same world. Map config: landmark cap 50, the default policy.
    the load maps are placed 6:2 on the workers when their frames begin, as a placement
    by id did (``placed_at_start``; the pool deals a map again at its first frame). M maps x C
    clients post their frames for `load-s` seconds (one keep-alive http.client
-   connection per client, closed loop; no client runs out of frames): frames/s, POST
+   connection per client, closed loop; no client runs out of frames, so the phase ends
+   with every client still posting and both workers busy; ``clients_out_of_frames``
+   counts those that did, which would leave a tail of fewer maps): frames/s, POST
    p50/p99, per-map frames/s in the first and the last third of the phase (the
    balancer's effect), the moves the pool made. Meanwhile a reader process GETs pose,
    landmarks, trajectory and the summary of an idle map and of a busy map, a round
@@ -406,6 +408,11 @@ def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
     reads = queue.get(timeout=60)
     reader.join()
     http_run["placed_at_start"] = placed
+    http_run["clients_out_of_frames"] = sum(
+        n == len(run)
+        for runs, ns in zip(main, posted, strict=True)
+        for run, n in zip(runs, ns, strict=True)
+    )
     status = client.get("/v1/workers").json()
     http_run["moves"] = status.get("moves")
     http_run["maps_per_worker_after"] = [
@@ -498,7 +505,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
     parser.add_argument("--clients", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=150, help="at most, per client (1-2)")
+    parser.add_argument("--frames", type=int, default=400, help="at most, per client (1-2)")
     parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 2")
     parser.add_argument("--event-maps", type=int, default=2)
     parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
