@@ -28,7 +28,9 @@ same world. Map config: landmark cap 50, the default policy.
    in-process, each map with the config the service created the HTTP maps with (read
    from their record: the estimator's defaults for a new map filled in, e.g. the upkeep
    after the frame), the maps dealt to two processes (one per core, at a worker's
-   niceness), each map's robots interleaved frame by frame, while the server idles:
+   niceness), each map's robots interleaved frame by frame, while the server idles
+   (``http.settle``: the wait, after the load, for its workers' due snapshots and
+   view renewals to end, and the server's CPU seconds meanwhile):
    frames/s = all frames / (the processes' wall times summed / 2), every core busy.
    ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this. CPU time per frame
    (from /proc, so other work on the machine is not in it): the workers', the API
@@ -346,6 +348,22 @@ def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
     return {"api": _cpu_s(server.proc.pid), "workers": sum(_cpu_s(p) for p in pids)}
 
 
+def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict[str, float]:
+    """Wait until the server's processes are idle (the workers take their due snapshots
+    and renew the views that lag once the frames stop), at most `limit_s`: the seconds
+    waited and the CPU seconds the server used meanwhile. The in-process bound runs
+    beside an idle server, not one still busy with the load phase's aftermath."""
+    t0 = time.monotonic()
+    first = before = now = sum(_server_cpu(server, client).values())
+    while time.monotonic() - t0 < limit_s:
+        time.sleep(1.0)
+        now = sum(_server_cpu(server, client).values())
+        if now - before < 0.02:  # under 2 % of a core over the last second
+            break
+        before = now
+    return {"s": round(time.monotonic() - t0, 1), "server_cpu_s": round(now - first, 2)}
+
+
 def _unreplayed(data: Path) -> dict[str, int]:
     """Per map file: log frames after its latest snapshot (a start replays them)."""
     return {p.stem: unsnapshotted(p) for p in sorted((data / "maps").glob("*.sqlite"))}
@@ -428,6 +446,7 @@ def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
     ]
     # the maps' config as the service created them (the estimator's defaults filled in)
     config = client.get(f"/v1/maps/{maps[0]}").json()["config"]
+    http_run["settle"] = _settle(server, client)
     result["cpu_bound"] = cpu_bound(done, config=config)
     print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
