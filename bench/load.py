@@ -4,7 +4,7 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 (the one-minute load average is recorded with every phase). Run from the repository
 root, niced (2 cores, shared)::
 
-    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 150] [--load-s 30]
+    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
                                     [--event-maps 2] [--event-frames 40]
                                     [--subscribers 200] [--out bench/results]
 
@@ -17,14 +17,20 @@ same world. Map config: landmark cap 50, the default policy.
    the load maps are placed 6:2 on the workers when their frames begin, as a placement
    by id did (``placed_at_start``; the pool deals a map again at its first frame). M maps x C
    clients post their frames for `load-s` seconds (one keep-alive http.client
-   connection per client, closed loop; no client runs out of frames): frames/s, POST
+   connection per client, closed loop; no client runs out of frames, so the phase ends
+   with every client still posting and both workers busy; ``clients_out_of_frames``
+   counts those that did, which would leave a tail of fewer maps): frames/s, POST
    p50/p99, per-map frames/s in the first and the last third of the phase (the
    balancer's effect), the moves the pool made. Meanwhile a reader process GETs pose,
    landmarks, trajectory and the summary of an idle map and of a busy map, a round
    every 0.25 s: p50/p99 per target.
 2. ``cpu_bound``: exactly the frames the clients posted, through ``MapSession.submit``
-   in-process, the maps dealt to two processes (one per core, at a worker's
-   niceness), each map's robots interleaved frame by frame, while the server idles:
+   in-process, each map with the config the service created the HTTP maps with (read
+   from their record: the estimator's defaults for a new map filled in, e.g. the upkeep
+   after the frame), the maps dealt to two processes (one per core, at a worker's
+   niceness), each map's robots interleaved frame by frame, while the server idles
+   (``http.settle``: the wait, after the load, for its workers' due snapshots and
+   view renewals to end, and the server's CPU seconds meanwhile):
    frames/s = all frames / (the processes' wall times summed / 2), every core busy.
    ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this. CPU time per frame
    (from /proc, so other work on the machine is not in it): the workers', the API
@@ -107,9 +113,24 @@ def make_frames(maps: int, clients: int, frames: int) -> list[list[list[dict[str
 
 
 # ------------------------------------------------------------------ 1. CPU bound
-def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, float]:
+def created_config(config: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The config the service creates a map with when a client posts `config` (default
+    MAP_CONFIG): MapConfig.for_new_map with the service's default caps (the estimator's
+    current defaults, e.g. the upkeep after the frame, where the client gave none)."""
+    from service.pipeline.config import MapConfig
+    from service.settings import Settings
+
+    settings = Settings()
+    doc = MapConfig.model_validate(MAP_CONFIG if config is None else config)
+    new = doc.for_new_map(settings.default_landmark_cap, settings.default_camera_landmark_cap)
+    return new.model_dump(mode="json")
+
+
+def _in_process(
+    maps: list[list[list[dict[str, Any]]]], config: dict[str, Any]
+) -> tuple[int, float, float]:
     """(frames, wall s, CPU s) of these maps' frames through MapSession.submit, one
-    process."""
+    process, each map created with `config` (as stored in the map's record)."""
     from service.session import MapSession
     from service.settings import StoreSettings, WorkerSettings
     from service.store import MapRecord
@@ -119,7 +140,7 @@ def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, flo
     work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
     sessions = []
     for i, _ in enumerate(maps):
-        record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(MAP_CONFIG), time.time())
+        record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(config), time.time())
         sessions.append(MapSession.create(work / f"m{i}.sqlite", record, StoreSettings()))
     t0, c0 = time.perf_counter(), time.process_time()
     n = 0
@@ -132,12 +153,18 @@ def _in_process(maps: list[list[list[dict[str, Any]]]]) -> tuple[int, float, flo
     return n, time.perf_counter() - t0, time.process_time() - c0
 
 
-def cpu_bound(frames: list[list[list[dict[str, Any]]]], cores: int = 2) -> dict[str, Any]:
+def cpu_bound(
+    frames: list[list[list[dict[str, Any]]]], cores: int = 2, config: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The frames through MapSession.submit in `cores` processes; `config`: the maps'
+    config as the service stored it (default: `created_config()`, what a map posted with
+    MAP_CONFIG gets), so that the bound runs the estimator the HTTP maps run."""
     load0 = _loadavg()
+    config = created_config() if config is None else config
     shares = [frames[i::cores] for i in range(cores)]
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(cores, mp_context=ctx) as pool:
-        results = list(pool.map(_in_process, shares))
+        results = list(pool.map(_in_process, shares, [config] * cores))
     n = sum(r[0] for r in results)
     busy = sum(r[1] for r in results)
     # the bound: every core busy all the time (the processes' wall times summed, shared
@@ -321,6 +348,22 @@ def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
     return {"api": _cpu_s(server.proc.pid), "workers": sum(_cpu_s(p) for p in pids)}
 
 
+def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict[str, float]:
+    """Wait until the server's processes are idle (the workers take their due snapshots
+    and renew the views that lag once the frames stop), at most `limit_s`: the seconds
+    waited and the CPU seconds the server used meanwhile. The in-process bound runs
+    beside an idle server, not one still busy with the load phase's aftermath."""
+    t0 = time.monotonic()
+    first = before = now = sum(_server_cpu(server, client).values())
+    while time.monotonic() - t0 < limit_s:
+        time.sleep(1.0)
+        now = sum(_server_cpu(server, client).values())
+        if now - before < 0.02:  # under 2 % of a core over the last second
+            break
+        before = now
+    return {"s": round(time.monotonic() - t0, 1), "server_cpu_s": round(now - first, 2)}
+
+
 def _unreplayed(data: Path) -> dict[str, int]:
     """Per map file: log frames after its latest snapshot (a start replays them)."""
     return {p.stem: unsnapshotted(p) for p in sorted((data / "maps").glob("*.sqlite"))}
@@ -383,6 +426,11 @@ def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
     reads = queue.get(timeout=60)
     reader.join()
     http_run["placed_at_start"] = placed
+    http_run["clients_out_of_frames"] = sum(
+        n == len(run)
+        for runs, ns in zip(main, posted, strict=True)
+        for run, n in zip(runs, ns, strict=True)
+    )
     status = client.get("/v1/workers").json()
     http_run["moves"] = status.get("moves")
     http_run["maps_per_worker_after"] = [
@@ -396,7 +444,10 @@ def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
         [run[:n] for run, n in zip(runs, ns, strict=True)]
         for runs, ns in zip(main, posted, strict=True)
     ]
-    result["cpu_bound"] = cpu_bound(done)
+    # the maps' config as the service created them (the estimator's defaults filled in)
+    config = client.get(f"/v1/maps/{maps[0]}").json()["config"]
+    http_run["settle"] = _settle(server, client)
+    result["cpu_bound"] = cpu_bound(done, config=config)
     print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
         http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3
@@ -473,7 +524,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
     parser.add_argument("--clients", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=150, help="at most, per client (1-2)")
+    parser.add_argument("--frames", type=int, default=400, help="at most, per client (1-2)")
     parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 2")
     parser.add_argument("--event-maps", type=int, default=2)
     parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")

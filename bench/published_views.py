@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.load import MAP_CONFIG, make_frames
+from bench.load import MAP_CONFIG, created_config, make_frames
 from service import worker
 from service.requests import CreateMap, SubmitFrame
 from service.settings import Settings
@@ -41,9 +41,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     settings = Settings(data_dir=Path(tempfile.mkdtemp(prefix="covslam-views-")))
     worker.init_worker(settings.model_dump(mode="json"), 0, own_signals=False)
     worker._publish = True  # as in a pool's worker
+    config = created_config()  # what the service creates a map posted with MAP_CONFIG with
     for i in range(args.maps):
         for kind in ("session", "worker"):
-            record = MapRecord(f"{kind}{i}", f"m{i}", "mapping", dict(MAP_CONFIG), time.time())
+            record = MapRecord(f"{kind}{i}", f"m{i}", "mapping", config, time.time())
             worker.call(record.id, CreateMap(record.as_dict()))
     sessions = worker._sessions
     load0 = round(os.getloadavg()[0], 2)

@@ -118,6 +118,8 @@ class IncrementalGraph:
         self._factors: dict[int, gtsam.NonlinearFactor] = {}
         self._key_factors: dict[int, set[int]] = {}
         self._estimate: gtsam.Values | None = None
+        self._estimate_poses: tuple[NDArray[np.uint64], NDArray[np.float64]] | None = None
+        """The estimate's Pose2 keys (sorted) and their x, y, theta (`poses_xytheta`)."""
         self._pose_cache: dict[int, gtsam.Pose2] = {}
         self._point_cache: dict[int, NDArray[np.float64]] = {}
         """Estimates of single variables asked for since the last update. A frame needs a
@@ -215,6 +217,29 @@ class IncrementalGraph:
         if self._estimate is None:
             self._estimate = self._isam.calculateEstimate()
         return self._estimate
+
+    def poses_xytheta(self, keys: NDArray[np.uint64]) -> NDArray[np.float64]:
+        """(N, 3) x, y, theta of the current estimate of Pose2 variables `keys`, the values
+        ``estimate().atPose2(key)`` gives, read from the whole estimate at once (one
+        ``extractPose2``, not a wrapper object and three calls per pose)."""
+        if self._estimate_poses is None:
+            estimate = self.estimate()
+            xytheta = np.asarray(gtsam.utilities.extractPose2(estimate), dtype=np.float64)
+            every = np.fromiter(estimate.keys(), dtype=np.uint64)
+            poses = every[(every >> np.uint64(56)) != np.uint64(LANDMARK_CHR)]
+            if len(poses) != len(xytheta):  # a value of a third kind: one pose at a time
+                poses = np.zeros(0, dtype=np.uint64)
+            self._estimate_poses = (poses, xytheta)
+        poses, xytheta = self._estimate_poses
+        idx = np.searchsorted(poses, keys)
+        if len(keys) and (len(poses) == 0 or idx.max() >= len(poses) or (poses[idx] != keys).any()):
+            estimate = self.estimate()
+            out = np.empty((len(keys), 3))
+            for i, key in enumerate(keys.tolist()):
+                p = estimate.atPose2(key)
+                out[i] = (p.x(), p.y(), p.theta())
+            return out
+        return xytheta[idx]
 
     def pose(self, key: int) -> gtsam.Pose2:
         """The current estimate of one pose: its linearisation point retracted by its
@@ -345,6 +370,7 @@ class IncrementalGraph:
 
     def _forget_estimate(self) -> None:
         self._estimate = None
+        self._estimate_poses = None
         self._pose_cache = {}
         self._point_cache = {}
         self._cov_cache = {}

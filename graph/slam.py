@@ -280,21 +280,27 @@ class BearingSlam:
         """
         rows = self._trajectory.rows()
         poses = rows.pose
-        if self._live_frames or self._anchored:
-            estimate = self._graph.estimate()
-            live = list(self._live_frames.items())
-            idx = rows.index(np.fromiter((f for f, _ in live), np.int64, len(live)))
-            for i, (_, key) in zip(idx, live, strict=True):
-                p = estimate.atPose2(key)
-                poses[i] = (p.x(), p.y(), p.theta())
-            for key, frames in self._anchored.items():
-                p = estimate.atPose2(key)
-                idx = rows.index(np.frombuffer(frames, dtype=np.int64))
-                rel = poses[idx]
-                c, s = math.cos(p.theta()), math.sin(p.theta())
-                poses[idx, 0] = p.x() + c * rel[:, 0] - s * rel[:, 1]
-                poses[idx, 1] = p.y() + s * rel[:, 0] + c * rel[:, 1]
-                poses[idx, 2] = wrap_angles(p.theta() + rel[:, 2])
+        # All live poses, then all anchored frames, each in one array operation (a
+        # map's trajectory is published every few frames): the same values, element by
+        # element, as one pose and one keyframe at a time.
+        live = self._live_frames
+        if live:
+            idx = rows.index(np.fromiter(live.keys(), np.int64, len(live)))
+            poses[idx] = self._graph.poses_xytheta(np.fromiter(live.values(), np.uint64, len(live)))
+        if self._anchored:
+            anchored = self._anchored
+            keys = np.fromiter(anchored.keys(), np.uint64, len(anchored))
+            base = self._graph.poses_xytheta(keys)
+            counts = [len(frames) for frames in anchored.values()]
+            members = [np.frombuffer(frames, dtype=np.int64) for frames in anchored.values()]
+            idx = rows.index(np.concatenate(members))
+            rel = poses[idx]
+            x, y, theta = (np.repeat(base[:, i], counts) for i in range(3))
+            c = np.repeat([math.cos(t) for t in base[:, 2].tolist()], counts)
+            s = np.repeat([math.sin(t) for t in base[:, 2].tolist()], counts)
+            poses[idx, 0] = x + c * rel[:, 0] - s * rel[:, 1]
+            poses[idx, 1] = y + s * rel[:, 0] + c * rel[:, 1]
+            poses[idx, 2] = wrap_angles(theta + rel[:, 2])
         seq = rows.seq.astype(np.float64)
         out: dict[str, NDArray[np.float64]] = {}
         for name, state in self._robots.items():

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from service.errors import ServiceError
-from service.pipeline.config import Mode, slam_config_dict
+from service.pipeline.config import Mode
 from service.pipeline.localiser import PlaceLocaliser
 from service.requests import Doc, MapRequest
 from service.session import MapSession
@@ -56,7 +56,7 @@ class Summary(MapRequest[Doc]):
         robots += [r for r in session.pipeline.off_graph_robots() if r not in robots]
         return {
             **session.record.as_dict(),
-            "estimator": slam_config_dict(session.slam.config),
+            "estimator": session.estimator_doc(),
             "counts": {
                 "frames": session.slam.frame_count + off_graph,
                 "off_graph_frames": off_graph,

@@ -12,13 +12,13 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from frontend.errors import ImageError
+from graph.config import SlamConfig
 from graph.errors import EstimationError, InvalidFrame, OutOfOrderFrame
 from graph.slam import BearingSlam
 from graph.types import FrameInput
@@ -30,13 +30,16 @@ from service.frame_results import FrameReply, result_doc
 from service.frames_io import canonical_frame, image_record, observations_json
 from service.image_frames import MapVision, Pending, image_refused, no_camera
 from service.pipeline import FrameStep, ImageFeatures
-from service.pipeline.config import MapConfig, slam_config
+from service.pipeline.config import MapConfig, slam_config, slam_config_dict
 from service.pipeline.snapshot import snapshot_pipeline
 from service.settings import StoreSettings
 from service.store import MapPlace, MapRecord, as_place
 from service.store_sql import MapStore
 
 log = logging.getLogger(__name__)
+
+FRAME_TIMES = 1000
+"""Frames whose processing times a session keeps (the summary's timing statistics)."""
 
 SNAPSHOT_OVERDUE = 5
 """A snapshot due for this many times `snapshot_every` frames is taken inside a request."""
@@ -59,7 +62,12 @@ class MapSession:
         self.record = MapRecord.from_dict(meta)
         self.frame_log = FrameLog(self.store, self.place)
         """Frames' completion and the map's reload (service.frame_log)."""
-        self._timing: deque[float] = deque(maxlen=1000)
+        self._timing = np.empty(FRAME_TIMES)
+        """Processing times of the last FRAME_TIMES frames, ms, a ring (the summary published
+        with every frame reads them all: an array, not a deque turned into one)."""
+        self._timed = 0
+        """Frames timed in all (the next one goes to `_timing[_timed % FRAME_TIMES]`)."""
+        self._estimator: tuple[SlamConfig, dict[str, Any]] | None = None
         self.replay_errors = 0
         """Log frames that failed on replay at the loads so far."""
         self.loaded_from_snapshot = 0
@@ -189,7 +197,8 @@ class MapSession:
         events = self.frame_log.complete(self.slam, log_id, text, step, observed)
         store_ms = 1e3 * (time.perf_counter() - t2)
         self._last_log_id = log_id
-        self._timing.append(1e3 * (time.perf_counter() - t0))
+        self._timing[self._timed % FRAME_TIMES] = 1e3 * (time.perf_counter() - t0)
+        self._timed += 1
         self._count_frame()
         return FrameReply(
             text,
@@ -320,5 +329,17 @@ class MapSession:
         return MapConfig.model_validate(self.record.config).seed
 
     def frame_ms(self) -> np.ndarray:
-        """(N,) processing time of the last (up to 1000) frames this session took, ms."""
-        return np.fromiter(self._timing, dtype=np.float64, count=len(self._timing))
+        """(N,) processing time of the last (up to FRAME_TIMES) frames this session took,
+        ms, oldest first."""
+        if self._timed <= FRAME_TIMES:
+            return self._timing[: self._timed].copy()
+        start = self._timed % FRAME_TIMES
+        return np.concatenate((self._timing[start:], self._timing[:start]))
+
+    def estimator_doc(self) -> dict[str, Any]:
+        """Every parameter of the map's estimator by name (slam_config_dict), made once
+        per config (a summary is published with every frame); not to be changed."""
+        config = self.slam.config
+        if self._estimator is None or self._estimator[0] is not config:
+            self._estimator = (config, slam_config_dict(config))
+        return self._estimator[1]

@@ -133,6 +133,69 @@ def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
     assert _rmse(traj, truth) < 1.5 * _rmse(full.trajectory()["r1"], truth) + 0.02
 
 
+def _trajectory_pose_by_pose(slam: BearingSlam) -> dict[str, np.ndarray]:
+    """`slam.trajectory()` as it was computed one live pose and one keyframe's
+    anchored frames at a time (the reference for its array version)."""
+    import math
+
+    from graph.angles import wrap_angles
+
+    rows = slam._trajectory.rows()
+    poses = rows.pose
+    estimate = slam.graph.estimate()
+    for frame, key in slam._live_frames.items():
+        p = estimate.atPose2(key)
+        poses[rows.index(np.array([frame]))[0]] = (p.x(), p.y(), p.theta())
+    for key, frames in slam._anchored.items():
+        p = estimate.atPose2(key)
+        idx = rows.index(np.frombuffer(frames, dtype=np.int64))
+        rel = poses[idx]
+        c, s = math.cos(p.theta()), math.sin(p.theta())
+        poses[idx, 0] = p.x() + c * rel[:, 0] - s * rel[:, 1]
+        poses[idx, 1] = p.y() + s * rel[:, 0] + c * rel[:, 1]
+        poses[idx, 2] = wrap_angles(p.theta() + rel[:, 2])
+    seq = rows.seq.astype(np.float64)
+    out = {}
+    for name, state in slam._robots.items():
+        mask = rows.slot == state.slot
+        out[name] = np.column_stack([seq[mask], rows.stamp[mask], poses[mask]])
+    return out
+
+
+def test_trajectory_reads_the_estimate_exactly() -> None:
+    """The trajectory's live poses and the frames anchored to keyframes carry, bit for
+    bit, what the estimate gives pose by pose; `poses_xytheta` matches `atPose2`, for
+    keys it does not hold too."""
+    frames, _, _ = circle_frames(160, seed=4, n_landmarks=30)
+    cfg = SlamConfig(
+        landmark_cap=8, pose_window=10, window_observations=None, max_keyframes=6,
+        keyframe_distance_m=0.4,
+    )  # fmt: skip
+    slam = BearingSlam(cfg, rng=np.random.default_rng(0))
+    anchored = 0
+    for k, f in enumerate(frames):
+        slam.process(f, with_covariance=False)
+        if k % 5 == 0:
+            expected = _trajectory_pose_by_pose(slam)
+            got = slam.trajectory()
+            assert got.keys() == expected.keys()
+            for name in got:
+                np.testing.assert_array_equal(got[name], expected[name])
+            anchored = max(anchored, len(slam._anchored))
+        slam.upkeep()
+    assert anchored > 0  # the anchored frames were exercised
+    graph = slam.graph
+    keys = np.array(sorted(slam._live_frames.values()), dtype=np.uint64)
+    estimate = graph.estimate()
+    want = np.array([[estimate.atPose2(k).x(), estimate.atPose2(k).y(),
+                      estimate.atPose2(k).theta()] for k in keys.tolist()])  # fmt: skip
+    np.testing.assert_array_equal(graph.poses_xytheta(keys), want)
+    np.testing.assert_array_equal(graph.poses_xytheta(keys[::-1]), want[::-1])
+    assert graph.poses_xytheta(np.zeros(0, dtype=np.uint64)).shape == (0, 3)
+    with pytest.raises(RuntimeError):  # a key the estimate lacks: as atPose2
+        graph.poses_xytheta(np.array([int(landmark_key(10_000))], dtype=np.uint64))
+
+
 def test_landmark_removals_do_not_link_more_than_the_bound_of_keyframes() -> None:
     """Marginalising landmarks links the keyframes that saw them; the oldest
     keyframes of an over-full marginal factor are marginalised too, so no factor

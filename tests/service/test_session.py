@@ -289,3 +289,41 @@ def test_a_failed_frame_stores_no_final_rows(
     session.submit(frames[failed[0]])
     assert session.store.pose_count() > stored
     assert len(queries.Trajectory().answer(session)["r1"]) == failed[0] + 1
+
+
+def test_frame_times_keep_the_latest_oldest_first(
+    place: PlaceFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The summary's frame times: the last FRAME_TIMES frames' in the order they came,
+    across the ring's wrap."""
+    import service.session as session_module
+
+    monkeypatch.setattr(session_module, "FRAME_TIMES", 4)
+    session = _new(place("m1"))
+    before = session.frame_ms()
+    assert before.shape == (0,)
+    for f in FRAMES[:11]:
+        session.submit(f)
+        now = session.frame_ms()
+        assert len(now) == min(len(before) + 1, 4)
+        kept = before[1:] if len(before) == 4 else before
+        np.testing.assert_array_equal(now[:-1], kept)
+        assert now[-1] > 0
+        before = now
+    summary = queries.Summary().answer(session)
+    assert summary["timing_ms"]["frames"] == 4
+    assert summary["timing_ms"]["mean"] == pytest.approx(float(before.mean()))
+
+
+def test_the_estimator_document_follows_the_config(place: PlaceFactory) -> None:
+    """Made once per estimator config (a summary per frame), made anew with the mode's."""
+    from service.pipeline.config import slam_config_dict
+
+    session = _new(place("m1"))
+    doc = session.estimator_doc()
+    assert doc == slam_config_dict(session.slam.config)
+    assert session.estimator_doc() is doc
+    assert queries.Summary().answer(session)["estimator"] == doc
+    session.set_mode("localisation")
+    assert session.estimator_doc() == slam_config_dict(session.slam.config)
+    assert session.estimator_doc() != doc
