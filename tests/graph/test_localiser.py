@@ -216,3 +216,59 @@ def test_the_observations_reject_the_tracked_pose_after_a_kidnap() -> None:
         assert statuses.index(LOST, 60) - 60 <= 5
     off = LocaliserConfig(lost_frames=10_000, kidnap_window=0)
     assert LOST not in _kidnap_run(Localiser(off), 60, graph_from_start=True)[0]
+
+
+def _blind_turn_run(config: LocaliserConfig, seed: int) -> list[str]:
+    """A robot along the circle, its graph pose at the truth while it sees landmarks.
+    For frames 40-69 it sees none while it turns (1.5 rad) and its odometry turns 33 %
+    too far (as MRCLAM-6 robot 2's once did), so the graph's pose, dead reckoning,
+    drifts ~28 deg; when bearings return the graph corrects back to the truth over five
+    frames, as a graph does. The robot was never moved. The statuses."""
+    loc = Localiser(config)
+    rng, world = np.random.default_rng(seed), np.random.default_rng(seed + 1)
+    statuses: list[str] = []
+    previous = graph = None
+    for k in range(110):
+        truth = _circle_pose(k)
+        blind = 40 <= k < 70
+        odo = None
+        if previous is not None:
+            odo = _odometry(previous, truth)
+            if blind:
+                odo[2] *= 1.33
+        if blind and graph is not None and odo is not None:
+            c, s = math.cos(graph[2]), math.sin(graph[2])
+            graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+        elif graph is not None and k >= 70:
+            graph = graph + (truth - graph) * min(1.0, (k - 69) / 5.0)
+        else:
+            graph = truth.copy()
+        labels, z = ([], []) if blind else _frame(truth, world)
+        result = loc.step(
+            "r1",
+            odometry=odo,
+            dt_s=0.2,
+            labels=labels,
+            bearings_rad=z,
+            landmarks=WORLD,
+            graph_pose=(graph, np.diag([0.01, 0.01, 0.001])),
+            rng=rng,
+            frame=k,
+            stamp=0.2 * k,
+        )
+        statuses.append(result.status)
+        previous = truth
+    return statuses
+
+
+def test_the_graph_correcting_a_blind_turn_is_no_kidnap() -> None:
+    """Odometry drifts most while turning; a graph with no bearing follows that drift
+    and corrects it when bearings return. The old-pose test allows the turn made blind
+    before its old pose (kidnap_blind_turn_sigma): no `lost`. Without that allowance the
+    same run is lost."""
+    config = LocaliserConfig(lost_frames=10_000)
+    assert config.kidnap_blind_turn_sigma > 0
+    for seed in range(2):
+        assert LOST not in _blind_turn_run(config, seed)
+    strict = LocaliserConfig(lost_frames=10_000, kidnap_blind_turn_sigma=0.0)
+    assert any(LOST in _blind_turn_run(strict, seed) for seed in range(2))
