@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from graph.angles import wrap_angle
-from graph.localiser import INITIALISING, LOST, RELOCALISED, TRACKING, Localiser, LocaliserConfig
+from graph.localiser import (
+    INITIALISING,
+    LOST,
+    RELOCALISED,
+    TRACKING,
+    Localiser,
+    LocaliserConfig,
+    StepResult,
+)
 from tests.graph.test_particles import LANDMARKS, _circle_pose, _observe, _odometry
 
 WORLD = {str(i): xy for i, xy in enumerate(LANDMARKS)}
@@ -148,6 +156,36 @@ def test_a_weak_filter_is_started_again_where_the_graph_explains_the_observation
         assert near == (not weak)
 
 
+def _dead_reckon(graph: np.ndarray, odo: np.ndarray) -> np.ndarray:
+    """The graph's pose moved by one odometry increment (in its own frame)."""
+    c, s = math.cos(graph[2]), math.sin(graph[2])
+    return graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+
+
+def _step(
+    loc: Localiser,
+    k: int,
+    odo: np.ndarray | None,
+    labels: list[str],
+    z: list[float],
+    graph: np.ndarray | None,
+    rng: np.random.Generator,
+) -> StepResult:
+    """Robot "r1"'s frame `k` (0.2 s apart) with the graph's pose `graph` (None: none)."""
+    return loc.step(
+        "r1",
+        odometry=odo,
+        dt_s=0.2,
+        labels=labels,
+        bearings_rad=z,
+        landmarks=WORLD,
+        graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
+        rng=rng,
+        frame=k,
+        stamp=0.2 * k,
+    )
+
+
 def _kidnap_run(
     loc: Localiser,
     kidnap: int | None,
@@ -174,21 +212,9 @@ def _kidnap_run(
             nominal = _circle_pose(k) if k == kidnap else truth  # no odometry for the jump
             odo = _odometry(previous, nominal)
             if graph is not None:
-                c, s = math.cos(graph[2]), math.sin(graph[2])
-                graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+                graph = _dead_reckon(graph, odo)
         labels, z = _frame(truth, world)
-        result = loc.step(
-            "r1",
-            odometry=odo,
-            dt_s=0.2,
-            labels=labels,
-            bearings_rad=z,
-            landmarks=WORLD,
-            graph_pose=None if graph is None else (graph, np.diag([0.01, 0.01, 0.001])),
-            rng=rng,
-            frame=k,
-            stamp=0.2 * k,
-        )
+        result = _step(loc, k, odo, labels, z, graph, rng)
         statuses.append(result.status)
         if result.anchor:
             graph = result.estimate.pose_xytheta.copy()
@@ -237,25 +263,13 @@ def _blind_turn_run(config: LocaliserConfig, seed: int) -> list[str]:
             if blind:
                 odo[2] *= 1.33
         if blind and graph is not None and odo is not None:
-            c, s = math.cos(graph[2]), math.sin(graph[2])
-            graph = graph + np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1], odo[2]])
+            graph = _dead_reckon(graph, odo)
         elif graph is not None and k >= 70:
             graph = graph + (truth - graph) * min(1.0, (k - 69) / 5.0)
         else:
             graph = truth.copy()
         labels, z = ([], []) if blind else _frame(truth, world)
-        result = loc.step(
-            "r1",
-            odometry=odo,
-            dt_s=0.2,
-            labels=labels,
-            bearings_rad=z,
-            landmarks=WORLD,
-            graph_pose=(graph, np.diag([0.01, 0.01, 0.001])),
-            rng=rng,
-            frame=k,
-            stamp=0.2 * k,
-        )
+        result = _step(loc, k, odo, labels, z, graph, rng)
         statuses.append(result.status)
         previous = truth
     return statuses
