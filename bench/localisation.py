@@ -941,6 +941,7 @@ def _against_the_map(
 
 def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, Any]:
     ok = [r for r in rows if r["success"]]
+    admitted = [r for r in rows if r.get("map_admits_success_at") is not None]
     info = [r.get("frames_to_information") for r in rows]
     med_success, med_info = _median([r["frames_to_success"] for r in ok]), _median(info)
     paired = [
@@ -969,10 +970,9 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
         # The map's own bound on success (map_admitted_success): the share of starts at
         # which the pose the map implies holds within the tolerance for HOLD_FRAMES frames
         # from the information bound on, and the localiser's successes among them.
-        "map_admits_success_rate": _share([r.get("map_admits_success_at") for r in rows], rows),
-        "success_where_map_admits": _share(
-            [r["success"] or None for r in rows if r.get("map_admits_success_at") is not None],
-            [r for r in rows if r.get("map_admits_success_at") is not None],
+        "map_admits_success_rate": len(admitted) / len(rows) if rows else None,
+        "success_where_map_admits": (
+            sum(r["success"] for r in admitted) / len(admitted) if admitted else None
         ),
         "wrong_where_map_does_not_admit": sum(
             r["wrong_relocalised"] > 0 for r in rows if r.get("map_admits_success_at") is None
@@ -1013,11 +1013,6 @@ def _online_summary(rows: list[dict[str, Any]], max_frames: int) -> dict[str, An
     }
 
 
-def _share(values: list[Any], rows: list[Any]) -> float | None:
-    """The share of `rows` whose value in `values` is not None (None for no rows)."""
-    return sum(v is not None for v in values) / len(rows) if rows else None
-
-
 def _per_robot(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """One robot's starts: success, wrong convergences, median frames to success and the
     bound's median frames."""
@@ -1027,7 +1022,9 @@ def _per_robot(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "wrong_convergence_rate": float(np.mean([r["wrong_relocalised"] > 0 for r in rows])),
         "median_frames_to_success": _median([r["frames_to_success"] for r in rows if r["success"]]),
         "median_frames_to_information": _median([r.get("frames_to_information") for r in rows]),
-        "map_admits_success_rate": _share([r.get("map_admits_success_at") for r in rows], rows),
+        "map_admits_success_rate": float(
+            np.mean([r.get("map_admits_success_at") is not None for r in rows])
+        ),
     }
 
 

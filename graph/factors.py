@@ -12,6 +12,7 @@ from functools import lru_cache
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
+from numpy.typing import NDArray
 
 from graph.config import BearingLoss, SlamConfig
 from graph.types import Odometry, Pose2D
@@ -32,6 +33,11 @@ def landmark_key(landmark_id: int) -> int:
 
 def is_landmark_key(key: int) -> bool:
     return gtsam.Symbol(key).chr() == LANDMARK_CHR
+
+
+def landmark_key_mask(keys: NDArray[np.uint64]) -> NDArray[np.bool_]:
+    """`is_landmark_key` of each of `keys` (a symbol's character is its top byte)."""
+    return (keys >> np.uint64(56)) == np.uint64(LANDMARK_CHR)
 
 
 def to_pose2(pose: Pose2D) -> gtsam.Pose2:

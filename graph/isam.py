@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from graph.config import SlamConfig
 from graph.errors import EstimationError
-from graph.factors import LANDMARK_CHR, is_landmark_key
+from graph.factors import is_landmark_key, landmark_key_mask
 from graph.relative import RelativeMarginalFactor, choose_reference, relative_marginal
 from graph.sparsify import tree_factors
 
@@ -223,22 +223,17 @@ class IncrementalGraph:
         ``estimate().atPose2(key)`` gives, read from the whole estimate at once (one
         ``extractPose2``, not a wrapper object and three calls per pose)."""
         if self._estimate_poses is None:
+            # The graph's variables are poses and landmarks; extractPose2 gives the poses
+            # in key order, as Values holds them.
             estimate = self.estimate()
-            xytheta = np.asarray(gtsam.utilities.extractPose2(estimate), dtype=np.float64)
             every = np.fromiter(estimate.keys(), dtype=np.uint64)
-            poses = every[(every >> np.uint64(56)) != np.uint64(LANDMARK_CHR)]
-            if len(poses) != len(xytheta):  # a value of a third kind: one pose at a time
-                poses = np.zeros(0, dtype=np.uint64)
-            self._estimate_poses = (poses, xytheta)
+            xytheta = np.asarray(gtsam.utilities.extractPose2(estimate), dtype=np.float64)
+            self._estimate_poses = (every[~landmark_key_mask(every)], xytheta.reshape(-1, 3))
         poses, xytheta = self._estimate_poses
         idx = np.searchsorted(poses, keys)
-        if len(keys) and (len(poses) == 0 or idx.max() >= len(poses) or (poses[idx] != keys).any()):
-            estimate = self.estimate()
-            out = np.empty((len(keys), 3))
-            for i, key in enumerate(keys.tolist()):
-                p = estimate.atPose2(key)
-                out[i] = (p.x(), p.y(), p.theta())
-            return out
+        missing = idx >= len(poses)
+        if missing.any() or (poses[idx[~missing]] != keys[~missing]).any():
+            raise RuntimeError("poses_xytheta: a key the estimate has no pose for")
         return xytheta[idx]
 
     def pose(self, key: int) -> gtsam.Pose2:
@@ -347,7 +342,7 @@ class IncrementalGraph:
         if keys.size == 0:
             return None
         moved = np.abs(self._isam.getDelta().vector())
-        dims = np.where((keys >> np.uint64(56)) == np.uint64(LANDMARK_CHR), 2, 3)
+        dims = np.where(landmark_key_mask(keys), 2, 3)
         starts = np.concatenate([[0], np.cumsum(dims)[:-1]])
         largest = np.maximum.reduceat(moved, starts)
         over = np.flatnonzero(largest >= self._config.relinearize_threshold)

@@ -190,7 +190,8 @@ class RobotTrack:
     blind_turn: float = 0.0
     """Radians turned (odometry, in absolute value) since the latest frame with a bearing."""
     suspect_blind_turn: float = 0.0
-    """`blind_turn` at the old pose of the current old-pose test (see
+    """`blind_turn` at the pose before the frame that began the current suspicion (the
+    old-pose test's old pose, until more than kidnap_window frames slide it later; see
     LocaliserConfig.kidnap_blind_turn_sigma)."""
 
     def lose(self, reason: str) -> None:

@@ -289,18 +289,18 @@ class BearingSlam:
             poses[idx] = self._graph.poses_xytheta(np.fromiter(live.values(), np.uint64, len(live)))
         if self._anchored:
             anchored = self._anchored
-            keys = np.fromiter(anchored.keys(), np.uint64, len(anchored))
-            base = self._graph.poses_xytheta(keys)
+            base = self._graph.poses_xytheta(np.fromiter(anchored, np.uint64, len(anchored)))
             counts = [len(frames) for frames in anchored.values()]
-            members = [np.frombuffer(frames, dtype=np.int64) for frames in anchored.values()]
-            idx = rows.index(np.concatenate(members))
+            idx = rows.index(np.frombuffer(b"".join(anchored.values()), dtype=np.int64))
             rel = poses[idx]
-            x, y, theta = (np.repeat(base[:, i], counts) for i in range(3))
+            each = np.repeat(base, counts, axis=0)  # each anchored frame's keyframe
+            # math's cos and sin, as one keyframe at a time took them (numpy's may differ
+            # in the last bit).
             c = np.repeat([math.cos(t) for t in base[:, 2].tolist()], counts)
             s = np.repeat([math.sin(t) for t in base[:, 2].tolist()], counts)
-            poses[idx, 0] = x + c * rel[:, 0] - s * rel[:, 1]
-            poses[idx, 1] = y + s * rel[:, 0] + c * rel[:, 1]
-            poses[idx, 2] = wrap_angles(theta + rel[:, 2])
+            poses[idx, 0] = each[:, 0] + c * rel[:, 0] - s * rel[:, 1]
+            poses[idx, 1] = each[:, 1] + s * rel[:, 0] + c * rel[:, 1]
+            poses[idx, 2] = wrap_angles(each[:, 2] + rel[:, 2])
         seq = rows.seq.astype(np.float64)
         out: dict[str, NDArray[np.float64]] = {}
         for name, state in self._robots.items():
