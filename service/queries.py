@@ -20,18 +20,16 @@ import numpy as np
 
 from service.errors import ServiceError
 from service.pipeline.config import Mode
-from service.pipeline.localiser import PlaceLocaliser
-from service.requests import Doc, MapRequest
-from service.session import MapSession
-from service.views import (
-    attach_frame_stats,
-    coverage_doc,
+from service.pipeline.documents import (
     final_before_held,
     landmarks_doc,
     pose_doc,
-    trajectory_doc,
     trajectory_rows,
 )
+from service.pipeline.localiser import PlaceLocaliser
+from service.requests import Doc, MapRequest
+from service.session import MapSession
+from service.views import attach_frame_stats, coverage_doc, trajectory_doc
 
 if TYPE_CHECKING:
     from service.published import MapView
