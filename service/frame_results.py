@@ -19,17 +19,6 @@ from pydantic import BaseModel, Field
 from graph.slam import BearingSlam, RemovalRecord
 from service.pipeline import FrameStep
 
-__all__ = [
-    "COV3",
-    "FrameReply",
-    "FrameResult",
-    "LandmarkChanges",
-    "Localisation",
-    "PoseXYTheta",
-    "frame_events",
-    "result_doc",
-]
-
 COV3 = (
     "3x3 covariance of (x [m], y [m], theta [rad]) of the pose, x/y in the map frame, "
     "row-major, units m², m·rad, rad²"

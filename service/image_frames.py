@@ -40,8 +40,6 @@ from graph.types import FrameInput
 from service.errors import ServiceError
 from service.pipeline.config import camera_model
 
-__all__ = ["MapVision", "image_refused"]
-
 PREFETCH_LIMIT = 8
 """Most images whose features are extracted ahead of their frame."""
 

@@ -78,7 +78,7 @@ class Summary(MapRequest[Doc]):
 def _timing(ms: np.ndarray) -> Doc:
     """Frames, mean, p50 and p99 of frame times, ms (a summary is published with every
     frame: one sort, and the percentiles as numpy's default `percentile` takes them,
-    without its overhead, half the summary's time)."""
+    without its overhead)."""
     ordered = np.sort(ms)
     return {
         "frames": len(ms),

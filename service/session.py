@@ -9,6 +9,7 @@ log's tail replayed through the estimator (service.frame_log).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -116,11 +117,8 @@ class MapSession:
 
     @property
     def snapshot_due(self) -> bool:
-        """Enough frames since the last snapshot: take one when the worker is idle.
-
-        A snapshot of a 150-variable graph takes ~0.2 s (GTSAM's text serialisation of
-        the marginal factors), so the worker takes it between requests, not inside one.
-        """
+        """Enough frames since the last snapshot: take one when the worker is idle (a
+        snapshot serialises the whole graph: between requests, not inside one)."""
         return self._since_snapshot >= self._settings.snapshot_every
 
     @property
@@ -146,9 +144,7 @@ class MapSession:
         self._since_snapshot = 0
 
     def set_mode(self, mode: str) -> None:
-        self.record = MapRecord(
-            self.record.id, self.record.name, mode, self.record.config, self.record.created
-        )
+        self.record = dataclasses.replace(self.record, mode=mode)
         self.store.set_meta("record", self.record.as_dict())
         self.slam.config = slam_config(self.record.config, mode)
 

@@ -58,13 +58,7 @@ class MapRecord:
     created: float
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "name": self.name,
-            "mode": self.mode,
-            "config": self.config,
-            "created": self.created,
-        }
+        return {name: getattr(self, name) for name in self.__slots__}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MapRecord:

@@ -60,16 +60,24 @@ def _record(row: Sequence[Any]) -> MapRecord:
     return MapRecord(row[0], row[1], row[2], json.loads(row[3]), row[4])
 
 
-class Catalog:
-    """The list of maps, table ``maps``, and their API keys, table ``keys`` (written by the
-    API processes); a backend gives `_rows`, `_write`, `remove` (atomic its own way) and
-    `close`."""
+class _Database:
+    """What a backend's connection gives: reads, and single committed writes."""
 
     def _rows(self, sql: str, args: Args) -> list[Any]:
         raise NotImplementedError
 
     def _write(self, sql: str, args: Args) -> None:
+        """One statement, committed on its own."""
         raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class Catalog(_Database):
+    """The list of maps, table ``maps``, and their API keys, table ``keys`` (written by the
+    API processes); a backend gives `_rows`, `_write`, `remove` (atomic its own way) and
+    `close`."""
 
     def add(self, record: MapRecord) -> None:
         self._write(
@@ -80,9 +88,6 @@ class Catalog:
 
     def remove(self, map_id: str) -> None:
         """Delete a map's record and its keys (one transaction)."""
-        raise NotImplementedError
-
-    def close(self) -> None:
         raise NotImplementedError
 
     def set_mode(self, map_id: str, mode: str) -> None:
@@ -134,7 +139,7 @@ def pyformat(sql: str) -> str:
     return _NAMED.sub(r"%(\1)s", sql)
 
 
-class MapStore:
+class MapStore(_Database):
     """One map's store (written only by the process that owns the map)."""
 
     SCOPED = True
@@ -152,13 +157,6 @@ class MapStore:
     map_id = ""
 
     # ------------------------------------------------------------ the backend's primitives
-    def _rows(self, sql: str, args: Args) -> list[Any]:
-        raise NotImplementedError
-
-    def _write(self, sql: str, args: Args) -> None:
-        """One statement, committed on its own."""
-        raise NotImplementedError
-
     def _insert(self, sql: str, args: Args) -> int:
         """An INSERT inside a transaction; the new row's id."""
         raise NotImplementedError
@@ -168,9 +166,6 @@ class MapStore:
         raise NotImplementedError
 
     def _transaction(self) -> AbstractContextManager[Any]:
-        raise NotImplementedError
-
-    def close(self) -> None:
         raise NotImplementedError
 
     def checkpoint(self) -> None:
@@ -344,10 +339,6 @@ class MapStore:
             data=data,
             created=now,
         )
-
-    def add_event(self, kind: str, data: str) -> int:
-        with self._transaction():
-            return self._insert_event(kind, data, time.time())
 
     def frames_after(self, frame_id: int) -> list[StoredFrame]:
         """Logged frames with id > `frame_id`, in log order."""
