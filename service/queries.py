@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from service.errors import ServiceError
+from service.errors import ServiceError, unknown_robot
 from service.pipeline.config import Mode
 from service.pipeline.documents import (
     final_before_held,
@@ -165,13 +165,7 @@ class LearnPlace(MapRequest[Doc]):
                 )
             robot = max(known, key=lambda r: known[r][1])
         if robot not in known:
-            raise ServiceError(
-                404,
-                "unknown-robot",
-                "Unknown robot",
-                f"robot: map {session.record.id!r} has no robot {robot!r}",
-                field="robot",
-            )
+            raise unknown_robot(session.record.id, robot)
         localiser = _localiser(session)
         if localiser.status(robot) != "tracking":
             raise ServiceError(

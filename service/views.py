@@ -11,7 +11,7 @@ import numpy as np
 
 from graph.slam import BearingSlam
 from graph.trajectory import with_final_rows
-from service.errors import ServiceError
+from service.errors import unknown_robot
 from service.pipeline.coverage import coverage_grid
 from service.pipeline.documents import clusters_doc, landmark_table, trajectory_rows
 from service.store import FrameFigures
@@ -23,13 +23,7 @@ def trajectory_doc(
 ) -> dict[str, list[dict[str, float]]]:
     """Every frame's pose per robot: [{seq, stamp, x, y, theta}]."""
     if robot is not None and robot not in slam.robots:
-        raise ServiceError(
-            404,
-            "unknown-robot",
-            "Unknown robot",
-            f"robot: map {map_id!r} has no robot {robot!r} (GET /pose lists its robots)",
-            field="robot",
-        )
+        raise unknown_robot(map_id, robot, " (GET /pose lists its robots)")
     stored = store.poses(robot)  # the final rows; the estimator holds the newer ones
     return {
         name: trajectory_rows(with_final_rows(stored.get(name), held))
