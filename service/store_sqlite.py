@@ -27,7 +27,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-from service.store_sql import Args, Catalog, MapStore, event_rows, pose_arrays
+from service.store_sql import Args, Catalog, MapReads, MapStore
 
 _CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
@@ -251,8 +251,10 @@ class SqliteMap:
         remove_map_files(self.path)
 
 
-class SqliteStore:
+class SqliteStore(MapReads):
     """The embedded store under a data directory (service.store.Store)."""
+
+    SCOPED = False
 
     def __init__(self, data_dir: Path, *, synchronous: str) -> None:
         self.data_dir = data_dir
@@ -267,24 +269,10 @@ class SqliteStore:
             map_db_path(self.data_dir, map_id), synchronous=self._synchronous, map_id=map_id
         )
 
-    def read_events(self, map_id: str, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
-        sql = "SELECT id, kind, data FROM events WHERE id > ? ORDER BY id LIMIT ?"
-        return event_rows(self._read(map_id, sql, (after, limit)) or [])
-
-    def latest_event_id(self, map_id: str) -> int:
-        rows = self._read(map_id, "SELECT max(id) FROM events")
-        return int(rows[0][0] or 0) if rows else 0
-
-    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
-        where, args = ("", ()) if robot is None else (" WHERE robot = ?", (robot,))
-        sql = f"SELECT robot, seq, stamp, x, y, theta FROM poses{where} ORDER BY robot, seq"
-        return pose_arrays(self._read(map_id, sql, args) or [])
-
-    def _read(self, map_id: str, sql: str, args: Sequence[Any] = ()) -> list[Any] | None:
-        """The rows of one query on a map's database, read only; None if it has none."""
+    def _read(self, map_id: str, sql: str, args: Args) -> list[Any]:
         path = map_db_path(self.data_dir, map_id)
         if not path.exists():
-            return None
+            return []
         conn = connect(path, synchronous="NORMAL", readonly=True)
         try:
             return conn.execute(sql, args).fetchall()
