@@ -1,21 +1,13 @@
 """Image frames of one camera map, inside its session (worker process).
 
 `MapVision` holds the map's front end (camera, features, association), which the
-map pipeline ties to the estimator. The session uses it in three steps per image
-frame:
-
-1. `extract(image)` starts decoding, validation and feature extraction in a
-   helper thread (OpenCV releases the GIL), while the session checks the frame
-   and appends it, image included, to the durable log;
-2. `features_of(pending)` waits for the features, which the map pipeline then
-   associates with the live landmarks before the estimator takes the frame;
-3. a refused image (frontend.errors.ImageError) becomes `image_refused(exc)`,
-   a 422 or 413 problem.
-
-When a frame arrives while another is processed, the worker's reader thread calls
-`prefetch(image)` for it: its features are extracted while the current frame is
-associated and estimated (Python and GTSAM, holding the GIL), and `take(image)`
-hands them to its own `submit`.
+map pipeline ties to the estimator. An image frame's decoding, validation and feature
+extraction run in a helper thread (`extract`; OpenCV releases the GIL) while the
+session checks the frame and appends it, image included, to the durable log; the
+session then waits for them (`features_of`). A frame that waits behind the current
+one has its features extracted meanwhile (`prefetch` from the worker's reader thread,
+`take` in its own `submit`). A refused image (frontend.errors.ImageError) becomes a
+422 or 413 problem (`image_refused`).
 
 Its state between frames (the associator's landmark views and candidate tracks)
 is the map pipeline's (service.pipeline), and travels with its snapshots.
