@@ -110,17 +110,9 @@ def result_doc(
 ) -> dict[str, Any]:
     """The frame result (checked against `FrameResult`: a ValueError names a member
     that does not fit); `timing` the runtime's own timings (ms) besides the pipeline's."""
-    doc = _result_doc(slam, step, log_id, timing)
-    FrameResult.model_validate(doc)
-    return doc
-
-
-def _result_doc(
-    slam: BearingSlam, step: FrameStep, log_id: int, timing: dict[str, float]
-) -> dict[str, Any]:
     outcome = step.outcome
     pose = step.pose
-    return {
+    doc = {
         "frame_id": log_id,
         "robot": step.robot,
         "seq": step.seq,
@@ -145,6 +137,8 @@ def _result_doc(
             **{k: v for k, v in step.timing_ms.items() if k != "localise"},
         },
     }
+    FrameResult.model_validate(doc)
+    return doc
 
 
 def frame_events(

@@ -30,6 +30,8 @@ from frontend.pipeline import FrontEnd
 from graph.errors import InvalidFrame
 from graph.types import FrameInput
 from service.errors import ServiceError
+from service.frames_io import observations_json
+from service.pipeline import FrameStep, ImageFeatures, MapPipeline
 from service.pipeline.config import camera_model
 
 PREFETCH_LIMIT = 8
@@ -150,3 +152,13 @@ class MapVision:
             sig,
             {"decode": decode_ms, "features": extract_ms, "features_wait": waited_ms},
         )
+
+    def step(
+        self, pipeline: MapPipeline, frame: FrameInput, image: Pending | bytes
+    ) -> tuple[FrameStep, str, dict[str, float]]:
+        """An image frame through `pipeline` with the features of `image` (see
+        `features_of`): (its step, the observations its image gave as JSON text, the front
+        end's timings ms)."""
+        features, sig, timing = self.features_of(image)
+        step = pipeline.step(frame, image=ImageFeatures(features, sig))
+        return step, observations_json(step.observations), timing
