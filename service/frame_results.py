@@ -100,10 +100,6 @@ class FrameReply:
     marginalised: int = 0
     """Landmarks the budget removed after the frame."""
 
-    def result(self) -> FrameResult:
-        """The frame result as its model."""
-        return FrameResult.model_validate_json(self.result_json)
-
 
 def result_doc(
     slam: BearingSlam, step: FrameStep, log_id: int, timing: dict[str, float]
