@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable, Coroutine, Iterable
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 from service.errors import ServiceError, WorkerUnavailable
 from service.published import ViewDelta
@@ -19,38 +19,6 @@ from service.requests import Request
 from service.settings import Settings
 
 T = TypeVar("T")
-
-
-class Engine(Protocol):
-    """Runs the maps and answers calls on them: local worker processes (service.pool.WorkerPool)
-    or Ray actors (service.ray_engine.RayEngine)."""
-
-    restarts: int
-    """Workers (or actors) seen to stop and come back."""
-    moves: int
-    """Maps moved from one worker to another (balancing)."""
-    shared: bool
-    """Other API processes may run maps of the same store (look maps up in the catalogue)."""
-    on_view: Callable[[ViewDelta], None] | None
-    """Called with each published view of a map, as sent (engines whose workers publish
-    them)."""
-
-    async def start(self, maps: Iterable[str]) -> None: ...
-    async def stop(self) -> None: ...
-    @property
-    def ready(self) -> bool: ...
-    def status(self) -> list[dict[str, Any]]: ...
-    def worker_of(self, map_id: str) -> int | None: ...
-    def busy(self, map_id: str) -> bool:
-        """The map's worker has requests in flight (a call would wait)."""
-        ...
-
-    def track(self, map_id: str) -> None: ...
-    def untrack(self, map_id: str) -> None: ...
-    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
-        """Carry out `request` on the map; its answer, or raise ServiceError /
-        WorkerUnavailable."""
-        ...
 
 
 def reply_value(reply: dict[str, Any], *, retry_after_s: int) -> Any:
@@ -63,11 +31,13 @@ def reply_value(reply: dict[str, Any], *, retry_after_s: int) -> Any:
     raise ServiceError.from_dict(reply["error"])
 
 
-class EngineBase:
-    """What both engines keep: the maps they run, their background tasks, the restarts
-    they saw, and the time limits of a call."""
+class Engine:
+    """Runs the maps and answers calls on them: local worker processes (service.pool.WorkerPool)
+    or Ray actors (service.ray_engine.RayEngine). Keeps what both share: the maps they
+    run, their background tasks, the restarts they saw, and the time limits of a call."""
 
     shared = False
+    """Other API processes may run maps of the same store (look maps up in the catalogue)."""
 
     def __init__(
         self, settings: Settings, *, on_restart: Callable[[int], None] | None = None
@@ -77,10 +47,37 @@ class EngineBase:
         self._on_restart = on_restart
         self._tasks: set[asyncio.Task[None]] = set()
         self.restarts = 0
+        """Workers (or actors) seen to stop and come back."""
         self.moves = 0
         """Maps moved from one worker to another (balancing)."""
         self.on_view: Callable[[ViewDelta], None] | None = None
-        """Called with every published view a worker sends (the local pool's workers)."""
+        """Called with each published view of a map, as sent (engines whose workers publish
+        them)."""
+
+    async def start(self, maps: Iterable[str]) -> None:
+        raise NotImplementedError
+
+    async def stop(self) -> None:
+        raise NotImplementedError
+
+    @property
+    def ready(self) -> bool:
+        raise NotImplementedError
+
+    def status(self) -> list[dict[str, Any]]:
+        raise NotImplementedError
+
+    def worker_of(self, map_id: str) -> int | None:
+        raise NotImplementedError
+
+    def busy(self, map_id: str) -> bool:
+        """The map's worker has requests in flight (a call would wait)."""
+        raise NotImplementedError
+
+    async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
+        """Carry out `request` on the map; its answer, or raise ServiceError /
+        WorkerUnavailable."""
+        raise NotImplementedError
 
     def track(self, map_id: str) -> None:
         self._maps.add(map_id)

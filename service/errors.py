@@ -45,6 +45,11 @@ def unknown_map(map_id: str) -> ServiceError:
     return ServiceError(404, "unknown-map", "Unknown map", f"no map with id {map_id!r}")
 
 
+def unknown_robot(map_id: str, robot: str, hint: str = "") -> ServiceError:
+    detail = f"robot: map {map_id!r} has no robot {robot!r}{hint}"
+    return ServiceError(404, "unknown-robot", "Unknown robot", detail, field="robot")
+
+
 def invalid_frame(field: str, detail: str) -> ServiceError:
     return ServiceError(422, "invalid-frame", "Invalid frame", f"{field}: {detail}", field=field)
 

@@ -26,9 +26,9 @@ from graph.snapshot import SnapshotError
 from graph.trajectory import PoseRow
 from graph.types import FrameInput
 from service.frame_results import frame_events, result_doc
-from service.frames_io import frame_from_dict, frame_to_dict, observations_json
+from service.frames_io import frame_from_dict, frame_to_dict
 from service.image_frames import MapVision
-from service.pipeline import FrameStep, ImageFeatures, MapPipeline
+from service.pipeline import FrameStep, MapPipeline
 from service.pipeline.config import slam_config
 from service.pipeline.snapshot import fresh_pipeline, restore_pipeline
 from service.store import MapPlace, MapRecord, StoredFrame
@@ -268,6 +268,5 @@ class FrameLog:
                 raise InvalidFrame("image", f"log frame {log_id}: image and observations missing")
             observed = frame_from_dict({**frame_to_dict(frame), "observations": observations})
             return pipeline.step(observed, landmark_covariances=False), None
-        features, sig, _ = vision.features_of(image)
-        step = pipeline.step(frame, image=ImageFeatures(features, sig))
-        return step, observations_json(step.observations)
+        step, as_json, _ = vision.step(pipeline, frame, image)
+        return step, as_json

@@ -44,15 +44,6 @@ from pydantic_core import PydanticCustomError
 from graph.errors import InvalidFrame
 from graph.types import BearingObservation, FrameInput, Odometry, Pose2D
 
-__all__ = [
-    "FrameIn",
-    "FrameLimits",
-    "InitialPoseIn",
-    "ObservationIn",
-    "OdometryIn",
-    "parse_frame",
-]
-
 T = TypeVar("T")
 
 SEQ_END = 2**63

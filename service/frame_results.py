@@ -9,6 +9,7 @@ checked against it before it is stored.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -17,18 +18,6 @@ from pydantic import BaseModel, Field
 
 from graph.slam import BearingSlam, RemovalRecord
 from service.pipeline import FrameStep
-from service.views import restored_events
-
-__all__ = [
-    "COV3",
-    "FrameReply",
-    "FrameResult",
-    "LandmarkChanges",
-    "Localisation",
-    "PoseXYTheta",
-    "frame_events",
-    "result_doc",
-]
 
 COV3 = (
     "3x3 covariance of (x [m], y [m], theta [rad]) of the pose, x/y in the map frame, "
@@ -111,27 +100,15 @@ class FrameReply:
     marginalised: int = 0
     """Landmarks the budget removed after the frame."""
 
-    def result(self) -> FrameResult:
-        """The frame result as its model."""
-        return FrameResult.model_validate_json(self.result_json)
-
 
 def result_doc(
     slam: BearingSlam, step: FrameStep, log_id: int, timing: dict[str, float]
 ) -> dict[str, Any]:
     """The frame result (checked against `FrameResult`: a ValueError names a member
     that does not fit); `timing` the runtime's own timings (ms) besides the pipeline's."""
-    doc = _result_doc(slam, step, log_id, timing)
-    FrameResult.model_validate(doc)
-    return doc
-
-
-def _result_doc(
-    slam: BearingSlam, step: FrameStep, log_id: int, timing: dict[str, float]
-) -> dict[str, Any]:
     outcome = step.outcome
     pose = step.pose
-    return {
+    doc = {
         "frame_id": log_id,
         "robot": step.robot,
         "seq": step.seq,
@@ -156,6 +133,8 @@ def _result_doc(
             **{k: v for k, v in step.timing_ms.items() if k != "localise"},
         },
     }
+    FrameResult.model_validate(doc)
+    return doc
 
 
 def frame_events(
@@ -202,3 +181,31 @@ def _removal_events(
         if entry is not None:
             archived.append((r.landmark_id, r.frame, json.dumps(entry.as_dict())))
     return rows, archived
+
+
+def restored_events(
+    slam: BearingSlam, restored: Sequence[int], frame_id: int
+) -> list[tuple[str, str]]:
+    """`landmark_restored` events {id, label, x, y [m], restorations, frame_id} of the
+    landmarks that came back from the archive in a frame (x, y: the estimate after it;
+    a landmark the budget removed again in the same frame: its archived one)."""
+    events = []
+    for lid in restored:
+        record = slam.landmarks.get(lid)
+        if record is not None:
+            x, y = (float(v) for v in slam.landmark_position(lid))
+            label, restorations = record.label, record.restorations
+        else:
+            entry = slam.archive.get(lid)
+            assert entry is not None  # removed again: archived again
+            (x, y), label, restorations = entry.position, entry.label, entry.restorations
+        doc = {
+            "id": lid,
+            "label": label,
+            "x": x,
+            "y": y,
+            "restorations": restorations,
+            "frame_id": frame_id,
+        }
+        events.append(("landmark_restored", json.dumps(doc)))
+    return events

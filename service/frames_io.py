@@ -20,17 +20,6 @@ from graph.types import FrameInput
 from service.errors import invalid_frame
 from service.frame_model import FrameLimits, parse_frame
 
-__all__ = [
-    "admit_frame",
-    "canonical_frame",
-    "frame_from_dict",
-    "frame_to_dict",
-    "image_digest",
-    "image_record",
-    "observations_json",
-]
-
-
 # --------------------------------------------------------------------------- parsing
 
 IMAGE_MEMBER = "image"

@@ -1,21 +1,13 @@
 """Image frames of one camera map, inside its session (worker process).
 
 `MapVision` holds the map's front end (camera, features, association), which the
-map pipeline ties to the estimator. The session uses it in three steps per image
-frame:
-
-1. `extract(image)` starts decoding, validation and feature extraction in a
-   helper thread (OpenCV releases the GIL), while the session checks the frame
-   and appends it, image included, to the durable log;
-2. `features_of(pending)` waits for the features, which the map pipeline then
-   associates with the live landmarks before the estimator takes the frame;
-3. a refused image (frontend.errors.ImageError) becomes `image_refused(exc)`,
-   a 422 or 413 problem.
-
-When a frame arrives while another is processed, the worker's reader thread calls
-`prefetch(image)` for it: its features are extracted while the current frame is
-associated and estimated (Python and GTSAM, holding the GIL), and `take(image)`
-hands them to its own `submit`.
+map pipeline ties to the estimator. An image frame's decoding, validation and feature
+extraction run in a helper thread (`extract`; OpenCV releases the GIL) while the
+session checks the frame and appends it, image included, to the durable log; the
+session then waits for them (`features_of`). A frame that waits behind the current
+one has its features extracted meanwhile (`prefetch` from the worker's reader thread,
+`take` in its own `submit`). A refused image (frontend.errors.ImageError) becomes a
+422 or 413 problem (`image_refused`).
 
 Its state between frames (the associator's landmark views and candidate tracks)
 is the map pipeline's (service.pipeline), and travels with its snapshots.
@@ -38,9 +30,9 @@ from frontend.pipeline import FrontEnd
 from graph.errors import InvalidFrame
 from graph.types import FrameInput
 from service.errors import ServiceError
+from service.frames_io import observations_json
+from service.pipeline import FrameStep, ImageFeatures, MapPipeline
 from service.pipeline.config import camera_model
-
-__all__ = ["MapVision", "image_refused"]
 
 PREFETCH_LIMIT = 8
 """Most images whose features are extracted ahead of their frame."""
@@ -160,3 +152,13 @@ class MapVision:
             sig,
             {"decode": decode_ms, "features": extract_ms, "features_wait": waited_ms},
         )
+
+    def step(
+        self, pipeline: MapPipeline, frame: FrameInput, image: Pending | bytes
+    ) -> tuple[FrameStep, str, dict[str, float]]:
+        """An image frame through `pipeline` with the features of `image` (see
+        `features_of`): (its step, the observations its image gave as JSON text, the front
+        end's timings ms)."""
+        features, sig, timing = self.features_of(image)
+        step = pipeline.step(frame, image=ImageFeatures(features, sig))
+        return step, observations_json(step.observations), timing

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import builtins
+import dataclasses
 import logging
 import secrets
 import time
@@ -50,10 +51,6 @@ def make_engine(settings: Settings, *, on_restart: Callable[[int], None] | None 
 
         return RayEngine(settings, on_restart=on_restart)
     return WorkerPool(settings, on_restart=on_restart)
-
-
-def _imported_record(reply: dict[str, Any]) -> MapRecord:
-    return MapRecord.from_dict(reply["record"])
 
 
 class MapService:
@@ -212,9 +209,7 @@ class MapService:
         record = self.record(map_id)
         summary = await self.pool.call(map_id, SetMode(mode))
         self._catalog.set_mode(map_id, mode)
-        self._records[map_id] = MapRecord(
-            record.id, record.name, mode, record.config, record.created
-        )
+        self._records[map_id] = dataclasses.replace(record, mode=mode)
         return {**summary, "worker": self.pool.worker_of(map_id)}
 
     # ------------------------------------------------------------ frames and queries
@@ -310,7 +305,7 @@ class MapService:
         worker that will own the new map, so a large document never blocks the API)."""
         map_id = self._new_id()
         request = ImportMap(body, time.time(), self.settings.default_landmark_cap)
-        reply = await self._new_map(map_id, request, _imported_record)
+        reply = await self._new_map(map_id, request, lambda r: MapRecord.from_dict(r["record"]))
         return {**reply["summary"], "worker": self.pool.worker_of(map_id)}
 
     # ------------------------------------------------------------ API keys

@@ -5,28 +5,20 @@ API's event loop only awaits their answers. A map is run by one worker at a time
 worker takes its requests strictly in order, so a map's frames are applied in arrival
 order while maps on different workers proceed in parallel.
 
-Placement: new maps and the maps found at start are dealt out to the workers in turn.
-A map with no frame yet has no state to carry, so its first frame deals it again (a
-move that costs opening an empty map): to the worker with the fewest busy maps (a
-request in flight, or one that ended within ACTIVE_S), so that maps that start taking
-frames together are balanced from their first frame, however they were created. Every
-`workers.balance_interval_s` the pool compares the workers' loads (service.balance);
-when they differ clearly and moving one map from the busiest to the least busy worker
-narrows the difference to 60 % or less, at two looks in a row (a measured load is noisy, and a move
-costs a snapshot and a load), it moves it (then lets the loads settle for a few
-intervals): new calls for the map wait in the API process, the old worker answers what
-it already had, snapshots the map and closes it (`CloseMap`), the new worker opens it
-from that snapshot (`OpenMap`), and the waiting calls go there. Every acknowledged
-frame is in the map's log either way; a move that fails leaves the map where it was.
+Placement: maps are dealt out to the workers in turn; a map with no frame yet is dealt
+again at its first frame, to the worker with the fewest busy maps (`_deal`). Every
+`workers.balance_interval_s` the pool compares the workers' loads and may move one map
+(service.balance; `move`): new calls for the map wait in the API process, the old
+worker answers what it already had, snapshots the map and closes it (`CloseMap`), the
+new worker opens it from that snapshot (`OpenMap`), and the waiting calls go there. A
+move that fails leaves the map where it was.
 
-Transport: one socket pair per worker (``multiprocessing.Pipe``). The worker
-blocks on ``Connection.recv_bytes``; the API side never blocks: it writes the
-same length-prefixed frames non-blockingly (``loop.add_writer`` when the pipe is
-full, e.g. a large import while the worker computes) and reads answers in a
-``loop.add_reader`` callback. No helper threads, so a request costs two process
-hand-offs and nothing more. An answer may carry the map's new published view
-(service.published, as a delta from the one before), handed to `on_view`; message id
-0 is a view sent unasked.
+Transport: one socket pair per worker (``multiprocessing.Pipe``). The worker blocks on
+``Connection.recv_bytes``; the API side never blocks: it writes the same
+length-prefixed frames non-blockingly (``loop.add_writer`` when the pipe is full) and
+reads answers in a ``loop.add_reader`` callback, without helper threads. An answer may
+carry the map's new published view (service.published), handed to `on_view`; message
+id 0 is a view sent unasked.
 
 A worker that dies shows as end-of-file on its socket: the requests in flight get
 `WorkerUnavailable` (the API answers 503 + Retry-After), a new process is started,
@@ -54,7 +46,7 @@ from typing import Any, TypeVar
 
 from service import worker
 from service.balance import MOVE_COOLDOWN_S, SETTLE_INTERVALS, MapLoad, choose_move
-from service.engine import EngineBase, reply_value
+from service.engine import Engine, reply_value
 from service.errors import WorkerUnavailable
 from service.requests import CloseMap, CreateMap, OpenMap, Ping, Request, SubmitFrame
 from service.settings import Settings
@@ -88,7 +80,7 @@ class _Slot:
     """The worker answered its first ping (its imports are done)."""
 
 
-class WorkerPool(EngineBase):
+class WorkerPool(Engine):
     """Routes calls to the worker owning a map; restarts crashed workers (the `local`
     engine)."""
 
@@ -437,8 +429,6 @@ class WorkerPool(EngineBase):
 
     # ------------------------------------------------------------ calls
     async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
-        """Carry out `request` on the map's worker; its answer, or raise ServiceError /
-        WorkerUnavailable."""
         timeout, retry_after = self._limits(timeout_s)
         load = self._load.setdefault(map_id, MapLoad())
         load.change(+1, time.monotonic())

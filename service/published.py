@@ -13,7 +13,7 @@ After a frame, a view renews what is cheap: the summary, the places (if a place 
 transition changed) and the pose of the robot that sent it. Three parts may lag behind
 the map: the other robots' poses (each covariance costs a marginal of the graph), the
 trajectory rows the estimator holds (renewed every HELD_EVERY frames), and the live
-landmarks (a joint marginal of all of them, ~5 ms for 50, half a frame). A read of a
+landmarks (a joint marginal of all of them). A read of a
 lagging part goes to the worker when it has nothing else to do (so a client reads its
 own writes) and is answered from the view while the worker is busy; a lagging trajectory
 or landmark read then asks for them anew (`RefreshView`, one at a time per map), and a
@@ -130,9 +130,8 @@ def build_view(
 
     - `robot`: after a frame of that robot: the summary, the places (if they changed)
       and that robot's entry of the poses are new, and every HELD_EVERY frames the held
-      rows; the rest is `previous`'s. (Every other robot's pose moved a little with the
-      frame's update, but its covariance would cost a marginal of the graph, ~1.5 ms a
-      robot; all robots' rows ~0.35 ms at 600 frames; the landmarks ~5 ms.)
+      rows; the rest is `previous`'s (every other robot's pose moved a little with the
+      frame's update, but its covariance would cost a marginal of the graph).
     - `refresh`: the live landmarks and the held rows are new (a read found them
       behind), the poses are `previous`'s.
     """

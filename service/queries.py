@@ -13,25 +13,28 @@ then answers it without waiting for the worker.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from service.errors import ServiceError
+from graph.trajectory import with_final_rows
+from service.errors import ServiceError, unknown_robot
 from service.pipeline.config import Mode
+from service.pipeline.coverage import coverage_grid
+from service.pipeline.documents import (
+    clusters_doc,
+    final_before_held,
+    landmark_table,
+    landmarks_doc,
+    pose_doc,
+    trajectory_rows,
+)
 from service.pipeline.localiser import PlaceLocaliser
 from service.requests import Doc, MapRequest
 from service.session import MapSession
-from service.views import (
-    attach_frame_stats,
-    coverage_doc,
-    final_before_held,
-    landmarks_doc,
-    pose_doc,
-    trajectory_doc,
-    trajectory_rows,
-)
+from service.store import FrameFigures
 
 if TYPE_CHECKING:
     from service.published import MapView
@@ -80,7 +83,7 @@ class Summary(MapRequest[Doc]):
 def _timing(ms: np.ndarray) -> Doc:
     """Frames, mean, p50 and p99 of frame times, ms (a summary is published with every
     frame: one sort, and the percentiles as numpy's default `percentile` takes them,
-    without its overhead, half the summary's time)."""
+    without its overhead)."""
     ordered = np.sort(ms)
     return {
         "frames": len(ms),
@@ -167,13 +170,7 @@ class LearnPlace(MapRequest[Doc]):
                 )
             robot = max(known, key=lambda r: known[r][1])
         if robot not in known:
-            raise ServiceError(
-                404,
-                "unknown-robot",
-                "Unknown robot",
-                f"robot: map {session.record.id!r} has no robot {robot!r}",
-                field="robot",
-            )
+            raise unknown_robot(session.record.id, robot)
         localiser = _localiser(session)
         if localiser.status(robot) != "tracking":
             raise ServiceError(
@@ -215,7 +212,13 @@ class Trajectory(MapRequest[dict[str, list[Doc]]]):
         if robot not in session.slam.robots and state is not None and state.last is not None:
             rows: dict[str, list[Doc]] = {}  # known only to the localiser
         else:
-            rows = dict(trajectory_doc(session.slam, session.store, session.record.id, robot))
+            if robot is not None and robot not in session.slam.robots:
+                raise unknown_robot(session.record.id, robot, " (GET /pose lists its robots)")
+            final = session.store.poses(robot)  # the estimator holds the newer rows
+            rows = {
+                name: trajectory_rows(with_final_rows(final.get(name), held))
+                for name, held in session.slam.trajectory(robot).items()
+            }
         session.pipeline.with_off_graph(rows, robot)
         if self.stats_every > 0:
             labels = session.store.removed_labels()
@@ -258,19 +261,88 @@ class Landmarks(MapRequest[list[Doc]]):
 
 @dataclass(frozen=True)
 class Coverage(MapRequest[Doc]):
-    """Coverage grid of the map (see service.views.coverage_doc)."""
+    """Coverage clusters with spreads, each live landmark's E(X) and information, the
+    coverage grid (service.pipeline.coverage) over every pose of the map, and the latest
+    `removals` of the removal log."""
 
     cell_m: float = 1.0
     radius_m: float = 2.0
     removals: int = 200
 
     def answer(self, session: MapSession) -> Doc:
-        return coverage_doc(
-            session.slam,
-            session.store,
-            session.record.id,
-            session.seed(),
-            cell_m=self.cell_m,
-            radius_m=self.radius_m,
-            removals=self.removals,
-        )
+        slam, store = session.slam, session.store
+        table, _ = landmark_table(slam)
+        _, clusters = clusters_doc(table, session.seed())
+        positions = [store.pose_positions(), *(r[:, 2:4] for r in slam.trajectory().values())]
+        assert table.information is not None
+        return {
+            "map_id": session.record.id,
+            "live_landmarks": len(table),
+            "clusters": clusters["clusters"] if clusters else [],
+            "landmarks": [
+                {
+                    "id": int(lid),
+                    "observed_from": {
+                        "x": float(table.observed_from[i, 0]),
+                        "y": float(table.observed_from[i, 1]),
+                        "n": int(table.counts[i]),
+                    },
+                    "information": float(table.information[i]),
+                }
+                for i, lid in enumerate(table.ids)
+            ],
+            "grid": coverage_grid(
+                np.concatenate(positions),
+                table.observed_from,
+                cell_m=self.cell_m,
+                radius_m=self.radius_m,
+            ),
+            "removal_count": store.removal_count(),
+            "removals": store.removals(limit=self.removals),
+        }
+
+
+def attach_frame_stats(
+    robots: dict[str, list[dict[str, Any]]],
+    stats: list[FrameFigures],
+    labels: dict[int, str],
+    *,
+    every: int,
+) -> None:
+    """Add frame figures to every `every`-th pose of each robot and to its latest, in place.
+
+    `stats` are `MapStore.frame_stats` rows in log order; `labels` maps every landmark
+    id the map ever had to its label. Each chosen trajectory row gains ``frame_id``,
+    ``covariance`` (3x3, as the frame's result reported it when the frame was
+    processed), ``live``, ``ms`` and ``uncapped``: the landmarks there would be without
+    the cap, i.e. the distinct labels among the landmarks initialised up to that frame
+    (one seen again after its removal comes back under its id; re-triangulated under a
+    new id instead, with SlamConfig.restore_archived off, it still counts once).
+    """
+    if every <= 0 or not stats:
+        return
+    seen_ids: set[int] = set()
+    seen_labels: set[str] = set()
+    uncapped = []
+    for row in stats:
+        # a landmark removed by the frame that initialised it is only in `marginalised`
+        for lid in (*row.added, *row.marginalised):
+            if lid not in seen_ids:
+                seen_ids.add(lid)
+                seen_labels.add(labels.get(lid, f"id:{lid}"))
+        uncapped.append(len(seen_labels))
+    by_key = {(row.robot, row.seq): k for k, row in enumerate(stats)}
+    for name, rows in robots.items():
+        for i, point in enumerate(rows):
+            if i % every and i != len(rows) - 1:
+                continue
+            k = by_key.get((name, int(point["seq"])))
+            if k is None:
+                continue
+            row = stats[k]
+            point["frame_id"] = row.frame_id
+            cov = row.covariance_json
+            point["covariance"] = None if cov is None else json.loads(cov)
+            point["live"] = row.live
+            point["uncapped"] = uncapped[k]
+            point["ms"] = row.total_ms

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from service import worker
-from service.engine import EngineBase, reply_value
+from service.engine import Engine, reply_value
 from service.errors import WorkerUnavailable
 from service.requests import CreateMap, DeleteMap, ImportMap, OpenMap, Request
 from service.settings import Settings
@@ -83,7 +83,7 @@ def _actor_errors() -> tuple[type[BaseException], ...]:
     return tuple(getattr(ray.exceptions, n) for n in names if hasattr(ray.exceptions, n))
 
 
-class RayEngine(EngineBase):
+class RayEngine(Engine):
     """Routes calls to the maps' actors (service.engine.Engine)."""
 
     shared = True
@@ -199,8 +199,6 @@ class RayEngine(EngineBase):
 
     # ------------------------------------------------------------ calls
     async def call(self, map_id: str, request: Request[T], *, timeout_s: float | None = None) -> T:
-        """Carry out `request` on the map's actor; its answer, or raise ServiceError /
-        WorkerUnavailable."""
         timeout, retry_after = self._limits(timeout_s)
         actor = await self._actor(map_id)
         ref = actor.call.remote(request)

@@ -9,6 +9,7 @@ log's tail replayed through the estimator (service.frame_log).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -29,7 +30,7 @@ from service.frame_model import FrameLimits
 from service.frame_results import FrameReply, result_doc
 from service.frames_io import canonical_frame, image_record, observations_json
 from service.image_frames import MapVision, Pending, image_refused, no_camera
-from service.pipeline import FrameStep, ImageFeatures
+from service.pipeline import FrameStep
 from service.pipeline.config import MapConfig, slam_config, slam_config_dict
 from service.pipeline.snapshot import snapshot_pipeline
 from service.settings import StoreSettings
@@ -116,11 +117,8 @@ class MapSession:
 
     @property
     def snapshot_due(self) -> bool:
-        """Enough frames since the last snapshot: take one when the worker is idle.
-
-        A snapshot of a 150-variable graph takes ~0.2 s (GTSAM's text serialisation of
-        the marginal factors), so the worker takes it between requests, not inside one.
-        """
+        """Enough frames since the last snapshot: take one when the worker is idle (a
+        snapshot serialises the whole graph: between requests, not inside one)."""
         return self._since_snapshot >= self._settings.snapshot_every
 
     @property
@@ -146,9 +144,7 @@ class MapSession:
         self._since_snapshot = 0
 
     def set_mode(self, mode: str) -> None:
-        self.record = MapRecord(
-            self.record.id, self.record.name, mode, self.record.config, self.record.created
-        )
+        self.record = dataclasses.replace(self.record, mode=mode)
         self.store.set_meta("record", self.record.as_dict())
         self.slam.config = slam_config(self.record.config, mode)
 
@@ -272,7 +268,8 @@ class MapSession:
         try:
             if pending is None:
                 return self.pipeline.step(frame, landmark_covariances=not imported), None, {}
-            return self._process_image(frame, pending)
+            assert self.vision is not None
+            return self.vision.step(self.pipeline, frame, pending)
         except ImageError as exc:
             self.store.delete_frame(log_id)
             raise image_refused(exc) from exc
@@ -309,16 +306,6 @@ class MapSession:
             self.vision.check_localisable(frame, known=known)
         except InvalidFrame as exc:
             raise invalid_frame(exc.field, exc.detail) from exc
-
-    def _process_image(
-        self, frame: FrameInput, pending: Pending
-    ) -> tuple[FrameStep, str, dict[str, float]]:
-        """(the frame's step, the observations it is recorded with as JSON text, the
-        front end's timings ms)."""
-        assert self.vision is not None
-        features, sig, timing = self.vision.features_of(pending)
-        step = self.pipeline.step(frame, image=ImageFeatures(features, sig))
-        return step, observations_json(step.observations), timing
 
     def removal_count(self) -> int:
         """Rows of the map's removal log."""

@@ -45,7 +45,7 @@ class StoreSettings(BaseModel):
     synchronous: Literal["NORMAL", "FULL"] = Field(
         "NORMAL",
         description="SQLite synchronous mode in WAL: NORMAL survives a killed process, "
-        "FULL also a power loss (one fsync per commit, ~4 ms on these disks)",
+        "FULL also a power loss (one fsync per commit)",
     )
     snapshot_every: int = Field(
         200, ge=1, description="frames between two snapshots of a map's estimator state"

@@ -58,13 +58,7 @@ class MapRecord:
     created: float
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "name": self.name,
-            "mode": self.mode,
-            "config": self.config,
-            "created": self.created,
-        }
+        return {name: getattr(self, name) for name in self.__slots__}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MapRecord:
@@ -150,26 +144,19 @@ class MapPlace(Protocol):
 
 
 class Store(Protocol):
-    """A whole store: the catalogue, each map's place, and event reads for the API."""
+    """A whole store: the catalogue, each map's place, and the API process's reads of a
+    map (events, final trajectory rows: service.store_sql.MapReads)."""
 
     description: str
     """Where the store is, for logs (no password)."""
 
     def catalog(self) -> Catalog: ...
     def place(self, map_id: str) -> MapPlace: ...
-    def read_events(self, map_id: str, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
-        """Events with id > `after` of a map: (id, kind, data JSON), oldest first."""
-        ...
-
-    def latest_event_id(self, map_id: str) -> int:
-        """The id of a map's newest event (0 if none)."""
-        ...
-
-    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
-        """A map's final trajectory rows per robot (`robot`: that one only): (N, 5)
-        arrays seq, stamp, x, y, theta sorted by seq (see MapStore.poses)."""
-        ...
-
+    def read_events(
+        self, map_id: str, after: int, limit: int = 500
+    ) -> list[tuple[int, str, str]]: ...
+    def latest_event_id(self, map_id: str) -> int: ...
+    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]: ...
     def close(self) -> None: ...
 
 

@@ -23,7 +23,7 @@ from contextlib import AbstractContextManager
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
-from service.store_sql import Args, Catalog, MapStore, event_rows, pose_arrays, pyformat
+from service.store_sql import Args, Catalog, MapReads, MapStore, pyformat
 
 try:
     import psycopg
@@ -304,7 +304,7 @@ class PgMap:
         )
 
 
-class PgStore:
+class PgStore(MapReads):
     """A PostgreSQL database holding the catalogue and every map (service.store.Store)."""
 
     def __init__(self, url: str) -> None:
@@ -318,29 +318,9 @@ class PgStore:
     def place(self, map_id: str) -> PgMap:
         return PgMap(self, map_id)
 
-    def read_events(self, map_id: str, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
-        rows = self.shared.execute(
-            "SELECT id, kind, data FROM events WHERE map_id = %s AND id > %s ORDER BY id LIMIT %s",
-            (map_id, after, limit),
-            fetch="all",
-        )
-        return event_rows(rows)
-
-    def latest_event_id(self, map_id: str) -> int:
-        row = self.shared.execute(
-            "SELECT max(id) FROM events WHERE map_id = %s", (map_id,), fetch="one"
-        )
-        return int(row[0] or 0) if row is not None else 0
-
-    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
-        robot_only = "" if robot is None else " AND robot = %s"
-        rows = self.shared.execute(
-            f"SELECT robot, seq, stamp, x, y, theta FROM poses WHERE map_id = %s{robot_only} "
-            "ORDER BY robot, seq",
-            (map_id,) if robot is None else (map_id, robot),
-            fetch="all",
-        )
-        return pose_arrays(rows)
+    def _read(self, map_id: str, sql: str, args: Args) -> list[Any]:
+        rows: list[Any] = self.shared.execute(pyformat(sql), args, fetch="all")
+        return rows
 
     def close(self) -> None:
         self.shared.close()

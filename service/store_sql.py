@@ -52,6 +52,8 @@ _PRUNE_IMAGES = (
 )
 """Images of frames every kept snapshot covers whose observations are stored (what a
 replay of such a frame, or an export, uses instead of the image)."""
+_EVENTS_AFTER = "SELECT id, kind, data FROM events WHERE {m}id > :after ORDER BY id LIMIT :limit"
+_LATEST_EVENT = "SELECT max(id) FROM events{only}"
 _RECORD = "SELECT id, name, mode, config, created FROM maps"
 _KEY = "SELECT id, map_id, scope, hash, created FROM keys"
 
@@ -60,16 +62,24 @@ def _record(row: Sequence[Any]) -> MapRecord:
     return MapRecord(row[0], row[1], row[2], json.loads(row[3]), row[4])
 
 
-class Catalog:
-    """The list of maps, table ``maps``, and their API keys, table ``keys`` (written by the
-    API processes); a backend gives `_rows`, `_write`, `remove` (atomic its own way) and
-    `close`."""
+class _Database:
+    """What a backend's connection gives: reads, and single committed writes."""
 
     def _rows(self, sql: str, args: Args) -> list[Any]:
         raise NotImplementedError
 
     def _write(self, sql: str, args: Args) -> None:
+        """One statement, committed on its own."""
         raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class Catalog(_Database):
+    """The list of maps, table ``maps``, and their API keys, table ``keys`` (written by the
+    API processes); a backend gives `_rows`, `_write`, `remove` (atomic its own way) and
+    `close`."""
 
     def add(self, record: MapRecord) -> None:
         self._write(
@@ -80,9 +90,6 @@ class Catalog:
 
     def remove(self, map_id: str) -> None:
         """Delete a map's record and its keys (one transaction)."""
-        raise NotImplementedError
-
-    def close(self) -> None:
         raise NotImplementedError
 
     def set_mode(self, map_id: str, mode: str) -> None:
@@ -134,7 +141,7 @@ def pyformat(sql: str) -> str:
     return _NAMED.sub(r"%(\1)s", sql)
 
 
-class MapStore:
+class MapStore(_Database):
     """One map's store (written only by the process that owns the map)."""
 
     SCOPED = True
@@ -152,13 +159,6 @@ class MapStore:
     map_id = ""
 
     # ------------------------------------------------------------ the backend's primitives
-    def _rows(self, sql: str, args: Args) -> list[Any]:
-        raise NotImplementedError
-
-    def _write(self, sql: str, args: Args) -> None:
-        """One statement, committed on its own."""
-        raise NotImplementedError
-
     def _insert(self, sql: str, args: Args) -> int:
         """An INSERT inside a transaction; the new row's id."""
         raise NotImplementedError
@@ -168,9 +168,6 @@ class MapStore:
         raise NotImplementedError
 
     def _transaction(self) -> AbstractContextManager[Any]:
-        raise NotImplementedError
-
-    def close(self) -> None:
         raise NotImplementedError
 
     def checkpoint(self) -> None:
@@ -345,10 +342,6 @@ class MapStore:
             created=now,
         )
 
-    def add_event(self, kind: str, data: str) -> int:
-        with self._transaction():
-            return self._insert_event(kind, data, time.time())
-
     def frames_after(self, frame_id: int) -> list[StoredFrame]:
         """Logged frames with id > `frame_id`, in log order."""
         rows = self._get(f"{_FRAME} WHERE {{m}}id > :id ORDER BY id", id=frame_id)
@@ -381,9 +374,7 @@ class MapStore:
     def poses(self, robot: str | None = None) -> dict[str, NDArray[np.float64]]:
         """Stored final rows per robot (`robot`: that one only), each an (N, 5) array
         seq, stamp, x, y, theta sorted by seq (as BearingSlam.trajectory)."""
-        which = "{only}" if robot is None else " WHERE {m}robot = :robot"
-        sql = f"SELECT robot, seq, stamp, x, y, theta FROM poses{which} ORDER BY robot, seq"
-        return pose_arrays(self._get(sql, robot=robot))
+        return _pose_arrays(self._get(_poses_sql(robot), robot=robot))
 
     def pose_positions(self) -> NDArray[np.float64]:
         """(N, 2) x, y of every stored final row, metres."""
@@ -475,12 +466,41 @@ class MapStore:
         )
 
 
-def event_rows(rows: Iterable[Sequence[Any]]) -> list[tuple[int, str, str]]:
-    """Stored event rows as (id, kind, data JSON)."""
-    return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+class MapReads:
+    """A store's reads of one map for the API process (events, final trajectory rows); a
+    backend gives `_read` (and `SCOPED`, as `MapStore`)."""
+
+    SCOPED = True
+
+    def _read(self, map_id: str, sql: str, args: Args) -> list[Any]:
+        """The rows of one statement of this module on `map_id`'s rows, read only."""
+        raise NotImplementedError
+
+    def _rows_of(self, map_id: str, template: str, **args: Any) -> list[Any]:
+        sql = render(template, scoped=self.SCOPED, meta="")
+        return self._read(map_id, sql, {"m": map_id, **args})
+
+    def read_events(self, map_id: str, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
+        """Events with id > `after` of a map: (id, kind, data JSON), oldest first."""
+        rows = self._rows_of(map_id, _EVENTS_AFTER, after=after, limit=limit)
+        return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+
+    def latest_event_id(self, map_id: str) -> int:
+        """The id of a map's newest event (0 if none)."""
+        rows = self._rows_of(map_id, _LATEST_EVENT)
+        return int(rows[0][0] or 0) if rows else 0
+
+    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
+        """A map's final trajectory rows per robot (see MapStore.poses)."""
+        return _pose_arrays(self._rows_of(map_id, _poses_sql(robot), robot=robot))
 
 
-def pose_arrays(rows: Iterable[Sequence[Any]]) -> dict[str, NDArray[np.float64]]:
+def _poses_sql(robot: str | None) -> str:
+    which = "{only}" if robot is None else " WHERE {m}robot = :robot"
+    return f"SELECT robot, seq, stamp, x, y, theta FROM poses{which} ORDER BY robot, seq"
+
+
+def _pose_arrays(rows: Iterable[Sequence[Any]]) -> dict[str, NDArray[np.float64]]:
     """Stored trajectory rows (robot, seq, stamp, x, y, theta; sorted by robot and seq)
     per robot as (N, 5) arrays seq, stamp, x, y, theta."""
     out: dict[str, list[tuple[float, ...]]] = {}

@@ -4,35 +4,18 @@ Layout under the data directory::
 
     catalog.sqlite          maps(id, name, mode, config, created),
                             keys(id, map_id, scope, hash, created): API keys, hashed
-    maps/<id>.sqlite        frames (the durable log), snapshots, removal log, archive,
-                            events, meta
+    maps/<id>.sqlite        frames (the durable log), images, image observations,
+                            snapshots, front-end states, removal log, archive, final
+                            trajectory rows, events, meta
 
 Every database runs in WAL mode; ``synchronous`` is NORMAL (survives a killed
 process: a commit is in the OS before it returns) or FULL (also survives power
 loss, one fsync per commit). The catalogue is written by the API process, a map's
-file only by the worker process that owns the map; anyone may read.
-
-The frame log: a frame is appended (and committed) before it is processed; its
-result, its events and the removals it caused are written together in one
-transaction afterwards. ``UNIQUE(robot, seq)`` backs idempotent retries. An image
-frame's encoded image is appended in the same transaction as its log row (table
-``images``), so replaying the log reproduces the map; a snapshot of a camera map
-carries the front end's state (``frontend_states``, same transaction). The labelled
-observations the front end made of an image are stored with the frame's result
-(``image_observations``): an export carries them instead of the image, and once
-every kept snapshot covers a frame its image may be deleted (``prune_images``), so a
-camera map's file stops growing by an image a frame.
-
-The trajectory rows the estimator will not change again (their poses were
-marginalised, graph.trajectory) are written to ``poses`` with the frame that
-finalised them, and the estimator forgets them: its memory and its snapshots hold
-only the rows still in play. ``poses`` is keyed by (robot, seq), so a replay of the
-log that finalises a row again replaces it.
-
-The statements both stores run are written once (service.store_sql).
-``removal_log`` and ``archive``: see service.store. ``removals`` is the older, one row
-per landmark, form of the removal log; a file that still has rows in it has them moved
-into ``removal_log`` when it is opened.
+file only by the worker process that owns the map; anyone may read. What the tables
+hold and when they are written: service.store; the statements both stores run are
+written once in service.store_sql. ``removals`` is the older, one row per landmark,
+form of the removal log; a file that still has rows in it has them moved into
+``removal_log`` when it is opened.
 """
 
 from __future__ import annotations
@@ -44,7 +27,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-from service.store_sql import Args, Catalog, MapStore, event_rows, pose_arrays
+from service.store_sql import Args, Catalog, MapReads, MapStore
 
 _CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS maps (
@@ -237,47 +220,6 @@ class SqliteMapStore(_Connection, MapStore):
         self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
 
 
-def read_events(path: Path, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
-    """Events with id > `after` from a map's database: (id, kind, data JSON), oldest first."""
-    if not path.exists():
-        return []
-    conn = connect(path, synchronous="NORMAL", readonly=True)
-    try:
-        rows = conn.execute(
-            "SELECT id, kind, data FROM events WHERE id > ? ORDER BY id LIMIT ?", (after, limit)
-        ).fetchall()
-    finally:
-        conn.close()
-    return event_rows(rows)
-
-
-def latest_event_id(path: Path) -> int:
-    """The id of a map's newest event (0 if none)."""
-    if not path.exists():
-        return 0
-    conn = connect(path, synchronous="NORMAL", readonly=True)
-    try:
-        row = conn.execute("SELECT max(id) FROM events").fetchone()
-    finally:
-        conn.close()
-    return int(row[0] or 0)
-
-
-def read_poses(path: Path, robot: str | None = None) -> dict[str, Any]:
-    """The final trajectory rows of a map's database per robot (see MapStore.poses)."""
-    if not path.exists():
-        return {}
-    conn = connect(path, synchronous="NORMAL", readonly=True)
-    try:
-        where, args = ("", ()) if robot is None else (" WHERE robot = ?", (robot,))
-        rows = conn.execute(
-            f"SELECT robot, seq, stamp, x, y, theta FROM poses{where} ORDER BY robot, seq", args
-        ).fetchall()
-    finally:
-        conn.close()
-    return pose_arrays(rows)
-
-
 def remove_map_files(path: Path) -> None:
     """Delete a map's database and its WAL/SHM companions."""
     for suffix in ("", "-wal", "-shm"):
@@ -309,8 +251,10 @@ class SqliteMap:
         remove_map_files(self.path)
 
 
-class SqliteStore:
+class SqliteStore(MapReads):
     """The embedded store under a data directory (service.store.Store)."""
+
+    SCOPED = False
 
     def __init__(self, data_dir: Path, *, synchronous: str) -> None:
         self.data_dir = data_dir
@@ -325,14 +269,15 @@ class SqliteStore:
             map_db_path(self.data_dir, map_id), synchronous=self._synchronous, map_id=map_id
         )
 
-    def read_events(self, map_id: str, after: int, limit: int = 500) -> list[tuple[int, str, str]]:
-        return read_events(map_db_path(self.data_dir, map_id), after, limit)
-
-    def latest_event_id(self, map_id: str) -> int:
-        return latest_event_id(map_db_path(self.data_dir, map_id))
-
-    def read_poses(self, map_id: str, robot: str | None = None) -> dict[str, Any]:
-        return read_poses(map_db_path(self.data_dir, map_id), robot)
+    def _read(self, map_id: str, sql: str, args: Args) -> list[Any]:
+        path = map_db_path(self.data_dir, map_id)
+        if not path.exists():
+            return []
+        conn = connect(path, synchronous="NORMAL", readonly=True)
+        try:
+            return conn.execute(sql, args).fetchall()
+        finally:
+            conn.close()
 
     def close(self) -> None:
         """Nothing to close: each call opens its own connection."""

@@ -16,8 +16,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.angles import wrap_angles
 
-__all__ = ["Trajectory", "read_tum", "write_tum"]
-
 FloatArray = NDArray[np.float64]
 
 

@@ -131,10 +131,15 @@ def _create(map_id: str, request: CreateMap) -> dict[str, Any]:
     return Summary().answer(_sessions[map_id])
 
 
-def _delete(map_id: str) -> None:
-    session = _sessions.pop(map_id, None)
+def _forget(map_id: str) -> MapSession | None:
+    """Take a map out of the worker's open maps; its session, if it was open."""
     _stale.discard(map_id)
     _views.pop(map_id, None)
+    return _sessions.pop(map_id, None)
+
+
+def _delete(map_id: str) -> None:
+    session = _forget(map_id)
     if session is not None:
         session.close()
     _place(map_id).remove()
@@ -142,9 +147,7 @@ def _delete(map_id: str) -> None:
 
 def close_map(map_id: str) -> None:
     """Snapshot an open map if it took frames since its last snapshot, then close it."""
-    session = _sessions.pop(map_id, None)
-    _stale.discard(map_id)
-    _views.pop(map_id, None)
+    session = _forget(map_id)
     if session is None:
         return
     try:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import io
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from fastapi import APIRouter, Query, Response
 
 from api.auth import AUTH_ERRORS, MapRead
@@ -16,9 +18,9 @@ from api.models import (
     Problem,
     TrajectoryOut,
 )
+from service import tum
 from service.errors import ServiceError
 from service.queries import Coverage, Landmarks, Pose, Trajectory
-from service.views import tum_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["map"], dependencies=[MapRead])
 
@@ -118,3 +120,13 @@ async def get_coverage(
     coverage grid with its holes, and the removal log with reasons."""
     radius = radius_m if radius_m is not None else 2.0 * cell_m
     return await service.query(map_id, Coverage(cell_m, radius, removals))
+
+
+def tum_text(rows: list[dict[str, float]]) -> str:
+    """TUM lines ``stamp x y 0 0 0 qz qw`` of trajectory rows (as `Trajectory` answers)."""
+    stamps = np.array([r["stamp"] for r in rows], dtype=np.float64)
+    poses = np.array([[r["x"], r["y"], r["theta"]] for r in rows], dtype=np.float64)
+    buf = io.StringIO()
+    trajectory = tum.Trajectory.from_poses(stamps, poses.reshape(-1, 3))
+    tum.write_tum(buf, trajectory)  # type: ignore[arg-type]
+    return buf.getvalue()

@@ -13,12 +13,12 @@ from service.balance import choose_move
 from service.events import Notifier, sse_bytes
 from service.frames_io import frame_to_dict
 from service.offline.datasets.indoor_sim import make_world, simulate
+from service.pipeline.documents import final_before_held
 from service.published import ViewDelta, build_view
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord, Store
-from service.views import final_before_held
 from tests.graph._world import circle_frames
 
 

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from api.routes.queries import tum_text
 from graph.angles import wrap_angle
 from service import queries
 from service.frames_io import frame_to_dict
 from service.session import MapSession
 from service.settings import StoreSettings
 from service.store import MapRecord
-from service.views import tum_text
 from tests.graph._world import circle_frames
 
 FRAMES, TRUTH, _ = circle_frames(260, seed=4)

@@ -239,11 +239,15 @@ def test_the_removal_log_and_the_archive_follow_removals_and_restorations(
 def test_events_are_pruned_to_the_newest_and_ids_keep_growing(
     store: Store, mstore: MapStore
 ) -> None:
-    ids = [mstore.add_event("e", str(i)) for i in range(10)]
+    def add_event(seq: int) -> int:
+        frame_id = mstore.append_frame("r", seq, "{}")
+        return mstore.complete_frame(frame_id, "{}", [("e", str(seq))], [])[0]
+
+    ids = [add_event(i) for i in range(10)]
     assert ids == list(range(1, 11))
     mstore.prune_events(3)
     assert [e[0] for e in store.read_events("m1", 0)] == [8, 9, 10]
-    assert mstore.add_event("e", "next") == 11
+    assert add_event(10) == 11
 
 
 def test_final_poses_replace_by_robot_and_seq_and_sort_bytewise(mstore: MapStore) -> None:

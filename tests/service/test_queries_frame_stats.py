@@ -1,11 +1,11 @@
-"""Frame figures attached to trajectories (`service.views.attach_frame_stats`)."""
+"""Frame figures attached to trajectories (`service.queries.attach_frame_stats`)."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from service.queries import attach_frame_stats
 from service.store import FrameFigures
-from service.views import attach_frame_stats
 
 COV = "[[0.01, 0.0, 0.0], [0.0, 0.04, 0.0], [0.0, 0.0, 0.001]]"
 
