@@ -10,8 +10,6 @@ request's value or its error (`reply_value`).
 from __future__ import annotations
 
 import asyncio
-import logging
-import os
 from collections.abc import Callable, Coroutine, Iterable
 from typing import Any, Protocol, TypeVar
 
@@ -21,24 +19,6 @@ from service.requests import Request
 from service.settings import Settings
 
 T = TypeVar("T")
-
-log = logging.getLogger(__name__)
-
-
-def set_batch_scheduling(batch: bool) -> None:
-    """Put the calling thread (and the threads and processes it starts later) under
-    Linux's SCHED_BATCH policy, or back under the normal one. A batch task that wakes does
-    not preempt the task running on its core; the scheduler's tick still shares the cores.
-    Frames are long computations: the API process waking for every request and answer,
-    and workers waking for their next request, otherwise cut into each other's frames
-    and caches. Nothing where the policy does not exist."""
-    policy = getattr(os, "SCHED_BATCH" if batch else "SCHED_OTHER", None)
-    if policy is None or not hasattr(os, "sched_setscheduler"):
-        return
-    try:
-        os.sched_setscheduler(0, policy, os.sched_param(0))
-    except OSError as exc:  # e.g. a seccomp profile that forbids it
-        log.warning("cannot set the scheduling policy: %s", exc)
 
 
 class Engine(Protocol):

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from service.engine import Engine, set_batch_scheduling
+from service.engine import Engine
 from service.errors import ServiceError, unknown_map
 from service.events import EventRows, Notifier, sse_bytes
 from service.exchange import Export
@@ -91,9 +91,6 @@ class MapService:
         self._refresh(map_id, whole=True)
 
     async def start(self) -> None:
-        # Before the pool starts its workers: they inherit the policy until they set
-        # their own.
-        set_batch_scheduling(self.settings.api.batch_scheduling)
         await self.pool.start(self._records)
         self.started = True
 

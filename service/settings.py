@@ -102,12 +102,6 @@ class WorkerSettings(BaseModel):
         gt=0,
         description="longest wait at shutdown for a worker to snapshot its maps and end",
     )
-    batch_scheduling: bool = Field(
-        True,
-        description="run the worker processes under Linux's SCHED_BATCH policy: a worker "
-        "woken by a request does not preempt the process on its core, the scheduler's "
-        "tick shares the cores (no effect where the policy does not exist)",
-    )
     blas_threads: int = Field(
         1,
         ge=0,
@@ -150,12 +144,6 @@ class ApiSettings(BaseModel):
         "writes, not frames; 0 = a write per wake)",
     )
 
-    batch_scheduling: bool = Field(
-        True,
-        description="run the API process under Linux's SCHED_BATCH policy: a request or a "
-        "worker's answer that wakes it does not preempt a worker computing a frame; it "
-        "waits for the scheduler's tick (a few milliseconds at most)",
-    )
     max_body_bytes: int = Field(
         1 << 20, ge=1024, description="largest request body except imports, bytes (413 above)"
     )

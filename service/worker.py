@@ -28,7 +28,6 @@ from typing import Any
 from threadpoolctl import threadpool_limits
 
 from frontend.pipeline import FrontEnd
-from service.engine import set_batch_scheduling
 from service.errors import ServiceError, internal_error, unknown_map
 from service.exchange import import_frames, parse_export
 from service.pipeline.config import camera_model, slam_config
@@ -79,7 +78,6 @@ def init_worker(settings: dict[str, Any], index: int, *, own_signals: bool = Tru
     _store = None
     if _settings.workers.nice:
         os.nice(_settings.workers.nice)
-    set_batch_scheduling(_settings.workers.batch_scheduling)
     if _settings.workers.blas_threads:
         threadpool_limits(limits=_settings.workers.blas_threads, user_api="blas")
     logging.basicConfig(

@@ -7,14 +7,12 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from service.engine import set_batch_scheduling
 from service.frames_io import frame_to_dict
 from service.maps import MapService
 from service.pipeline.config import MapConfig
@@ -44,37 +42,16 @@ class Hold(MapRequest[None]):
             time.sleep(0.01)
 
 
-@dataclass(frozen=True)
-class Policy(MapRequest[int]):
-    """The scheduling policy of the worker that runs the map."""
-
-    def answer(self, session: MapSession) -> int:
-        return os.sched_getscheduler(0)
-
-
-def _settings(tmp_path: Path, workers: int, batch: bool = True) -> Settings:
+def _settings(tmp_path: Path, workers: int) -> Settings:
     return Settings(
         data_dir=tmp_path / "data",
-        workers={
-            "count": workers,
-            "nice": 0,
-            "balance_interval_s": 0,
-            "read_ahead": 0,
-            "batch_scheduling": batch,
-        },
-        api={"batch_scheduling": batch},
+        workers={"count": workers, "nice": 0, "balance_interval_s": 0, "read_ahead": 0},
     )
 
 
-def _run(
-    tmp_path: Path,
-    workers: int,
-    body: Callable[[MapService], Awaitable[None]],
-    *,
-    batch: bool = True,
-) -> None:
+def _run(tmp_path: Path, workers: int, body: Callable[[MapService], Awaitable[None]]) -> None:
     async def main() -> None:
-        service = MapService(_settings(tmp_path, workers, batch))
+        service = MapService(_settings(tmp_path, workers))
         await service.start()
         try:
             while not service.ready:
@@ -83,10 +60,7 @@ def _run(
         finally:
             await service.stop()
 
-    try:
-        asyncio.run(main())
-    finally:
-        set_batch_scheduling(False)  # the test process's thread goes back to normal
+    asyncio.run(main())
 
 
 async def _new_map(service: MapService, frames: list[dict[str, Any]]) -> str:
@@ -101,23 +75,6 @@ async def _until(path: Path) -> None:
     while not path.exists():
         assert time.monotonic() < deadline, f"{path} never appeared"
         await asyncio.sleep(0.01)
-
-
-def test_the_api_process_and_its_workers_run_under_the_batch_policy(tmp_path: Path) -> None:
-    # A request or an answer that wakes a process does not cut into a worker's frame.
-    seen: dict[bool, tuple[int, int]] = {}
-
-    for batch in (True, False):
-
-        async def body(service: MapService, batch: bool = batch) -> None:
-            map_id = await _new_map(service, FRAMES[:2])
-            seen[batch] = (os.sched_getscheduler(0), await service.query(map_id, Policy()))
-
-        _run(tmp_path / str(batch), 1, body, batch=batch)
-    assert seen == {
-        True: (os.SCHED_BATCH, os.SCHED_BATCH),
-        False: (os.SCHED_OTHER, os.SCHED_OTHER),
-    }
 
 
 def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
