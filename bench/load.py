@@ -57,6 +57,7 @@ import http.client
 import json
 import multiprocessing
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -128,9 +129,10 @@ def created_config(config: dict[str, Any] | None = None) -> dict[str, Any]:
 
 def _in_process(
     maps: list[list[list[dict[str, Any]]]], config: dict[str, Any]
-) -> tuple[int, float, float]:
-    """(frames, wall s, CPU s) of these maps' frames through MapSession.submit, one
-    process, each map created with `config` (as stored in the map's record)."""
+) -> tuple[int, float, float, int]:
+    """(frames, wall s, CPU s, involuntary context switches) of these maps' frames
+    through MapSession.submit, one process, each map created with `config` (as stored in
+    the map's record)."""
     from service.session import MapSession
     from service.settings import StoreSettings, WorkerSettings
     from service.store import MapRecord
@@ -143,6 +145,7 @@ def _in_process(
         record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(config), time.time())
         sessions.append(MapSession.create(work / f"m{i}.sqlite", record, StoreSettings()))
     t0, c0 = time.perf_counter(), time.process_time()
+    s0 = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw
     n = 0
     for k in range(max(len(r) for runs in maps for r in runs)):
         for session, runs in zip(sessions, maps, strict=True):
@@ -150,7 +153,8 @@ def _in_process(
                 if k < len(run):
                     session.submit(run[k])
                     n += 1
-    return n, time.perf_counter() - t0, time.process_time() - c0
+    switches = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw - s0
+    return n, time.perf_counter() - t0, time.process_time() - c0, switches
 
 
 def cpu_bound(
@@ -173,6 +177,7 @@ def cpu_bound(
     return {"frames": n, "process_wall_s": [round(r[1], 2) for r in results],
             "frames_per_s": round(n / (busy / cores), 1), "processes": cores,
             "cpu_ms_per_frame": round(1e3 * cpu / n, 2),
+            "involuntary_switches_per_frame": round(sum(r[3] for r in results) / n, 2),
             "loadavg": [load0, _loadavg()]}  # fmt: skip
 
 
@@ -341,11 +346,26 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _switches(pid: int) -> int:
+    """Involuntary context switches of a process so far (all its threads)."""
+    total = 0
+    for status in Path(f"/proc/{pid}/task").glob("*/status"):
+        for line in status.read_text().splitlines():
+            if line.startswith("nonvoluntary_ctxt_switches"):
+                total += int(line.split()[1])
+    return total
+
+
 def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
-    """CPU seconds so far of the API process and of the workers (summed)."""
+    """CPU seconds so far of the API process and of the workers (summed); involuntary
+    context switches of the workers (summed)."""
     assert server.proc is not None
     pids = [w["pid"] for w in client.get("/v1/workers").json()["workers"]]
-    return {"api": _cpu_s(server.proc.pid), "workers": sum(_cpu_s(p) for p in pids)}
+    return {
+        "api": _cpu_s(server.proc.pid),
+        "workers": sum(_cpu_s(p) for p in pids),
+        "worker_switches": sum(_switches(p) for p in pids),
+    }
 
 
 def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict[str, float]:
@@ -354,10 +374,15 @@ def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict
     waited and the CPU seconds the server used meanwhile. The in-process bound runs
     beside an idle server, not one still busy with the load phase's aftermath."""
     t0 = time.monotonic()
-    first = before = now = sum(_server_cpu(server, client).values())
+
+    def cpu() -> float:
+        got = _server_cpu(server, client)
+        return got["api"] + got["workers"]
+
+    first = before = now = cpu()
     while time.monotonic() - t0 < limit_s:
         time.sleep(1.0)
-        now = sum(_server_cpu(server, client).values())
+        now = cpu()
         if now - before < 0.02:  # under 2 % of a core over the last second
             break
         before = now
@@ -380,18 +405,33 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "map_config": MAP_CONFIG,
     }
 
-    work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
-    server = Server(work / "data", work / "server.log")
-    server.start()
-    try:
-        return _measure(args, frames, server, result)
-    finally:
-        server.kill()
+    ratios = []
+    for k in range(args.runs):
+        work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
+        server = Server(work / "data", work / "server.log")
+        server.start()
+        try:
+            # the last run measures every phase; the runs before it phases 1 and 2
+            got = _measure(args, frames, server, dict(result), whole=k == args.runs - 1)
+        finally:
+            server.kill()
+        ratios.append(got["http"]["ratio_to_cpu_bound"])
+    # The machine's speed moves from minute to minute and the load phase and the bound
+    # run a minute apart: one run's ratio moves with it, the median of several less.
+    got["ratio_runs"] = ratios
+    got["ratio_median"] = round(float(np.median(ratios)), 3)
+    return got
 
 
-def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
-             server: Server, result: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
-    """Phases 1-4 against the started `server`; `result` filled in and returned."""
+def _measure(
+    args: argparse.Namespace,
+    frames: list[list[list[dict[str, Any]]]],
+    server: Server,
+    result: dict[str, Any],
+    whole: bool = True,
+) -> dict[str, Any]:
+    """Phases 1-4 (`whole`; else 1 and 2) against the started `server`; `result` filled
+    in and returned."""
     main = frames[: args.maps]
     work = server.data.parent
     client = httpx.Client(base_url=server.url, timeout=120)
@@ -458,11 +498,16 @@ def _measure(args: argparse.Namespace, frames: list[list[list[dict[str, Any]]]],
         "api_process": round(1e3 * (cpu1["api"] - cpu0["api"]) / n, 2),
         "bench_clients": round(1e3 * (bench1 - bench0) / n, 2),
     }
+    http_run["worker_involuntary_switches_per_frame"] = round(
+        (cpu1["worker_switches"] - cpu0["worker_switches"]) / n, 2
+    )
     # the same frames' CPU in a worker against in-process (no other load in the figure)
     http_run["worker_cpu_to_in_process"] = round(
         http_run["cpu_ms_per_frame"]["workers"] / result["cpu_bound"]["cpu_ms_per_frame"], 3
     )
     result["http"] = http_run
+    if not whole:
+        return result
 
     # 3. events: fresh maps, the same frames, 0 subscribers, then `subscribers`, then 0
     events: dict[str, Any] = {}
@@ -529,6 +574,9 @@ def main() -> None:
     parser.add_argument("--event-maps", type=int, default=2)
     parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
     parser.add_argument("--subscribers", type=int, default=200)
+    parser.add_argument(
+        "--runs", type=int, default=5, help="runs of phases 1-2 (the last also 3-4)"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
     result = run(args)
