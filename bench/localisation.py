@@ -67,7 +67,7 @@ from graph.factors import is_landmark_key, landmark_key, pose_key
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
 from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
 from graph.types import FrameInput, Odometry, Pose2D
-from graph.window_check import WindowFrame, check_window, rejects_old_pose
+from graph.window_check import WindowCheckConfig, WindowFrame, check_window, rejects_old_pose
 from service.frames_io import frame_to_dict
 from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
 from service.offline.evaluation import Trajectory, align_se2, fit_landmarks, interpolate
@@ -735,12 +735,18 @@ def _online_start(
     gt: Trajectory,
     k0: int,
     max_frames: int,
+    window: WindowCheckConfig | None = None,
 ) -> dict[str, Any]:
     """One robot entering the stored map at frame `k0` without an initial pose: frames
-    through a copy of the map until success is settled or `max_frames` + HOLD_FRAMES."""
+    through a copy of the map until success is settled or `max_frames` + HOLD_FRAMES.
+    `window`: the localiser's check of a converged filter, in place of the map's own."""
     path = tmp / f"{name}.sqlite"
     _copy_store(where, path)
     session = MapSession(path, StoreSettings(snapshot_every=100_000))
+    if window is not None:
+        assert session.pipeline.localiser is not None
+        localiser = session.pipeline.localiser.localiser
+        localiser.config = dataclasses.replace(localiser.config, window_check=window)
     stream = frames[k0 : k0 + max_frames + HOLD_FRAMES]
     stream = [dataclasses.replace(stream[0], initial_pose=None), *stream[1:]]
     events: list[dict[str, Any]] = []
@@ -858,13 +864,15 @@ def online_localisation(
     seeds: list[int],
     bound: bool = True,
     source: str = "session",
+    window: WindowCheckConfig | None = None,
 ) -> dict[str, Any]:
     """One robot maps through the service (a REST client's default config, its true
     initial pose); the other robots then enter the map without an initial pose, each
     from `starts_per_robot` random frames per seed. Judged in the map's own frame: ground
     truth moved by the fit of the map's landmarks to the surveyed ones. Beside each first
     `relocalised`, the pose the map itself implies there (see _against_the_map).
-    `source`: the map's estimate replaced before the starts (MAP_SOURCES)."""
+    `source`: the map's estimate replaced before the starts (MAP_SOURCES); `window`: the
+    localiser's check of a converged filter (default: the map's own)."""
     config = rest_config()
     runs = {r: mrclam_frames(load_mrclam(directory, r)) for r in range(1, 6) if r != mapper}
     rows: list[dict[str, Any]] = []
@@ -886,7 +894,7 @@ def online_localisation(
                     row: dict[str, Any] = {"seed": seed, "robot": robot, "start_frame": k0}
                     row.update(
                         _online_start(where, tmp, f"s{seed}r{robot}i{i}", frames, gt_map, k0,
-                                      max_frames)
+                                      max_frames, window)
                     )  # fmt: skip
                     _against_the_map(row, frames, gt_map, k0, map_xy, implied_cfg)
                     # How far off (in the map's frame) the landmarks this start saw sit:
@@ -909,7 +917,14 @@ def online_localisation(
                         [(e["frame"], round(e["error_m"] or -1, 2)) for e in row["relocalised"]],
                         flush=True,
                     )
-    return {"map": built, "config": config, **_online_summary(rows, max_frames), "runs": rows}
+    checked = {} if window is None else {"window_check": dataclasses.asdict(window)}
+    return {
+        "map": built,
+        "config": config,
+        **checked,
+        **_online_summary(rows, max_frames),
+        "runs": rows,
+    }
 
 
 def _against_the_map(
@@ -1530,6 +1545,24 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
+def _window_config(args: argparse.Namespace) -> WindowCheckConfig | None:
+    """The check the flags ask for, or None (the map's own)."""
+    if args.window_landmark_sigma is None and args.window_slack is None:
+        return None
+    default = WindowCheckConfig()
+    return dataclasses.replace(
+        default,
+        landmark_sigma_m=(
+            default.landmark_sigma_m
+            if args.window_landmark_sigma is None
+            else args.window_landmark_sigma
+        ),
+        information_slack=(
+            default.information_slack if args.window_slack is None else args.window_slack
+        ),
+    )
+
+
 def _stamp() -> dict[str, Any]:
     """When a part ran and the machine's load then (a shared machine: timings vary)."""
     return {
@@ -1584,6 +1617,18 @@ def main() -> None:
         default="session",
         help="online: the map the starts enter (see MAP_SOURCES); figures under "
         "online_<this>_map unless --online-key is given",
+    )
+    parser.add_argument(
+        "--window-landmark-sigma",
+        type=float,
+        default=None,
+        help="online: the check's landmark sigma, m (WindowCheckConfig.landmark_sigma_m)",
+    )
+    parser.add_argument(
+        "--window-slack",
+        type=float,
+        default=None,
+        help="online: the check's information slack (WindowCheckConfig.information_slack)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--data", type=Path, default=None)
@@ -1645,6 +1690,7 @@ def main() -> None:
             args.online_seeds,
             bound=not args.no_bound,
             source=args.online_map,
+            window=_window_config(args),
         )
         online["runs"] = {
             "n": len(online["runs"]),

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -41,6 +41,7 @@ from graph.types import Pose2D
 from graph.window_check import (
     CONFIRMED,
     REFUTED,
+    WindowCheckConfig,
     WindowFrame,
     check_window,
     rejects_old_pose,
@@ -145,13 +146,16 @@ class LocaliserConfig:
     alone: 120 deg turned blind, its odometry 28 deg off the truth, corrected within ten
     frames as landmarks came back, made it lost; 0.25 delayed the kidnap of robot 4 in
     robot 1's map from 7 to 17 frames.)"""
+    window_check: WindowCheckConfig = field(default_factory=WindowCheckConfig)
+    """The check of a converged filter against the search's frames (verify_window)."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
         # A config pickled before later fields existed: those take their defaults.
         for f, value in zip(fields(self), state, strict=False):
             object.__setattr__(self, f.name, value)
         for f in fields(self)[len(state) :]:
-            object.__setattr__(self, f.name, f.default)
+            default = f.default_factory() if f.default is MISSING else f.default  # type: ignore[operator]
+            object.__setattr__(self, f.name, default)
 
 
 @dataclass(frozen=True, slots=True)
@@ -586,7 +590,10 @@ class Localiser:
         if not labelled or self.config.verify_window <= 0 or not track.window:
             return CONFIRMED
         frames = list(track.window)
-        return check_window(est.pose_xytheta, est.covariance, frames, self.config.filter).verdict
+        cfg = self.config
+        return check_window(
+            est.pose_xytheta, est.covariance, frames, cfg.filter, cfg.window_check
+        ).verdict
 
     def learn(
         self,

@@ -90,6 +90,19 @@ class WindowCheckConfig:
     without the check; 3 with refutation alone; 2 at 1.25 but a median up to 4 frames
     later, the 1 deg-floored sensor model being wider than the data's 0.3-0.6 deg; 2 at
     2.0 with the medians unchanged.)"""
+    landmark_sigma_m: float = 0.0
+    """Position sigma (m) of each of the map's landmarks in the check; 0: held where the
+    map puts them. Above 0 the solved pose's covariance includes how far the map's own
+    errors could move it, so the check waits longer where the robot has seen few
+    landmarks: fewer wrong relocalisations on a map a few decimetres off in places, at
+    the cost of frames (docs/measurements/localisation.md)."""
+
+    def __setstate__(self, state: tuple[Any, ...]) -> None:
+        # A config pickled before later fields existed: those take their defaults.
+        for f, value in zip(fields(self), state, strict=False):
+            object.__setattr__(self, f.name, value)
+        for f in fields(self)[len(state) :]:
+            object.__setattr__(self, f.name, f.default)
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +128,9 @@ def check_window(
     n = len(frames)
     xk = gtsam.symbol_shorthand.X
     poses = _backwards(est, frames)
-    graph, values = _window_graph(frames, poses, filter_config, loss=_huber)
+    graph, values = _window_graph(
+        frames, poses, filter_config, loss=_huber, landmark_sigma_m=cfg.landmark_sigma_m
+    )
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(cfg.prior_sigma, dtype=np.float64))
     graph.add(gtsam.PriorFactorPose2(xk(0), poses[0], prior))
     bearings = sum(len(f.bearings_rad) for f in frames)
@@ -178,13 +193,15 @@ def _window_graph(
     filter_config: FilterConfig,
     *,
     loss: Callable[[], gtsam.noiseModel.mEstimator.Base],
+    landmark_sigma_m: float = 0.0,
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The frames as a pose graph over X(0..n-1) started at `poses`: odometry between
     consecutive frames (the filter's motion noise; nearly free without odometry) and
-    each bearing to its landmark under the robust `loss`, the map's landmarks held. No
+    each bearing to its landmark under the robust `loss`, the map's landmarks held
+    (`landmark_sigma_m` 0) or each with a prior of that sigma at the map's position. No
     prior on any pose."""
     xk, lk = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
-    fixed = gtsam.noiseModel.Isotropic.Sigma(2, 1e-4)  # the map's landmarks are held
+    fixed = gtsam.noiseModel.Isotropic.Sigma(2, max(landmark_sigma_m, 1e-4))
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     landmark_keys: dict[tuple[float, float], int] = {}
 

@@ -18,7 +18,14 @@ from graph.localiser import (
     StepResult,
 )
 from graph.particles import FilterConfig, FilterEstimate, ParticleFilter
-from graph.window_check import CONFIRMED, REFUTED, WAIT, WindowFrame, check_window
+from graph.window_check import (
+    CONFIRMED,
+    REFUTED,
+    WAIT,
+    WindowCheckConfig,
+    WindowFrame,
+    check_window,
+)
 from tests.graph.test_localiser import WORLD, _frame
 from tests.graph.test_particles import _circle_pose, _observe, _odometry
 
@@ -46,6 +53,32 @@ def test_the_true_pose_is_confirmed_by_a_window_that_determines_it() -> None:
     assert float(np.hypot(*(got.pose_xytheta[:2] - truth[:2]))) < 0.1
     assert got.misfit_share <= 0.05
     assert got.bearings == sum(len(f.bearings_rad) for f in frames)
+
+
+def test_landmarks_with_a_sigma_widen_the_pose_and_make_the_check_wait() -> None:
+    # The same frames: held landmarks confirm; landmarks that may sit 0.5 m off leave the
+    # pose that much less sure, beyond what the convergence test asks, so it waits.
+    frames, truth = _window(10)
+    held = check_window(truth, TIGHT, frames, FilterConfig())
+    loose = check_window(
+        truth, TIGHT, frames, FilterConfig(), WindowCheckConfig(landmark_sigma_m=0.5)
+    )
+    assert held.verdict == CONFIRMED
+    assert loose.verdict == WAIT
+    assert (
+        np.linalg.eigvalsh(loose.covariance[:2, :2])[-1]
+        > 4 * np.linalg.eigvalsh(held.covariance[:2, :2])[-1]
+    )
+    # the landmarks give a little to the bearings' noise: the pose moves, well within sigma
+    assert float(np.hypot(*(loose.pose_xytheta[:2] - held.pose_xytheta[:2]))) < 0.2
+
+
+def test_the_localisers_config_carries_the_check_and_an_older_one_loads_with_the_default() -> None:
+    wide = LocaliserConfig(window_check=WindowCheckConfig(landmark_sigma_m=0.3))
+    assert pickle.loads(pickle.dumps(wide)).window_check.landmark_sigma_m == 0.3
+    older = LocaliserConfig.__new__(LocaliserConfig)
+    older.__setstate__(tuple(getattr(wide, f) for f in wide.__slots__)[:-1])
+    assert older.window_check == WindowCheckConfig()
 
 
 def test_a_pose_the_window_does_not_fit_is_refuted() -> None:
