@@ -558,6 +558,8 @@ def build_online_map(
     session = MapSession(where, settings)  # the map as the starts will load it
     landmarks = landmark_map(session.slam)
     sigma = {k: _major_sigma(c) for k, c in landmark_covariances(session.slam).items()}
+    shape = _shape_sigmas(session.slam)
+    residuals = _bearing_residuals(session, frames, landmarks)
     assert session.pipeline.localiser is not None
     places = len(session.pipeline.localiser.localiser.places.places)
     session.close()
@@ -581,8 +583,52 @@ def build_online_map(
         **fitted,
         "map_landmarks": {k: [float(v[0]), float(v[1])] for k, v in landmarks.items()},
         "landmark_sigma_m": sigma,
+        "landmark_shape_sigma_m": shape,
+        "mapper_bearing_residual_rms_deg": residuals,
         **replaced,
     }
+
+
+def _shape_sigmas(slam: Any) -> dict[str, float]:
+    """label -> major-axis sigma (m) of each live landmark in the map's joint landmark
+    marginal with the rigid motion of the whole map taken out (a least-squares fit of
+    a translation and a rotation about the landmarks' centroid): how sure the map is of
+    where a landmark lies relative to the others, which is what a fit to the survey
+    judges."""
+    ids = sorted(slam.landmarks)
+    xy = slam.landmark_positions(ids)
+    joint = slam.landmark_joint_covariance(ids)
+    d = xy - xy.mean(axis=0)
+    rigid = np.zeros((2 * len(ids), 3))
+    rigid[0::2, 0] = rigid[1::2, 1] = 1.0
+    rigid[0::2, 2], rigid[1::2, 2] = -d[:, 1], d[:, 0]
+    project = np.eye(2 * len(ids)) - rigid @ np.linalg.solve(rigid.T @ rigid, rigid.T)
+    shape = project @ joint @ project.T
+    return {
+        slam.landmarks[i].label: _major_sigma(shape[2 * k : 2 * k + 2, 2 * k : 2 * k + 2])
+        for k, i in enumerate(ids)
+    }
+
+
+def _bearing_residuals(
+    session: MapSession, frames: list[FrameInput], landmarks: dict[str, np.ndarray]
+) -> dict[str, float]:
+    """label -> RMS (deg) of the mapping robot's bearings to the landmark against the
+    map's final estimate (its trajectory and the landmark): how well the map fits the
+    data it was built from, landmark by landmark."""
+    robot = frames[0].robot
+    stored = _stored_trajectory(session, robot, len(frames))
+    if stored is None:
+        return {}
+    out: dict[str, list[float]] = {}
+    for f, pose in zip(frames, stored.poses(), strict=True):
+        for o in f.observations:
+            if o.label in landmarks:
+                dx, dy = landmarks[o.label] - pose[:2]
+                out.setdefault(o.label, []).append(
+                    wrap_angle(o.bearing_rad - math.atan2(dy, dx) + pose[2])
+                )
+    return {k: math.degrees(float(np.sqrt(np.mean(np.square(v))))) for k, v in out.items()}
 
 
 def _major_sigma(covariance: np.ndarray) -> float:

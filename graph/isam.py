@@ -282,6 +282,11 @@ class IncrementalGraph:
         joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
         return np.stack([np.asarray(joint.at(k, k)) for k in keys])
 
+    def landmark_joint_covariance(self, keys: Sequence[int]) -> NDArray[np.float64]:
+        """(2N, 2N) joint marginal covariance of landmarks, in the order of `keys`."""
+        joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        return np.block([[np.asarray(joint.at(a, b)) for b in keys] for a in keys])
+
     def nonlinear_graph(self) -> gtsam.NonlinearFactorGraph:
         """The current factors as one graph (for batch checks and snapshots)."""
         graph = gtsam.NonlinearFactorGraph()

@@ -271,6 +271,11 @@ class BearingSlam:
         """(N, 2, 2) marginal covariances of live landmarks, m^2."""
         return self._graph.landmark_covariances([landmark_key(i) for i in ids])
 
+    def landmark_joint_covariance(self, ids: list[int]) -> NDArray[np.float64]:
+        """(2N, 2N) joint marginal covariance of live landmarks, m^2, in the order of
+        `ids` (x, y of each)."""
+        return self._graph.landmark_joint_covariance([landmark_key(i) for i in ids])
+
     def trajectory(self, robot: str | None = None) -> dict[str, NDArray[np.float64]]:
         """Per robot, an (N, 5) array of frames: seq, stamp, x, y, theta.
 

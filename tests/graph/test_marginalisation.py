@@ -139,6 +139,9 @@ def test_marginalising_poses_and_landmarks_together_matches_batch(how: str) -> N
     np.testing.assert_allclose(
         inc.pose_covariance(poses[-1]), full.marginalCovariance(poses[-1]), rtol=1e-6
     )
+    joint = full.jointMarginalCovariance(gtsam.KeyVector(rest_marks))
+    expected = np.block([[joint.at(a, b) for b in rest_marks] for a in rest_marks])
+    np.testing.assert_allclose(inc.landmark_joint_covariance(rest_marks), expected, rtol=1e-6)
     assert inc.num_variables == len(poses) - 2 + len(rest_marks)
 
 
