@@ -397,7 +397,7 @@ def _unreplayed(data: Path) -> dict[str, int]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     frames = make_frames(args.maps + 1, args.clients, max(args.frames, args.event_frames, 100))
     result: dict[str, Any] = {
-        "command": "nice -n 10 python -m bench.load " + " ".join(sys.argv[1:]),
+        "command": "python -m bench.load " + " ".join(sys.argv[1:]),
         "cpu_count": os.cpu_count(),
         "maps": args.maps,
         "clients_per_map": args.clients,
