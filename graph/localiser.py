@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from graph.angles import wrap_angles
 from graph.particles import FilterConfig, FilterEstimate, Injector, ParticleFilter
 from graph.places import LandmarkCandidate, Place, PlaceConfig, PlaceMap, Recognition
-from graph.types import Pose2D
+from graph.types import Pose2D, restore_fields
 from graph.window_check import (
     CONFIRMED,
     REFUTED,
@@ -150,12 +150,7 @@ class LocaliserConfig:
     """The check of a converged filter against the search's frames (verify_window)."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
-        # A config pickled before later fields existed: those take their defaults.
-        for f, value in zip(fields(self), state, strict=False):
-            object.__setattr__(self, f.name, value)
-        for f in fields(self)[len(state) :]:
-            default = f.default_factory() if f.default is MISSING else f.default  # type: ignore[operator]
-            object.__setattr__(self, f.name, default)
+        restore_fields(self, state)  # also a state pickled before later fields existed
 
 
 @dataclass(frozen=True, slots=True)

@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from graph.angles import TWO_PI, wrap_angles
+from graph.types import restore_fields
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -257,11 +258,7 @@ class FilterConfig:
     is 0.3-0.6 deg): 0 localised 97 %, 0.5 deg 88 %."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
-        # A config pickled before later fields existed: those take their defaults.
-        for f, value in zip(fields(self), state, strict=False):
-            object.__setattr__(self, f.name, value)
-        for f in fields(self)[len(state) :]:
-            object.__setattr__(self, f.name, f.default)
+        restore_fields(self, state)  # also a state pickled before later fields existed
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_particles <= self.max_particles:

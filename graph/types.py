@@ -8,7 +8,8 @@ since the robot's previous frame expressed in the previous robot frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,3 +60,15 @@ class FrameInput:
     odometry: Odometry | None = None
     initial_pose: Pose2D | None = None
     observations: tuple[BearingObservation, ...] = field(default_factory=tuple)
+
+
+def restore_fields(obj: Any, state: list[Any] | tuple[Any, ...]) -> None:
+    """Set a frozen, slotted dataclass's fields from its pickled state (the values of
+    its fields, in order): the body of its ``__setstate__``. A state pickled before
+    later fields existed is shorter; those take their default (or their default
+    factory's value). New fields therefore go last."""
+    for f, value in zip(fields(obj), state, strict=False):
+        object.__setattr__(obj, f.name, value)
+    for f in fields(obj)[len(state) :]:
+        default = f.default_factory() if f.default is MISSING else f.default  # type: ignore[operator]
+        object.__setattr__(obj, f.name, default)

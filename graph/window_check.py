@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import gtsam
@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from graph.angles import wrap_angle, wrap_angles
 from graph.particles import FilterConfig, motion_sigmas, predicted_bearings
+from graph.types import restore_fields
 
 FloatArray = NDArray[np.float64]
 
@@ -60,11 +61,7 @@ class WindowFrame:
     which the graph moves between frames)."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
-        # A frame pickled before later fields existed: those take their defaults.
-        for f, value in zip(fields(self), state, strict=False):
-            object.__setattr__(self, f.name, value)
-        for f in fields(self)[len(state) :]:
-            object.__setattr__(self, f.name, f.default)
+        restore_fields(self, state)  # also a state pickled before later fields existed
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,11 +95,7 @@ class WindowCheckConfig:
     the cost of frames (docs/measurements/localisation.md)."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
-        # A config pickled before later fields existed: those take their defaults.
-        for f, value in zip(fields(self), state, strict=False):
-            object.__setattr__(self, f.name, value)
-        for f in fields(self)[len(state) :]:
-            object.__setattr__(self, f.name, f.default)
+        restore_fields(self, state)  # also a state pickled before later fields existed
 
 
 @dataclass(frozen=True, slots=True)
