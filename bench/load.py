@@ -6,7 +6,7 @@ root, niced (2 cores, shared)::
 
     nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
                                     [--event-maps 2] [--event-frames 40]
-                                    [--subscribers 200] [--out bench/results]
+                                    [--subscribers 200] [--runs 5] [--out bench/results]
 
 Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmarks,
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
@@ -356,15 +356,16 @@ def _switches(pid: int) -> int:
     return total
 
 
+def _worker_pids(client: httpx.Client) -> list[int]:
+    return [w["pid"] for w in client.get("/v1/workers").json()["workers"]]
+
+
 def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
-    """CPU seconds so far of the API process and of the workers (summed); involuntary
-    context switches of the workers (summed)."""
+    """CPU seconds so far of the API process and of the workers (summed)."""
     assert server.proc is not None
-    pids = [w["pid"] for w in client.get("/v1/workers").json()["workers"]]
     return {
         "api": _cpu_s(server.proc.pid),
-        "workers": sum(_cpu_s(p) for p in pids),
-        "worker_switches": sum(_switches(p) for p in pids),
+        "workers": sum(_cpu_s(p) for p in _worker_pids(client)),
     }
 
 
@@ -374,15 +375,10 @@ def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict
     waited and the CPU seconds the server used meanwhile. The in-process bound runs
     beside an idle server, not one still busy with the load phase's aftermath."""
     t0 = time.monotonic()
-
-    def cpu() -> float:
-        got = _server_cpu(server, client)
-        return got["api"] + got["workers"]
-
-    first = before = now = cpu()
+    first = before = now = sum(_server_cpu(server, client).values())
     while time.monotonic() - t0 < limit_s:
         time.sleep(1.0)
-        now = cpu()
+        now = sum(_server_cpu(server, client).values())
         if now - before < 0.02:  # under 2 % of a core over the last second
             break
         before = now
@@ -459,9 +455,12 @@ def _measure(
     reader = ctx.Process(target=_reader, args=(server.url, {"idle": idle, "busy": maps[0]},
                                                stop, queue))  # fmt: skip
     reader.start()
+    pids = _worker_pids(client)
+    switches0 = sum(_switches(p) for p in pids)
     cpu0, bench0 = _server_cpu(server, client), time.process_time()
     http_run, posted = post_all(server.port, maps, main, limit_s=args.load_s)
     cpu1, bench1 = _server_cpu(server, client), time.process_time()
+    switches1 = sum(_switches(p) for p in pids)
     stop.set()
     reads = queue.get(timeout=60)
     reader.join()
@@ -498,9 +497,7 @@ def _measure(
         "api_process": round(1e3 * (cpu1["api"] - cpu0["api"]) / n, 2),
         "bench_clients": round(1e3 * (bench1 - bench0) / n, 2),
     }
-    http_run["worker_involuntary_switches_per_frame"] = round(
-        (cpu1["worker_switches"] - cpu0["worker_switches"]) / n, 2
-    )
+    http_run["worker_involuntary_switches_per_frame"] = round((switches1 - switches0) / n, 2)
     # the same frames' CPU in a worker against in-process (no other load in the figure)
     http_run["worker_cpu_to_in_process"] = round(
         http_run["cpu_ms_per_frame"]["workers"] / result["cpu_bound"]["cpu_ms_per_frame"], 3
@@ -575,7 +572,12 @@ def main() -> None:
     parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
     parser.add_argument("--subscribers", type=int, default=200)
     parser.add_argument(
-        "--runs", type=int, default=5, help="runs of phases 1-2 (the last also 3-4)"
+        "--runs",
+        type=int,
+        choices=range(1, 21),
+        default=5,
+        metavar="1-20",
+        help="runs of phases 1-2 (the last also 3-4)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()

@@ -62,10 +62,11 @@ import gtsam
 import numpy as np
 
 from bench.batch import batch_graph, batch_solve
-from graph.angles import wrap_angle
+from graph.angles import wrap_angle, wrap_angles
 from graph.factors import is_landmark_key, landmark_key, pose_key
 from graph.localiser import RELOCALISED, TRACKING, Localiser, LocaliserConfig, RobotTrack
-from graph.particles import FilterConfig, ParticleFilter, motion_sigmas
+from graph.particles import FilterConfig, ParticleFilter, motion_sigmas, predicted_bearings
+from graph.slam import BearingSlam
 from graph.types import FrameInput, Odometry, Pose2D
 from graph.window_check import WindowCheckConfig, WindowFrame, check_window, rejects_old_pose
 from service.frames_io import frame_to_dict
@@ -589,7 +590,7 @@ def build_online_map(
     }
 
 
-def _shape_sigmas(slam: Any) -> dict[str, float]:
+def _shape_sigmas(slam: BearingSlam) -> dict[str, float]:
     """label -> major-axis sigma (m) of each live landmark in the map's joint landmark
     marginal with the rigid motion of the whole map taken out (a least-squares fit of
     a translation and a rotation about the landmarks' centroid): how sure the map is of
@@ -622,12 +623,12 @@ def _bearing_residuals(
         return {}
     out: dict[str, list[float]] = {}
     for f, pose in zip(frames, stored.poses(), strict=True):
-        for o in f.observations:
-            if o.label in landmarks:
-                dx, dy = landmarks[o.label] - pose[:2]
-                out.setdefault(o.label, []).append(
-                    wrap_angle(o.bearing_rad - math.atan2(dy, dx) + pose[2])
-                )
+        seen = [o for o in f.observations if o.label in landmarks]
+        if seen:
+            predicted = predicted_bearings(pose[None], np.array([landmarks[o.label] for o in seen]))
+            residual = wrap_angles(np.array([o.bearing_rad for o in seen]) - predicted[0])
+            for o, r in zip(seen, residual.tolist(), strict=True):
+                out.setdefault(o.label, []).append(r)
     return {k: math.degrees(float(np.sqrt(np.mean(np.square(v))))) for k, v in out.items()}
 
 
@@ -1593,20 +1594,8 @@ def plot(doc: dict[str, Any], path: Path) -> None:
 
 def _window_config(args: argparse.Namespace) -> WindowCheckConfig | None:
     """The check the flags ask for, or None (the map's own)."""
-    if args.window_landmark_sigma is None and args.window_slack is None:
-        return None
-    default = WindowCheckConfig()
-    return dataclasses.replace(
-        default,
-        landmark_sigma_m=(
-            default.landmark_sigma_m
-            if args.window_landmark_sigma is None
-            else args.window_landmark_sigma
-        ),
-        information_slack=(
-            default.information_slack if args.window_slack is None else args.window_slack
-        ),
-    )
+    sigma = args.window_landmark_sigma
+    return None if sigma is None else WindowCheckConfig(landmark_sigma_m=sigma)
 
 
 def _stamp() -> dict[str, Any]:
@@ -1669,12 +1658,6 @@ def main() -> None:
         type=float,
         default=None,
         help="online: the check's landmark sigma, m (WindowCheckConfig.landmark_sigma_m)",
-    )
-    parser.add_argument(
-        "--window-slack",
-        type=float,
-        default=None,
-        help="online: the check's information slack (WindowCheckConfig.information_slack)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--data", type=Path, default=None)

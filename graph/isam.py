@@ -279,13 +279,16 @@ class IncrementalGraph:
         """(N, 2, 2) marginal covariances of landmarks from one joint marginal."""
         if not keys:
             return np.zeros((0, 2, 2))
-        joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        joint = self._joint_marginal(keys)
         return np.stack([np.asarray(joint.at(k, k)) for k in keys])
 
     def landmark_joint_covariance(self, keys: Sequence[int]) -> NDArray[np.float64]:
         """(2N, 2N) joint marginal covariance of landmarks, in the order of `keys`."""
-        joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        joint = self._joint_marginal(keys)
         return np.block([[np.asarray(joint.at(a, b)) for b in keys] for a in keys])
+
+    def _joint_marginal(self, keys: Sequence[int]) -> gtsam.JointMarginal:
+        return self._isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
 
     def nonlinear_graph(self) -> gtsam.NonlinearFactorGraph:
         """The current factors as one graph (for batch checks and snapshots)."""

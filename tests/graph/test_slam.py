@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import gtsam
 import numpy as np
 import pytest
 
+from graph.angles import wrap_angles
 from graph.config import SlamConfig
 from graph.factors import landmark_key
 from graph.policies import POLICY_NAMES
@@ -136,10 +138,6 @@ def test_keyframes_bound_the_graph_and_carry_the_trajectory() -> None:
 def _trajectory_pose_by_pose(slam: BearingSlam) -> dict[str, np.ndarray]:
     """`slam.trajectory()` as it was computed one live pose and one keyframe's
     anchored frames at a time (the reference for its array version)."""
-    import math
-
-    from graph.angles import wrap_angles
-
     rows = slam._trajectory.rows()
     poses = rows.pose
     estimate = slam.graph.estimate()
