@@ -179,8 +179,9 @@ class RobotTrack:
     graph_fit: float = 1.0
     """How well the graph's latest pose explains its frame's bearings, relative to the
     filter's slow likelihood average."""
-    history: deque[tuple[WindowFrame, FloatArray, FloatArray]] = field(default_factory=deque)
-    """The latest tracked frames with the graph's pose (3,) and covariance (3, 3) of each."""
+    history: deque[tuple[WindowFrame, FloatArray, FloatArray, float]] = field(default_factory=deque)
+    """The latest tracked frames with the graph's pose (3,) and covariance (3, 3) of each,
+    and the radians turned without a bearing up to that pose (0 when its frame has one)."""
     suspect: int = 0
     """Frames since the graph's pose first failed to explain a frame (0: it does)."""
     calm: int = 0
@@ -188,10 +189,6 @@ class RobotTrack:
     """The old-pose test's latest statistic."""
     blind_turn: float = 0.0
     """Radians turned (odometry, in absolute value) since the latest frame with a bearing."""
-    suspect_blind_turn: float = 0.0
-    """`blind_turn` at the pose before the frame that began the current suspicion (the
-    old-pose test's old pose, until more than kidnap_window frames slide it later; see
-    LocaliserConfig.kidnap_blind_turn_sigma)."""
 
     def lose(self, reason: str) -> None:
         """The robot is lost: a fresh search, the tracked frames forgotten."""
@@ -202,7 +199,7 @@ class RobotTrack:
         self.history.clear()
         self.converged_frames = self.disagree_frames = self.weak_frames = 0
         self.suspect = self.calm = 0
-        self.blind_turn = self.suspect_blind_turn = 0.0
+        self.blind_turn = 0.0
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         # A track pickled before `window`, `history` or the blind turns existed.
@@ -210,7 +207,8 @@ class RobotTrack:
         self.__dict__.setdefault("window", deque())
         self.__dict__.setdefault("history", deque())
         self.__dict__.setdefault("blind_turn", 0.0)
-        self.__dict__.setdefault("suspect_blind_turn", 0.0)
+        self.__dict__.pop("suspect_blind_turn", None)
+        self.history = deque(h if len(h) == 4 else (*h, 0.0) for h in self.history)
 
 
 def _bounds(landmarks: Mapping[str, FloatArray], margin: float) -> tuple[float, ...]:
@@ -538,15 +536,15 @@ class Localiser:
         if track.suspect:
             track.suspect += 1
         elif misfit and track.history:
-            # The old pose is the previous frame's: the turn made blind up to it.
+            # The old pose is the previous frame's.
             track.suspect, track.calm = 1, 0
-            track.suspect_blind_turn = track.blind_turn
         turned = 0.0 if odo is None else abs(float(odo[2]))
         track.blind_turn = 0.0 if len(z) else track.blind_turn + turned
         sigmas = track.pf.bearing_sigmas(len(z), sig)
         frame = WindowFrame(odo, dt_s, lm_xy, z, sigmas, tuple(observed))
         pose = np.asarray(graph_pose[0], dtype=np.float64)
-        track.history.append((frame, pose, np.asarray(graph_pose[1], dtype=np.float64)))
+        cov = np.asarray(graph_pose[1], dtype=np.float64)
+        track.history.append((frame, pose, cov, track.blind_turn))
         while len(track.history) > cfg.kidnap_window + 1:
             track.history.popleft()
         if not track.suspect or not len(z):
@@ -557,13 +555,20 @@ class Localiser:
             return False
         n = min(track.suspect, len(track.history) - 1)
         recent = list(track.history)[-n - 1 :]
-        _, anchor, anchor_cov = recent[0]
+        _, anchor, anchor_cov, blind = recent[0]
+        # The old pose's heading is as unsure as the turn made blind around it: up to it,
+        # and on from it until the first frame with a bearing (the test's odometry
+        # carries the old pose's heading there unchecked).
+        for later, _, _, turned_blind in recent[1:]:
+            if len(later.bearings_rad):
+                break
+            blind = turned_blind
         floor = np.diag(np.square(cfg.kidnap_sigma_floor))
-        floor[2, 2] += (cfg.kidnap_blind_turn_sigma * track.suspect_blind_turn) ** 2
+        floor[2, 2] += (cfg.kidnap_blind_turn_sigma * blind) ** 2
         rejected, track.rejection = rejects_old_pose(
             anchor,
             anchor_cov + floor,
-            [f for f, _, _ in recent[1:]],
+            [f for f, _, _, _ in recent[1:]],
             cfg.filter,
             cfg.kidnap_gate,
             latest_xytheta=[est.pose_xytheta],
