@@ -54,7 +54,7 @@ import platform
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -70,7 +70,12 @@ from graph.slam import BearingSlam
 from graph.types import FrameInput, Odometry, Pose2D
 from graph.window_check import WindowCheckConfig, WindowFrame, check_window, rejects_old_pose
 from service.frames_io import frame_to_dict
-from service.offline.datasets.mrclam import default_mrclam_dir, load_mrclam, mrclam_frames
+from service.offline.datasets.mrclam import (
+    MrclamRobot,
+    default_mrclam_dir,
+    load_mrclam,
+    mrclam_frames,
+)
 from service.offline.evaluation import Trajectory, align_se2, fit_landmarks, interpolate
 from service.pipeline.config import DEFAULT_LANDMARK_CAP, MapConfig
 from service.pipeline.localiser import (
@@ -533,13 +538,21 @@ joint landmark marginal; `surveyed`, the surveyed landmarks with that same margi
 
 
 def build_online_map(
-    directory: Path, mapper: int, where: Path, config: dict[str, Any], source: str = "session"
+    directory: Path,
+    mapper: int,
+    where: Path,
+    config: dict[str, Any],
+    source: str = "session",
+    transform: Callable[[MrclamRobot], MrclamRobot] | None = None,
 ) -> dict[str, Any]:
     """The map one robot builds through the service from its true initial pose (its
     whole run), stored at `where` with a snapshot; its landmarks fitted to the survey.
     `source` other than "session" replaces the map's estimate before it is stored (see
-    MAP_SOURCES and `_replaced_map`)."""
+    MAP_SOURCES and `_replaced_map`); `transform` changes the robot's tables first (e.g.
+    its odometry rescaled, bench.mrclam_sensors)."""
     data = load_mrclam(directory, mapper)
+    if transform is not None:
+        data = transform(data)
     assert data.landmarks is not None
     surveyed = {str(int(s)): np.array([x, y]) for s, x, y in data.landmarks}
     frames, gt = mrclam_frames(data)

@@ -1,0 +1,185 @@
+"""What MRCLAM-6's sensors say against its ground truth, and whether a calibration would
+move the map robot 1 builds.
+
+1. Bearings: every landmark measurement of each robot (subjects 6-20, within the ground
+   truth's span) against the bearing from the ground-truth pose at its stamp (linear
+   interpolation, heading unwrapped) to the surveyed landmark. Residuals beyond 10 deg
+   are counted apart (misread codes: robot 5 reads landmark 8 as 18 for frames on end);
+   of the rest: mean, RMS, the mean per landmark, a fit of the residual to a constant
+   plus a slope in the ground truth's turn rate (a clock offset between the two), and
+   the shift of the measurements' stamps (-0.5..0.5 s in 0.05 s steps) that minimises
+   the RMS.
+2. Odometry: over 1 s windows, the distance the odometry integrates against the ground
+   truth's (windows where the truth moved more than 5 cm) and the turn (absolute values
+   summed): the odometry's scale.
+3. The mapper's map (`bench.localisation.build_online_map`: robot 1's whole run through
+   `MapSession` with a REST client's default config, its landmarks fitted to the survey)
+   as recorded, and again with robot 1's odometry divided by the scales of 2 (distance,
+   turn, both): each landmark's distance from its surveyed position after the fit. If a
+   calibration of the odometry were what the map lacked, the oracle's scales would
+   bring the landmarks closer.
+
+    python -m bench.mrclam_sensors [--robots 1 2 3 4 5] [--mapper 1] [--out bench/results]
+
+Writes ``<out>/mrclam_sensors.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.localisation import build_online_map, rest_config
+from graph.angles import wrap_angles
+from service.offline.datasets.mrclam import (
+    ROBOT_SUBJECTS,
+    MrclamRobot,
+    default_mrclam_dir,
+    load_mrclam,
+    surveyed_landmarks,
+)
+
+
+def _truth_at(data: MrclamRobot, stamps: np.ndarray) -> np.ndarray:
+    """(N, 3) ground-truth poses at `stamps` (heading unwrapped, then interpolated)."""
+    gt = data.groundtruth
+    theta = np.unwrap(gt[:, 3])
+    return np.column_stack([np.interp(stamps, gt[:, 0], gt[:, k]) for k in (1, 2)] +
+                           [np.interp(stamps, gt[:, 0], theta)])  # fmt: skip
+
+
+def bearing_residuals(data: MrclamRobot, survey: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Section 1 for one robot."""
+    gt, meas = data.groundtruth, data.measurements
+    subject_of = {int(b): int(s) for s, b in data.barcodes}
+    subjects = np.array([subject_of.get(int(b), -1) for b in meas[:, 1]])
+    keep = (
+        np.isin(subjects, [int(k) for k in survey])
+        & ~np.isin(subjects, list(ROBOT_SUBJECTS))
+        & (meas[:, 0] >= gt[0, 0])
+        & (meas[:, 0] <= gt[-1, 0])
+    )
+    meas, subjects = meas[keep], subjects[keep]
+    landmarks = np.array([survey[str(s)] for s in subjects])
+
+    def residual(shift_s: float) -> np.ndarray:
+        pose = _truth_at(data, meas[:, 0] + shift_s)
+        d = landmarks - pose[:, :2]
+        return wrap_angles(meas[:, 3] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]))
+
+    r = residual(0.0)
+    inlier = np.abs(r) <= math.radians(10.0)
+    r, meas, subjects, landmarks = r[inlier], meas[inlier], subjects[inlier], landmarks[inlier]
+    theta = np.unwrap(gt[:, 3])
+    rate = np.diff(theta) / np.maximum(np.diff(gt[:, 0]), 1e-3)
+    turn_rate = np.interp(meas[:, 0], gt[:-1, 0], rate)
+    constant, slope = np.linalg.lstsq(np.column_stack([np.ones_like(r), turn_rate]), r,
+                                      rcond=None)[0]  # fmt: skip
+    shifts = np.round(np.arange(-0.5, 0.501, 0.05), 2)
+    rms = [float(np.sqrt(np.mean(residual(s) ** 2))) for s in shifts]
+    best = int(np.argmin(rms))
+    return {
+        "measurements": len(r),
+        "beyond_10_deg": int((~inlier).sum()),
+        "mean_deg": math.degrees(float(np.mean(r))),
+        "rms_deg": math.degrees(float(np.sqrt(np.mean(r**2)))),
+        "mean_deg_by_landmark": {
+            str(s): math.degrees(float(np.mean(r[subjects == s]))) for s in np.unique(subjects)
+        },
+        "fit_constant_deg": math.degrees(float(constant)),
+        "fit_seconds_per_turn_rate": float(slope),
+        "best_stamp_shift_s": float(shifts[best]),
+        "rms_deg_at_best_shift": math.degrees(rms[best]),
+    }
+
+
+def odometry_scale(data: MrclamRobot) -> dict[str, float]:
+    """Section 2 for one robot."""
+    gt, odo = data.groundtruth, data.odometry
+    stamps = np.arange(max(gt[0, 0], odo[0, 0]) + 1.0, min(gt[-1, 0], odo[-1, 0]) - 1.0, 1.0)
+    truth = _truth_at(data, stamps)
+    moved = np.hypot(*np.diff(truth[:, :2], axis=0).T)
+    turned = np.abs(np.diff(truth[:, 2]))
+    dt = np.diff(odo[:, 0])
+    distance = np.concatenate([[0.0], np.cumsum(odo[:-1, 1] * dt)])
+    heading = np.concatenate([[0.0], np.cumsum(odo[:-1, 2] * dt)])
+    odo_moved = np.diff(np.interp(stamps, odo[:, 0], distance))
+    odo_turned = np.abs(np.diff(np.interp(stamps, odo[:, 0], heading)))
+    moving = moved > 0.05
+    return {
+        "distance_m": float(moved.sum()),
+        "distance_scale": float(odo_moved[moving].sum() / moved[moving].sum()),
+        "turn_rad": float(turned.sum()),
+        "turn_scale": float(odo_turned.sum() / turned.sum()),
+    }
+
+
+def _rescaled(distance: float, turn: float) -> Any:
+    def transform(data: MrclamRobot) -> MrclamRobot:
+        odo = data.odometry.copy()
+        odo[:, 1] /= distance
+        odo[:, 2] /= turn
+        return dataclasses.replace(data, odometry=odo)
+
+    return transform
+
+
+def mapper_maps(directory: Path, mapper: int, scale: dict[str, float]) -> dict[str, Any]:
+    """Section 3: the mapper's map as recorded and with its odometry rescaled."""
+    variants = {
+        "recorded": (1.0, 1.0),
+        "distance_rescaled": (scale["distance_scale"], 1.0),
+        "turn_rescaled": (1.0, scale["turn_scale"]),
+        "both_rescaled": (scale["distance_scale"], scale["turn_scale"]),
+    }
+    out: dict[str, Any] = {}
+    for name, (distance, turn) in variants.items():
+        with tempfile.TemporaryDirectory() as tmp:
+            built = build_online_map(directory, mapper, Path(tmp) / "map.sqlite", rest_config(),
+                                     transform=_rescaled(distance, turn))  # fmt: skip
+        errors = built["landmark_error_in_map_frame_m"]
+        by_label = sorted(errors.items(), key=lambda kv: int(kv[0]))
+        out[name] = {
+            "odometry_divided_by": [distance, turn],
+            "landmark_rmse_in_map_frame_m": built["landmark_rmse_in_map_frame_m"],
+            "frame_rotation_deg": built["frame_rotation_deg"],
+            "landmark_error_in_map_frame_m": dict(by_label),
+        }
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robots", type=int, nargs="*", default=[1, 2, 3, 4, 5])
+    parser.add_argument("--mapper", type=int, default=1)
+    parser.add_argument("--data", type=Path, default=None)
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = parser.parse_args()
+    directory = args.data or default_mrclam_dir()
+    survey = surveyed_landmarks(directory)
+    t0 = time.perf_counter()
+    result: dict[str, Any] = {"command": "python -m bench.mrclam_sensors", "robots": {}}
+    for robot in args.robots:
+        data = load_mrclam(directory, robot)
+        result["robots"][str(robot)] = {
+            "bearings": bearing_residuals(data, survey),
+            "odometry": odometry_scale(data),
+        }
+    scale = odometry_scale(load_mrclam(directory, args.mapper))
+    result["mapper"] = args.mapper
+    result["mapper_maps"] = mapper_maps(directory, args.mapper, scale)
+    result["seconds"] = round(time.perf_counter() - t0, 1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "mrclam_sensors.json").write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
