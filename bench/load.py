@@ -7,6 +7,7 @@ root, niced (2 cores, shared)::
     nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
                                     [--event-maps 2] [--event-frames 40]
                                     [--subscribers 200] [--runs 5] [--out bench/results]
+    python -m bench.load --bound-only 5   # the bound alone, 5 times: the machine's spread
 
 Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmarks,
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
@@ -571,6 +572,23 @@ def _measure(
     return result
 
 
+def bound_only(maps: int, clients: int, repeats: int) -> dict[str, Any]:
+    """The in-process bound `repeats` times in a row on the same frames, nothing else
+    running: how much the machine's own speed moves between runs a minute apart (the
+    spread the load phase's ratio to its bound inherits)."""
+    frames = make_frames(maps, clients, 175)
+    runs = [cpu_bound(frames) for _ in range(repeats)]
+    fps = [r["frames_per_s"] for r in runs]
+    return {
+        "command": "python -m bench.load " + " ".join(sys.argv[1:]),
+        "frames": runs[0]["frames"],
+        "frames_per_s": fps,
+        "cpu_ms_per_frame": [r["cpu_ms_per_frame"] for r in runs],
+        "max_over_min": round(max(fps) / min(fps), 3),
+        "runs": runs,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
@@ -588,8 +606,21 @@ def main() -> None:
         metavar="1-20",
         help="runs of phases 1-2 (the last also 3-4)",
     )
+    parser.add_argument(
+        "--bound-only",
+        type=int,
+        default=0,
+        metavar="N",
+        help="no server: the in-process bound N times on the same frames (the first 175 of "
+        "each client's run, about what a load phase posts); writes load_bound_only.json",
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
+    if args.bound_only:
+        args.out.mkdir(parents=True, exist_ok=True)
+        doc = bound_only(args.maps, args.clients, args.bound_only)
+        (args.out / "load_bound_only.json").write_text(json.dumps(doc, indent=2) + "\n")
+        return
     result = run(args)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "load.json").write_text(json.dumps(result, indent=2) + "\n")
