@@ -1607,8 +1607,10 @@ def plot(doc: dict[str, Any], path: Path) -> None:
 
 def _window_config(args: argparse.Namespace) -> WindowCheckConfig | None:
     """The check the flags ask for, or None (the map's own)."""
-    sigma = args.window_landmark_sigma
-    return None if sigma is None else WindowCheckConfig(landmark_sigma_m=sigma)
+    sigma, stable = args.window_landmark_sigma, args.window_stable_frames
+    if sigma is None and stable is None:
+        return None
+    return WindowCheckConfig(landmark_sigma_m=sigma or 0.0, stable_frames=stable or 0)
 
 
 def _stamp() -> dict[str, Any]:
@@ -1671,6 +1673,12 @@ def main() -> None:
         type=float,
         default=None,
         help="online: the check's landmark sigma, m (WindowCheckConfig.landmark_sigma_m)",
+    )
+    parser.add_argument(
+        "--window-stable-frames",
+        type=int,
+        default=None,
+        help="online: frames the check's solution must hold (WindowCheckConfig.stable_frames)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--data", type=Path, default=None)

@@ -31,6 +31,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
@@ -41,6 +42,7 @@ from graph.types import Pose2D, restore_fields
 from graph.window_check import (
     CONFIRMED,
     REFUTED,
+    WAIT,
     WindowCheckConfig,
     WindowFrame,
     check_window,
@@ -189,6 +191,9 @@ class RobotTrack:
     """The old-pose test's latest statistic."""
     blind_turn: float = 0.0
     """Radians turned (odometry, in absolute value) since the latest frame with a bearing."""
+    held: tuple[FloatArray, int] | None = None
+    """The window check's confirmed solution and the search's frame count then, while
+    it must hold (WindowCheckConfig.stable_frames)."""
 
     def lose(self, reason: str) -> None:
         """The robot is lost: a fresh search, the tracked frames forgotten."""
@@ -200,6 +205,7 @@ class RobotTrack:
         self.converged_frames = self.disagree_frames = self.weak_frames = 0
         self.suspect = self.calm = 0
         self.blind_turn = 0.0
+        self.held = None
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         # A track pickled before `window`, `history` or the blind turns existed.
@@ -207,8 +213,42 @@ class RobotTrack:
         self.__dict__.setdefault("window", deque())
         self.__dict__.setdefault("history", deque())
         self.__dict__.setdefault("blind_turn", 0.0)
+        self.__dict__.setdefault("held", None)
         self.__dict__.pop("suspect_blind_turn", None)
         self.history = deque(h if len(h) == 4 else (*h, 0.0) for h in self.history)
+
+
+def _held(
+    track: RobotTrack,
+    solved: FloatArray,
+    frames: Sequence[WindowFrame],
+    hold: int,
+    cfg: LocaliserConfig,
+) -> str:
+    """CONFIRMED once the check's solution has held for `hold` frames (see
+    WindowCheckConfig.stable_frames), else WAIT; `frames` is the search's window."""
+    n = len(frames)
+    if n >= cfg.verify_window:  # the window slides: the held frame's place is gone
+        track.held = None
+        return CONFIRMED
+    if track.held is None or track.held[1] > n:
+        track.held = (np.asarray(solved, dtype=np.float64), n)
+        return WAIT
+    first, since = track.held
+    if n - since < hold:
+        return WAIT
+    moved = gtsam.Pose2(*first)
+    for f in frames[since:]:
+        if f.odometry is not None:
+            moved = moved.compose(gtsam.Pose2(*f.odometry))
+    dx = float(np.hypot(solved[0] - moved.x(), solved[1] - moved.y()))
+    dtheta = abs(float(wrap_angles(solved[2] - moved.theta())))
+    tol_m, tol_rad = cfg.window_check.stable_tolerance
+    if dx <= tol_m and dtheta <= tol_rad:
+        track.held = None
+        return CONFIRMED
+    track.held = (np.asarray(solved, dtype=np.float64), n)
+    return WAIT
 
 
 def _bounds(landmarks: Mapping[str, FloatArray], margin: float) -> tuple[float, ...]:
@@ -591,9 +631,14 @@ class Localiser:
             return CONFIRMED
         frames = list(track.window)
         cfg = self.config
-        return check_window(
+        checked = check_window(
             est.pose_xytheta, est.covariance, frames, cfg.filter, cfg.window_check
-        ).verdict
+        )
+        hold = cfg.window_check.stable_frames
+        if checked.verdict != CONFIRMED or hold <= 0:
+            track.held = None
+            return checked.verdict
+        return _held(track, checked.pose_xytheta, frames, hold, cfg)
 
     def learn(
         self,

@@ -93,6 +93,15 @@ class WindowCheckConfig:
     errors could move it, so the check waits longer where the robot has seen few
     landmarks: fewer wrong relocalisations on a map a few decimetres off in places, at
     the cost of frames (docs/measurements/localisation.md)."""
+    stable_frames: int = 0
+    """0: a confirmed check relocalises the robot at once. Above 0 the check's solution
+    must also hold: confirmed again this many frames later, within stable_tolerance of
+    the first solution moved on by the odometry since (else the wait starts again from
+    the newer one). Where the map is locally a few decimetres off, the pose it implies
+    still moves as the robot sees more of it: fewer wrong relocalisations, at the cost
+    of frames (docs/measurements/localisation.md)."""
+    stable_tolerance: tuple[float, float] = (0.1, math.radians(3.0))
+    """Metres and radians the solution may move over stable_frames."""
 
     def __setstate__(self, state: tuple[Any, ...]) -> None:
         restore_fields(self, state)  # also a state pickled before later fields existed

@@ -15,8 +15,11 @@ from graph.localiser import (
     TRACKING,
     Localiser,
     LocaliserConfig,
+    RobotTrack,
     StepResult,
+    _held,
 )
+from graph.window_check import CONFIRMED, WAIT, WindowCheckConfig, WindowFrame
 from tests.graph.test_particles import LANDMARKS, _circle_pose, _observe, _odometry
 
 WORLD = {str(i): xy for i, xy in enumerate(LANDMARKS)}
@@ -307,3 +310,35 @@ def test_a_blind_turn_after_the_old_pose_is_no_kidnap() -> None:
         assert LOST not in _blind_turn_run(config, seed, glitch, blind)
     strict = LocaliserConfig(lost_frames=10_000, kidnap_blind_turn_sigma=0.0)
     assert any(LOST in _blind_turn_run(strict, seed, glitch, blind) for seed in range(2))
+
+
+def test_a_held_check_relocalises_once_its_solution_has_held() -> None:
+    """WindowCheckConfig.stable_frames: on a map without errors the check's solution
+    holds, so the robot is relocalised that many frames after the check first confirmed
+    it, as close to the truth."""
+    first = _kidnap_run(Localiser(), None, graph_from_start=False)
+    held = LocaliserConfig(window_check=WindowCheckConfig(stable_frames=6))
+    later = _kidnap_run(Localiser(held), None, graph_from_start=False)
+    k0, k1 = first[0].index(RELOCALISED), later[0].index(RELOCALISED)
+    assert k1 >= k0 + 6
+    assert later[1][0][1] < 0.3
+
+
+def test_a_solution_that_moves_waits_again() -> None:
+    """A solution that moved beyond stable_tolerance since it was first confirmed
+    (beyond what the odometry since explains) starts the wait again from the newer
+    one; one that held is confirmed."""
+    config = LocaliserConfig(window_check=WindowCheckConfig(stable_frames=3))
+    step = WindowFrame(np.array([0.1, 0.0, 0.0]), 0.2, np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+    frames = [step] * 10
+    track = RobotTrack(pf=None, status=INITIALISING)  # type: ignore[arg-type]
+    start = np.array([1.0, 2.0, 0.0])
+    assert _held(track, start, frames[:4], 3, config) == WAIT
+    assert (
+        _held(track, start + np.array([0.2, 0.0, 0.0]), frames[:6], 3, config) == WAIT
+    )  # too soon
+    moved = start + np.array([0.3 + 0.5, 0.0, 0.0])  # three steps of 0.1 m explain 0.3 of it
+    assert _held(track, moved, frames[:7], 3, config) == WAIT
+    assert track.held is not None and track.held[1] == 7
+    assert _held(track, moved + np.array([0.32, 0.0, 0.01]), frames[:10], 3, config) == CONFIRMED
+    assert track.held is None
