@@ -370,13 +370,10 @@ def _worker_pids(client: httpx.Client) -> list[int]:
     return [w["pid"] for w in client.get("/v1/workers").json()["workers"]]
 
 
-def _server_cpu(server: Server, client: httpx.Client) -> dict[str, float]:
-    """CPU seconds so far of the API process and of the workers (summed)."""
+def _server_cpu(server: Server, workers: list[int]) -> dict[str, float]:
+    """CPU seconds so far of the API process and of the `workers` (pids; summed)."""
     assert server.proc is not None
-    return {
-        "api": _cpu_s(server.proc.pid),
-        "workers": sum(_cpu_s(p) for p in _worker_pids(client)),
-    }
+    return {"api": _cpu_s(server.proc.pid), "workers": sum(_cpu_s(p) for p in workers)}
 
 
 def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict[str, float]:
@@ -384,11 +381,11 @@ def _settle(server: Server, client: httpx.Client, limit_s: float = 60.0) -> dict
     and renew the views that lag once the frames stop), at most `limit_s`: the seconds
     waited and the CPU seconds the server used meanwhile. The in-process bound runs
     beside an idle server, not one still busy with the load phase's aftermath."""
-    t0 = time.monotonic()
-    first = before = now = sum(_server_cpu(server, client).values())
+    t0, workers = time.monotonic(), _worker_pids(client)
+    first = before = now = sum(_server_cpu(server, workers).values())
     while time.monotonic() - t0 < limit_s:
         time.sleep(1.0)
-        now = sum(_server_cpu(server, client).values())
+        now = sum(_server_cpu(server, workers).values())
         if now - before < 0.02:  # under 2 % of a core over the last second
             break
         before = now
@@ -467,9 +464,9 @@ def _measure(
     reader.start()
     pids = _worker_pids(client)
     switches0 = sum(_switches(p) for p in pids)
-    cpu0 = _server_cpu(server, client)
+    cpu0 = _server_cpu(server, pids)
     http_run, posted = post_all(server.port, maps, main, limit_s=args.load_s)
-    cpu1 = _server_cpu(server, client)
+    cpu1 = _server_cpu(server, pids)
     switches1 = sum(_switches(p) for p in pids)
     stop.set()
     reads = queue.get(timeout=60)

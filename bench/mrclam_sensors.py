@@ -1,17 +1,17 @@
 """What MRCLAM-6's sensors say against its ground truth, and whether a calibration would
 move the map robot 1 builds.
 
-1. Bearings: every landmark measurement of each robot (subjects 6-20, within the ground
-   truth's span) against the bearing from the ground-truth pose at its stamp (linear
-   interpolation, heading unwrapped) to the surveyed landmark. Residuals beyond 10 deg
+1. Bearings: every labelled bearing of each robot's frames (`mrclam_frames`: the
+   bearings its map gets) against the bearing from the ground-truth pose at the frame's
+   stamp (`interpolate`) to the surveyed landmark. Residuals beyond 10 deg
    are counted apart (misread codes: robot 5 reads landmark 8 as 18 for frames on end);
    of the rest: mean, RMS, the mean per landmark, a fit of the residual to a constant
    plus a slope in the ground truth's turn rate (a clock offset between the two), and
    the shift of the measurements' stamps (-0.5..0.5 s in 0.05 s steps) that minimises
    the RMS.
-2. Odometry: over 1 s windows, the distance the odometry integrates against the ground
-   truth's (windows where the truth moved more than 5 cm) and the turn (absolute values
-   summed): the odometry's scale.
+2. Odometry: over 1 s windows, the motion the odometry integrates (`integrate_unicycle`)
+   against the ground truth's: distance (windows where the truth moved more than 5 cm)
+   and turn (absolute values summed), the odometry's scale.
 3. The mapper's map (`bench.localisation.build_online_map`: robot 1's whole run through
    `MapSession` with a REST client's default config, its landmarks fitted to the survey)
    as recorded, and again with robot 1's odometry divided by the scales of 2 (distance,
@@ -39,48 +39,46 @@ import numpy as np
 
 from bench.localisation import build_online_map, rest_config
 from graph.angles import wrap_angles
+from graph.types import FrameInput
 from service.offline.datasets.mrclam import (
-    ROBOT_SUBJECTS,
     MrclamRobot,
     default_mrclam_dir,
+    integrate_unicycle,
     load_mrclam,
+    mrclam_frames,
+    relative_motion,
     surveyed_landmarks,
 )
+from service.offline.evaluation import Trajectory, interpolate
 
 
-def _truth_at(data: MrclamRobot, stamps: np.ndarray) -> np.ndarray:
-    """(N, 3) ground-truth poses at `stamps` (heading unwrapped, then interpolated)."""
-    gt = data.groundtruth
-    theta = np.unwrap(gt[:, 3])
-    return np.column_stack([np.interp(stamps, gt[:, 0], gt[:, k]) for k in (1, 2)] +
-                           [np.interp(stamps, gt[:, 0], theta)])  # fmt: skip
+def _truth_at(truth: Trajectory, stamps: np.ndarray) -> np.ndarray:
+    """(N, 3) ground-truth poses at `stamps`, held at the ends of its span."""
+    _, at = interpolate(truth, np.clip(stamps, truth.stamps[0], truth.stamps[-1]))
+    return np.column_stack([at.xy, at.theta])
 
 
-def bearing_residuals(data: MrclamRobot, survey: dict[str, np.ndarray]) -> dict[str, Any]:
-    """Section 1 for one robot."""
-    gt, meas = data.groundtruth, data.measurements
-    subject_of = {int(b): int(s) for s, b in data.barcodes}
-    subjects = np.array([subject_of.get(int(b), -1) for b in meas[:, 1]])
-    keep = (
-        np.isin(subjects, [int(k) for k in survey])
-        & ~np.isin(subjects, list(ROBOT_SUBJECTS))
-        & (meas[:, 0] >= gt[0, 0])
-        & (meas[:, 0] <= gt[-1, 0])
-    )
-    meas, subjects = meas[keep], subjects[keep]
-    landmarks = np.array([survey[str(s)] for s in subjects])
+def bearing_residuals(
+    frames: list[FrameInput], truth: Trajectory, survey: dict[str, np.ndarray]
+) -> dict[str, Any]:
+    """Section 1 for one robot's frames (the bearings as its map gets them)."""
+    seen = [(f.stamp, o.label, o.bearing_rad) for f in frames for o in f.observations]
+    stamps = np.array([t for t, _, _ in seen])
+    labels = np.array([label for _, label, _ in seen])
+    bearings = np.array([b for _, _, b in seen])
+    landmarks = np.array([survey[label] for label in labels])
 
     def residual(shift_s: float) -> np.ndarray:
-        pose = _truth_at(data, meas[:, 0] + shift_s)
+        pose = _truth_at(truth, stamps + shift_s)
         d = landmarks - pose[:, :2]
-        return wrap_angles(meas[:, 3] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]))
+        return wrap_angles(bearings - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]))
 
     r = residual(0.0)
     inlier = np.abs(r) <= math.radians(10.0)
-    r, meas, subjects, landmarks = r[inlier], meas[inlier], subjects[inlier], landmarks[inlier]
-    theta = np.unwrap(gt[:, 3])
-    rate = np.diff(theta) / np.maximum(np.diff(gt[:, 0]), 1e-3)
-    turn_rate = np.interp(meas[:, 0], gt[:-1, 0], rate)
+    r, stamps, labels, landmarks = r[inlier], stamps[inlier], labels[inlier], landmarks[inlier]
+    bearings = bearings[inlier]
+    rate = wrap_angles(np.diff(truth.theta)) / np.maximum(np.diff(truth.stamps), 1e-3)
+    turn_rate = np.interp(stamps, truth.stamps[:-1], rate)
     constant, slope = np.linalg.lstsq(np.column_stack([np.ones_like(r), turn_rate]), r,
                                       rcond=None)[0]  # fmt: skip
     shifts = np.round(np.arange(-0.5, 0.501, 0.05), 2)
@@ -92,7 +90,8 @@ def bearing_residuals(data: MrclamRobot, survey: dict[str, np.ndarray]) -> dict[
         "mean_deg": math.degrees(float(np.mean(r))),
         "rms_deg": math.degrees(float(np.sqrt(np.mean(r**2)))),
         "mean_deg_by_landmark": {
-            str(s): math.degrees(float(np.mean(r[subjects == s]))) for s in np.unique(subjects)
+            label: math.degrees(float(np.mean(r[labels == label])))
+            for label in sorted(set(labels.tolist()), key=int)
         },
         "fit_constant_deg": math.degrees(float(constant)),
         "fit_seconds_per_turn_rate": float(slope),
@@ -101,18 +100,15 @@ def bearing_residuals(data: MrclamRobot, survey: dict[str, np.ndarray]) -> dict[
     }
 
 
-def odometry_scale(data: MrclamRobot) -> dict[str, float]:
+def odometry_scale(data: MrclamRobot, truth: Trajectory) -> dict[str, float]:
     """Section 2 for one robot."""
-    gt, odo = data.groundtruth, data.odometry
-    stamps = np.arange(max(gt[0, 0], odo[0, 0]) + 1.0, min(gt[-1, 0], odo[-1, 0]) - 1.0, 1.0)
-    truth = _truth_at(data, stamps)
-    moved = np.hypot(*np.diff(truth[:, :2], axis=0).T)
-    turned = np.abs(np.diff(truth[:, 2]))
-    dt = np.diff(odo[:, 0])
-    distance = np.concatenate([[0.0], np.cumsum(odo[:-1, 1] * dt)])
-    heading = np.concatenate([[0.0], np.cumsum(odo[:-1, 2] * dt)])
-    odo_moved = np.diff(np.interp(stamps, odo[:, 0], distance))
-    odo_turned = np.abs(np.diff(np.interp(stamps, odo[:, 0], heading)))
+    odo = data.odometry
+    start, end = max(truth.stamps[0], odo[0, 0]) + 1.0, min(truth.stamps[-1], odo[-1, 0]) - 1.0
+    stamps = np.arange(start, end, 1.0)
+    true_step = relative_motion(_truth_at(truth, stamps))
+    odo_step = relative_motion(integrate_unicycle(odo, stamps))
+    moved, odo_moved = np.hypot(*true_step[:, :2].T), np.hypot(*odo_step[:, :2].T)
+    turned, odo_turned = np.abs(true_step[:, 2]), np.abs(odo_step[:, 2])
     moving = moved > 0.05
     return {
         "distance_m": float(moved.sum()),
@@ -169,11 +165,13 @@ def main() -> None:
     result: dict[str, Any] = {"command": "python -m bench.mrclam_sensors", "robots": {}}
     for robot in args.robots:
         data = load_mrclam(directory, robot)
+        frames, truth = mrclam_frames(data)
         result["robots"][str(robot)] = {
-            "bearings": bearing_residuals(data, survey),
-            "odometry": odometry_scale(data),
+            "bearings": bearing_residuals(frames, truth, survey),
+            "odometry": odometry_scale(data, truth),
         }
-    scale = odometry_scale(load_mrclam(directory, args.mapper))
+    mapper = load_mrclam(directory, args.mapper)
+    scale = odometry_scale(mapper, mrclam_frames(mapper)[1])
     result["mapper"] = args.mapper
     result["mapper_maps"] = mapper_maps(directory, args.mapper, scale)
     result["seconds"] = round(time.perf_counter() - t0, 1)
