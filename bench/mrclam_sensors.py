@@ -18,6 +18,15 @@ move the map robot 1 builds.
    turn, both): each landmark's distance from its surveyed position after the fit. If a
    calibration of the odometry were what the map lacked, the oracle's scales would
    bring the landmarks closer.
+4. What each robot's data give a map, landmarks fitted to the survey (`fit_landmarks`):
+   its bearings (inliers of 1) triangulated from its ground-truth poses
+   (`graph.triangulation.triangulate`: the bearings alone, the poses known), and the
+   batch Levenberg-Marquardt solution of its whole run (`bench.batch.batch_solve`, the
+   map's factors and noise model, the REST default), started from dead reckoning and
+   from the ground truth: the most likely map of its bearings and odometry together.
+   A landmark the first puts right and the second puts off is off because of how the
+   robot's odometry and bearings combine, not because of a bearing. Beside the rigid
+   fit's error, the scale of the best similarity fit (above 1: the map is too small).
 
     python -m bench.mrclam_sensors [--robots 1 2 3 4 5] [--mapper 1] [--out bench/results]
 
@@ -37,8 +46,10 @@ from typing import Any
 
 import numpy as np
 
+from bench.batch import batch_solve
 from bench.localisation import build_online_map, rest_config
 from graph.angles import wrap_angles
+from graph.triangulation import triangulate
 from graph.types import FrameInput
 from service.offline.datasets.mrclam import (
     MrclamRobot,
@@ -49,7 +60,8 @@ from service.offline.datasets.mrclam import (
     relative_motion,
     surveyed_landmarks,
 )
-from service.offline.evaluation import Trajectory, interpolate
+from service.offline.evaluation import Trajectory, fit_landmarks, interpolate
+from service.pipeline.config import slam_config
 
 
 def _truth_at(truth: Trajectory, stamps: np.ndarray) -> np.ndarray:
@@ -152,6 +164,59 @@ def mapper_maps(directory: Path, mapper: int, scale: dict[str, float]) -> dict[s
     return out
 
 
+def similarity_scale(estimated: dict[str, Any], survey: dict[str, np.ndarray]) -> float:
+    """The scale of the best similarity fit of `estimated` onto the survey (Umeyama): above
+    1, the map is smaller than the arena."""
+    labels = sorted(set(estimated) & set(survey))
+    a = np.array([estimated[k] for k in labels], dtype=np.float64)
+    b = np.array([survey[k] for k in labels], dtype=np.float64)
+    a, b = a - a.mean(axis=0), b - b.mean(axis=0)
+    u, s, vt = np.linalg.svd(b.T @ a)
+    s[-1] *= np.sign(np.linalg.det(u @ vt))
+    return float(s.sum() / np.sum(a**2))
+
+
+def _fitted(landmarks: dict[str, Any], survey: dict[str, np.ndarray]) -> dict[str, Any]:
+    fit = fit_landmarks(landmarks, survey)
+    return {
+        "landmarks": len(fit.labels),
+        "rmse_aligned_m": fit.rmse_aligned_m,
+        "similarity_scale": similarity_scale(landmarks, survey),
+        "error_aligned_m": fit.errors_by_label(),
+    }
+
+
+def data_maps(
+    frames: list[FrameInput], truth: Trajectory, survey: dict[str, np.ndarray]
+) -> dict[str, Any]:
+    """Section 4 for one robot's frames."""
+    pose = _truth_at(truth, np.array([f.stamp for f in frames]))
+    rays: dict[str, list[tuple[float, float, float, float]]] = {}
+    for k, f in enumerate(frames):
+        for o in f.observations:
+            d = survey[o.label] - pose[k, :2]
+            expected = math.atan2(d[1], d[0]) - pose[k, 2]
+            if abs(float(wrap_angles(o.bearing_rad - expected))) <= math.radians(10.0):
+                ray = (pose[k, 0], pose[k, 1], pose[k, 2] + o.bearing_rad, o.sigma_rad or 0.0)
+                rays.setdefault(o.label, []).append(ray)
+    triangulated: dict[str, Any] = {}
+    for label, rr in rays.items():
+        r = np.array(rr)
+        tri = triangulate(r[:, :2], r[:, 2], np.maximum(r[:, 3], 1e-3)) if len(r) >= 2 else None
+        if tri is not None:
+            triangulated[label] = tri.point
+    config = slam_config(rest_config(), "mapping")
+    _, at = interpolate(truth, np.array([f.stamp for f in frames]))
+    solved = batch_solve(frames, config, online={"truth": at})
+    return {
+        "triangulated_from_true_poses": _fitted(triangulated, survey),
+        "batch": {
+            name.removeprefix("online_"): {"cost": r.cost, **_fitted(r.landmark_xy, survey)}
+            for name, r in solved.per_start.items()
+        },
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, nargs="*", default=[1, 2, 3, 4, 5])
@@ -169,6 +234,7 @@ def main() -> None:
         result["robots"][str(robot)] = {
             "bearings": bearing_residuals(frames, truth, survey),
             "odometry": odometry_scale(data, truth),
+            "maps": data_maps(frames, truth, survey),
         }
     mapper = load_mrclam(directory, args.mapper)
     scale = odometry_scale(mapper, mrclam_frames(mapper)[1])
