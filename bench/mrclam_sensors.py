@@ -11,7 +11,10 @@ move the map robot 1 builds.
    the RMS.
 2. Odometry: over 1 s windows, the motion the odometry integrates (`integrate_unicycle`)
    against the ground truth's: distance (windows where the truth moved more than 5 cm)
-   and turn (absolute values summed), the odometry's scale.
+   and turn (absolute values summed), the odometry's scale. And its lag: the delay
+   (-0.1..0.5 s in 0.05 s steps) of the odometry's stamps that brings its turn over
+   0.25 s windows closest to the truth's (RMS of the difference). MRCLAM's odometry is
+   the commanded velocity; a robot follows a command a moment later.
 3. The mapper's map (`bench.localisation.build_online_map`: robot 1's whole run through
    `MapSession` with a REST client's default config, its landmarks fitted to the survey)
    as recorded, and again with robot 1's odometry divided by the scales of 2 (distance,
@@ -24,6 +27,7 @@ move the map robot 1 builds.
    batch Levenberg-Marquardt solution of its whole run (`bench.batch.batch_solve`, the
    map's factors and noise model, the REST default), started from dead reckoning and
    from the ground truth: the most likely map of its bearings and odometry together.
+   The batch again with the odometry delayed by its best delay of 2.
    A landmark the first puts right and the second puts off is off because of how the
    robot's odometry and bearings combine, not because of a bearing. Beside the rigid
    fit's error, the scale of the best similarity fit (above 1: the map is too small).
@@ -130,6 +134,26 @@ def odometry_scale(data: MrclamRobot, truth: Trajectory) -> dict[str, float]:
     }
 
 
+def odometry_lag(data: MrclamRobot, truth: Trajectory) -> dict[str, Any]:
+    """Section 2, the delay of the odometry that fits the truth best, for one robot."""
+    odo = data.odometry
+    start, end = max(truth.stamps[0], odo[0, 0]) + 1.0, min(truth.stamps[-1], odo[-1, 0]) - 1.0
+    stamps = np.arange(start, end, 0.25)
+    true_turn = relative_motion(_truth_at(truth, stamps))[:, 2]
+    lags = np.round(np.arange(-0.1, 0.501, 0.05), 2)
+    rms = [
+        math.degrees(float(np.sqrt(np.mean(wrap_angles(
+            relative_motion(integrate_unicycle(odo, stamps - lag))[:, 2] - true_turn) ** 2))))
+        for lag in lags
+    ]  # fmt: skip
+    best = int(np.argmin(rms))
+    return {
+        "turn_error_rms_deg_per_0_25_s": rms[int(np.flatnonzero(lags == 0.0)[0])],
+        "best_delay_s": float(lags[best]),
+        "turn_error_rms_deg_at_best_delay": rms[best],
+    }
+
+
 def _rescaled(distance: float, turn: float) -> Any:
     def transform(data: MrclamRobot) -> MrclamRobot:
         odo = data.odometry.copy()
@@ -187,9 +211,13 @@ def _fitted(landmarks: dict[str, Any], survey: dict[str, np.ndarray]) -> dict[st
 
 
 def data_maps(
-    frames: list[FrameInput], truth: Trajectory, survey: dict[str, np.ndarray]
+    frames: list[FrameInput],
+    delayed: list[FrameInput],
+    truth: Trajectory,
+    survey: dict[str, np.ndarray],
 ) -> dict[str, Any]:
-    """Section 4 for one robot's frames."""
+    """Section 4 for one robot's frames (`delayed`: the same with the odometry delayed by
+    its best delay of section 2)."""
     pose = _truth_at(truth, np.array([f.stamp for f in frames]))
     rays: dict[str, list[tuple[float, float, float, float]]] = {}
     for k, f in enumerate(frames):
@@ -206,14 +234,19 @@ def data_maps(
         if tri is not None:
             triangulated[label] = tri.point
     config = slam_config(rest_config(), "mapping")
-    _, at = interpolate(truth, np.array([f.stamp for f in frames]))
-    solved = batch_solve(frames, config, online={"truth": at})
-    return {
-        "triangulated_from_true_poses": _fitted(triangulated, survey),
-        "batch": {
+
+    def batch(run: list[FrameInput]) -> dict[str, Any]:
+        _, at = interpolate(truth, np.array([f.stamp for f in run]))
+        solved = batch_solve(run, config, online={"truth": at})
+        return {
             name.removeprefix("online_"): {"cost": r.cost, **_fitted(r.landmark_xy, survey)}
             for name, r in solved.per_start.items()
-        },
+        }
+
+    return {
+        "triangulated_from_true_poses": _fitted(triangulated, survey),
+        "batch": batch(frames),
+        "batch_odometry_delayed": batch(delayed),
     }
 
 
@@ -231,10 +264,15 @@ def main() -> None:
     for robot in args.robots:
         data = load_mrclam(directory, robot)
         frames, truth = mrclam_frames(data)
+        lag = odometry_lag(data, truth)
+        late = data.odometry.copy()
+        late[:, 0] += lag["best_delay_s"]
+        delayed, _ = mrclam_frames(dataclasses.replace(data, odometry=late))
         result["robots"][str(robot)] = {
             "bearings": bearing_residuals(frames, truth, survey),
             "odometry": odometry_scale(data, truth),
-            "maps": data_maps(frames, truth, survey),
+            "odometry_lag": lag,
+            "maps": data_maps(frames, delayed, truth, survey),
         }
     mapper = load_mrclam(directory, args.mapper)
     scale = odometry_scale(mapper, mrclam_frames(mapper)[1])
