@@ -188,24 +188,12 @@ def mapper_maps(directory: Path, mapper: int, scale: dict[str, float]) -> dict[s
     return out
 
 
-def similarity_scale(estimated: dict[str, Any], survey: dict[str, np.ndarray]) -> float:
-    """The scale of the best similarity fit of `estimated` onto the survey (Umeyama): above
-    1, the map is smaller than the arena."""
-    labels = sorted(set(estimated) & set(survey))
-    a = np.array([estimated[k] for k in labels], dtype=np.float64)
-    b = np.array([survey[k] for k in labels], dtype=np.float64)
-    a, b = a - a.mean(axis=0), b - b.mean(axis=0)
-    u, s, vt = np.linalg.svd(b.T @ a)
-    s[-1] *= np.sign(np.linalg.det(u @ vt))
-    return float(s.sum() / np.sum(a**2))
-
-
 def _fitted(landmarks: dict[str, Any], survey: dict[str, np.ndarray]) -> dict[str, Any]:
     fit = fit_landmarks(landmarks, survey)
     return {
         "landmarks": len(fit.labels),
         "rmse_aligned_m": fit.rmse_aligned_m,
-        "similarity_scale": similarity_scale(landmarks, survey),
+        "similarity_scale": fit.scale,
         "error_aligned_m": fit.errors_by_label(),
     }
 

@@ -159,6 +159,8 @@ class MapFit:
         rmse_aligned_m: RMS distance after the best rigid fit, metres.
         errors_aligned_m: each landmark's distance after the fit (``labels``' order), metres.
         motion: the fit itself, (R (2, 2), t (2,)): surveyed ~ R @ estimated + t.
+        scale: the scale of the best similarity fit (the same rotation, and a scale):
+            above 1, the map is smaller than the survey.
     """
 
     labels: tuple[str, ...]
@@ -168,6 +170,7 @@ class MapFit:
     rmse_aligned_m: float
     errors_aligned_m: tuple[float, ...]
     motion: tuple[NDArray[np.float64], NDArray[np.float64]]
+    scale: float = 1.0
 
     def errors_by_label(self) -> dict[str, float]:
         """`errors_aligned_m` by landmark label, metres."""
@@ -197,6 +200,7 @@ def fit_landmarks(estimated: Mapping[str, ArrayLike], surveyed: Mapping[str, Arr
     centroid = est.mean(axis=0)
     moved = est @ rot.T + trans
     errors = np.hypot(*(moved - ref).T)
+    turned, centred = (est - centroid) @ rot.T, ref - ref.mean(axis=0)
     return MapFit(
         labels=labels,
         rotation_rad=math.atan2(float(rot[1, 0]), float(rot[0, 0])),
@@ -205,6 +209,7 @@ def fit_landmarks(estimated: Mapping[str, ArrayLike], surveyed: Mapping[str, Arr
         rmse_aligned_m=float(np.sqrt(np.mean(errors**2))),
         errors_aligned_m=tuple(float(e) for e in errors),
         motion=(rot, trans),
+        scale=float(np.sum(turned * centred) / np.sum(turned**2)),
     )
 
 

@@ -16,6 +16,7 @@ from service.offline.evaluation import (
     associate,
     ate_rmse,
     dead_reckoning,
+    fit_landmarks,
     interpolate,
     read_tum,
     write_tum,
@@ -126,6 +127,21 @@ def test_alignment_recovers_a_rigid_motion() -> None:
     r_est, t_est = align_se2(moved.xy, gt.xy)
     np.testing.assert_allclose(r_est, rot.T, atol=1e-9)
     np.testing.assert_allclose(moved.xy @ r_est.T + t_est, gt.xy, atol=1e-9)
+
+
+def test_map_fit_splits_frame_shape_and_scale() -> None:
+    rng = np.random.default_rng(6)
+    surveyed = {str(i): rng.uniform(-4.0, 4.0, 2) for i in range(12)}
+    rot, trans = _rot(0.3), np.array([0.5, -0.2])
+    # the map 5 % smaller than the arena, turned and shifted
+    estimated = {k: 0.95 * (v @ rot.T) + trans for k, v in surveyed.items()}
+    fit = fit_landmarks(estimated, surveyed)
+    assert fit.rotation_rad == pytest.approx(-0.3, abs=1e-9)
+    assert fit.scale == pytest.approx(1 / 0.95, rel=1e-9)
+    assert fit.rmse_aligned_m > 0.05  # a rigid fit cannot take the scale out
+    same = fit_landmarks({k: v @ rot.T + trans for k, v in surveyed.items()}, surveyed)
+    assert same.scale == pytest.approx(1.0, abs=1e-9)
+    assert same.rmse_aligned_m == pytest.approx(0.0, abs=1e-9)
 
 
 def test_alignment_never_reflects() -> None:
