@@ -74,25 +74,33 @@ def _truth_at(truth: Trajectory, stamps: np.ndarray) -> np.ndarray:
     return np.column_stack([at.xy, at.theta])
 
 
+def _bearings(frames: list[FrameInput]) -> tuple[np.ndarray, ...]:
+    """Every labelled bearing of `frames`: stamps, labels, bearings and sigmas (N,)."""
+    seen = [(f.stamp, o.label, o.bearing_rad, o.sigma_rad) for f in frames for o in f.observations]
+    stamps, labels, bearings, sigmas = zip(*seen, strict=True)
+    return np.array(stamps), np.array(labels), np.array(bearings), np.array(sigmas, dtype=float)
+
+
+def _residuals(
+    pose: np.ndarray, labels: np.ndarray, bearings: np.ndarray, survey: dict[str, np.ndarray]
+) -> np.ndarray:
+    """Each bearing less the one from `pose` (N, 3) to its surveyed landmark, radians."""
+    d = np.array([survey[label] for label in labels]) - pose[:, :2]
+    return wrap_angles(bearings - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]))
+
+
 def bearing_residuals(
     frames: list[FrameInput], truth: Trajectory, survey: dict[str, np.ndarray]
 ) -> dict[str, Any]:
     """Section 1 for one robot's frames (the bearings as its map gets them)."""
-    seen = [(f.stamp, o.label, o.bearing_rad) for f in frames for o in f.observations]
-    stamps = np.array([t for t, _, _ in seen])
-    labels = np.array([label for _, label, _ in seen])
-    bearings = np.array([b for _, _, b in seen])
-    landmarks = np.array([survey[label] for label in labels])
+    stamps, labels, bearings, _ = _bearings(frames)
 
     def residual(shift_s: float) -> np.ndarray:
-        pose = _truth_at(truth, stamps + shift_s)
-        d = landmarks - pose[:, :2]
-        return wrap_angles(bearings - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]))
+        return _residuals(_truth_at(truth, stamps + shift_s), labels, bearings, survey)
 
     r = residual(0.0)
     inlier = np.abs(r) <= math.radians(10.0)
-    r, stamps, labels, landmarks = r[inlier], stamps[inlier], labels[inlier], landmarks[inlier]
-    bearings = bearings[inlier]
+    r, stamps, labels, bearings = r[inlier], stamps[inlier], labels[inlier], bearings[inlier]
     rate = wrap_angles(np.diff(truth.theta)) / np.maximum(np.diff(truth.stamps), 1e-3)
     turn_rate = np.interp(stamps, truth.stamps[:-1], rate)
     constant, slope = np.linalg.lstsq(np.column_stack([np.ones_like(r), turn_rate]), r,
@@ -116,13 +124,19 @@ def bearing_residuals(
     }
 
 
-def odometry_scale(data: MrclamRobot, truth: Trajectory) -> dict[str, float]:
-    """Section 2 for one robot."""
+def _steps(data: MrclamRobot, truth: Trajectory, step_s: float) -> np.ndarray:
+    """Stamps `step_s` apart over the span both the odometry and the truth cover (1 s in
+    from either end)."""
     odo = data.odometry
     start, end = max(truth.stamps[0], odo[0, 0]) + 1.0, min(truth.stamps[-1], odo[-1, 0]) - 1.0
-    stamps = np.arange(start, end, 1.0)
+    return np.arange(start, end, step_s)
+
+
+def odometry_scale(data: MrclamRobot, truth: Trajectory) -> dict[str, float]:
+    """Section 2 for one robot."""
+    stamps = _steps(data, truth, 1.0)
     true_step = relative_motion(_truth_at(truth, stamps))
-    odo_step = relative_motion(integrate_unicycle(odo, stamps))
+    odo_step = relative_motion(integrate_unicycle(data.odometry, stamps))
     moved, odo_moved = np.hypot(*true_step[:, :2].T), np.hypot(*odo_step[:, :2].T)
     turned, odo_turned = np.abs(true_step[:, 2]), np.abs(odo_step[:, 2])
     moving = moved > 0.05
@@ -136,9 +150,7 @@ def odometry_scale(data: MrclamRobot, truth: Trajectory) -> dict[str, float]:
 
 def odometry_lag(data: MrclamRobot, truth: Trajectory) -> dict[str, Any]:
     """Section 2, the delay of the odometry that fits the truth best, for one robot."""
-    odo = data.odometry
-    start, end = max(truth.stamps[0], odo[0, 0]) + 1.0, min(truth.stamps[-1], odo[-1, 0]) - 1.0
-    stamps = np.arange(start, end, 0.25)
+    odo, stamps = data.odometry, _steps(data, truth, 0.25)
     true_turn = relative_motion(_truth_at(truth, stamps))[:, 2]
     lags = np.round(np.arange(-0.1, 0.501, 0.05), 2)
     rms = [
@@ -206,19 +218,13 @@ def data_maps(
 ) -> dict[str, Any]:
     """Section 4 for one robot's frames (`delayed`: the same with the odometry delayed by
     its best delay of section 2)."""
-    pose = _truth_at(truth, np.array([f.stamp for f in frames]))
-    rays: dict[str, list[tuple[float, float, float, float]]] = {}
-    for k, f in enumerate(frames):
-        for o in f.observations:
-            d = survey[o.label] - pose[k, :2]
-            expected = math.atan2(d[1], d[0]) - pose[k, 2]
-            if abs(float(wrap_angles(o.bearing_rad - expected))) <= math.radians(10.0):
-                ray = (pose[k, 0], pose[k, 1], pose[k, 2] + o.bearing_rad, o.sigma_rad or 0.0)
-                rays.setdefault(o.label, []).append(ray)
+    stamps, labels, bearings, sigmas = _bearings(frames)
+    pose = _truth_at(truth, stamps)
+    inlier = np.abs(_residuals(pose, labels, bearings, survey)) <= math.radians(10.0)
     triangulated: dict[str, Any] = {}
-    for label, rr in rays.items():
-        r = np.array(rr)
-        tri = triangulate(r[:, :2], r[:, 2], np.maximum(r[:, 3], 1e-3)) if len(r) >= 2 else None
+    for label in set(labels[inlier].tolist()):
+        ray = inlier & (labels == label)
+        tri = triangulate(pose[ray, :2], pose[ray, 2] + bearings[ray], sigmas[ray])
         if tri is not None:
             triangulated[label] = tri.point
     config = slam_config(rest_config(), "mapping")
@@ -262,8 +268,11 @@ def main() -> None:
             "odometry_lag": lag,
             "maps": data_maps(frames, delayed, truth, survey),
         }
-    mapper = load_mrclam(directory, args.mapper)
-    scale = odometry_scale(mapper, mrclam_frames(mapper)[1])
+    if str(args.mapper) in result["robots"]:
+        scale = result["robots"][str(args.mapper)]["odometry"]
+    else:
+        mapper = load_mrclam(directory, args.mapper)
+        scale = odometry_scale(mapper, mrclam_frames(mapper)[1])
     result["mapper"] = args.mapper
     result["mapper_maps"] = mapper_maps(directory, args.mapper, scale)
     result["seconds"] = round(time.perf_counter() - t0, 1)

@@ -51,13 +51,18 @@ def pose_rows(rows: Iterable[FinalRow], robots: list[str]) -> list[PoseRow]:
 
 
 def with_final_rows(
-    final: NDArray[np.float64] | None, held: NDArray[np.float64]
+    final: NDArray[np.float64] | None, held: NDArray[np.float64] | None
 ) -> NDArray[np.float64]:
-    """One robot's final rows (from a sink) and the rows the estimator holds, both (N, 5)
-    seq, stamp, x, y, theta as BearingSlam.trajectory gives them, as one array by seq."""
+    """One robot's rows by seq, (N, 5) seq, stamp, x, y, theta as BearingSlam.trajectory
+    gives them: the rows the estimator holds, and the final rows (from a sink or the
+    store) of every other seq. The held rows need not follow the final ones (a keyframe
+    stays held while the frames after it are made final), and a held row may carry a seq
+    the store has made final since (a published view's rows): the held one is kept."""
+    if held is None or not len(held):
+        return final if final is not None and len(final) else np.zeros((0, 5))
     if final is None or not len(final):
         return held
-    rows = np.concatenate([final, held])
+    rows = np.concatenate([final[~np.isin(final[:, 0], held[:, 0])], held])
     return rows[np.argsort(rows[:, 0], kind="stable")]
 
 

@@ -19,12 +19,12 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from graph.trajectory import with_final_rows
 from service.errors import ServiceError, unknown_robot
 from service.pipeline.config import Mode
 from service.pipeline.coverage import coverage_grid
 from service.pipeline.documents import (
     clusters_doc,
-    final_with_held,
     landmark_table,
     landmarks_doc,
     pose_doc,
@@ -215,7 +215,7 @@ class Trajectory(MapRequest[dict[str, list[Doc]]]):
                 raise unknown_robot(session.record.id, robot, " (GET /pose lists its robots)")
             final = session.store.poses(robot)  # the estimator holds the newer rows
             rows = {
-                name: trajectory_rows(final_with_held(final.get(name), held))
+                name: trajectory_rows(with_final_rows(final.get(name), held))
                 for name, held in session.slam.trajectory(robot).items()
             }
         session.pipeline.with_off_graph(rows, robot)
@@ -234,7 +234,7 @@ class Trajectory(MapRequest[dict[str, list[Doc]]]):
             return None  # frame statistics, off-graph rows, an unknown robot: the worker's
         final = store.read_poses(view.map_id, robot)
         return {
-            name: trajectory_rows(final_with_held(final.get(name), held))
+            name: trajectory_rows(with_final_rows(final.get(name), held))
             for name, held in view.held.items()
             if robot is None or name == robot
         }

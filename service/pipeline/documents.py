@@ -35,21 +35,6 @@ def pose_doc(slam: BearingSlam, map_id: str, only: str | None = None) -> dict[st
     return {"map_id": map_id, "robots": robots}
 
 
-def final_with_held(
-    final: NDArray[np.float64] | None, held: NDArray[np.float64] | None
-) -> NDArray[np.float64]:
-    """One robot's rows by seq: the rows the estimator holds, and the stored final rows
-    of every other seq. The held rows need not follow the final ones (a keyframe stays
-    held while the frames after it are made final), and a view's held rows may carry a
-    row the store has made final since: the held one is kept."""
-    if held is None or not len(held):
-        return final if final is not None and len(final) else np.zeros((0, 5))
-    if final is None or not len(final):
-        return held
-    rows = np.concatenate([final[~np.isin(final[:, 0], held[:, 0])], held])
-    return rows[np.argsort(rows[:, 0], kind="stable")]
-
-
 def trajectory_rows(rows: NDArray[np.float64]) -> list[dict[str, float]]:
     """(N, 5) rows seq, stamp, x, y, theta as [{seq, stamp, x, y, theta}]."""
     return [

@@ -9,11 +9,11 @@ import time
 import numpy as np
 import pytest
 
+from graph.trajectory import with_final_rows
 from service.balance import choose_move
 from service.events import Notifier, sse_bytes
 from service.frames_io import frame_to_dict
 from service.offline.datasets.indoor_sim import make_world, simulate
-from service.pipeline.documents import final_with_held
 from service.published import ViewDelta, build_view
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
 from service.session import MapSession
@@ -137,7 +137,7 @@ def test_after_one_robots_frame_only_its_pose_is_new(store: Store) -> None:
 def test_final_rows_the_view_still_holds_are_not_doubled() -> None:
     final = np.array([[s, s, 0, 0, 0] for s in range(6)], dtype=np.float64)
     held = np.array([[s, s, 1, 1, 1] for s in range(4, 9)], dtype=np.float64)
-    rows = final_with_held(final, held)
+    rows = with_final_rows(final, held)
     assert rows[:, 0].tolist() == list(range(9))
     assert rows[4:, 2].tolist() == [1.0] * 5  # the held (view's) rows win
 
@@ -147,7 +147,7 @@ def test_final_rows_between_held_ones_are_kept() -> None:
     # among final 0-7.
     final = np.array([[s, s, 0, 0, 0] for s in (0, 1, 2, 3, 5, 7)], dtype=np.float64)
     held = np.array([[s, s, 1, 1, 1] for s in (4, 6, 8)], dtype=np.float64)
-    rows = final_with_held(final, held)
+    rows = with_final_rows(final, held)
     assert rows[:, 0].tolist() == list(range(9))
     assert rows[:, 2].tolist() == [0, 0, 0, 0, 1, 0, 1, 0, 1]
 
