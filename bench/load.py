@@ -5,7 +5,7 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 root, niced (2 cores, shared)::
 
     nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
-                                    [--event-maps 2] [--event-frames 40]
+                                    [--slices 3] [--event-maps 2] [--event-frames 40]
                                     [--subscribers 200] [--runs 5] [--out bench/results]
     python -m bench.load --bound-only 5   # the bound alone, 5 times: the machine's spread
 
@@ -13,31 +13,39 @@ Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmark
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
 same world. Map config: landmark cap 50, the default policy.
 
+Phases 1 and 2 take turns, `slices` times (the machine's speed moves from one minute to
+the next by up to 10 %, so a load and a bound a minute apart compare two machines):
+`load-s` / `slices` seconds of phase 1, the server left to settle, then phase 2 on
+exactly the frames the clients posted in that slice, and again. Each phase's figures
+are summed over its slices; ``ratio_per_slice`` gives each turn's own ratio.
+
 1. ``http``: a ``covslam serve --workers 2`` (uvicorn in a subprocess, SQLite,
    synchronous NORMAL); 12 maps are created (placed 6:6) and 4 of worker 1's deleted, so
    the load maps are placed 6:2 on the workers when their frames begin, as a placement
    by id did (``placed_at_start``; the pool deals a map again at its first frame). M maps x C
-   clients post their frames for `load-s` seconds (one keep-alive connection per client,
-   closed loop, all clients on one asyncio loop in the bench's process, the bodies
-   encoded before the phase; no client runs out of frames, so the phase ends
-   with every client still posting and both workers busy; ``clients_out_of_frames``
-   counts those that did, which would leave a tail of fewer maps): frames/s, POST
-   p50/p99, per-map frames/s in the first and the last third of the phase (the
-   balancer's effect), the moves the pool made. Meanwhile a reader process GETs pose,
-   landmarks, trajectory and the summary of an idle map and of a busy map, a round
-   every 0.25 s: p50/p99 per target.
+   clients post their frames (one keep-alive connection per client and slice, closed
+   loop, all clients on one asyncio loop in the bench's process, the bodies encoded
+   before the phase; a slice ends when its time is up and every client has its answer;
+   no client runs out of frames, so every slice ends with every client still posting
+   and both workers busy; ``clients_out_of_frames`` counts those that did, which would
+   leave a tail of fewer maps): frames/s, POST p50/p99, per-map frames/s in the first
+   third of the first slice and the last third of the last (the balancer's effect), the
+   moves the pool made. Meanwhile a reader process GETs pose, landmarks, trajectory and
+   the summary of an idle map and of a busy map, a round every 0.25 s: p50/p99 per
+   target.
 2. ``cpu_bound``: exactly the frames the clients posted, through ``MapSession.submit``
    in-process, each map with the config the service created the HTTP maps with (read
    from their record: the estimator's defaults for a new map filled in, e.g. the upkeep
    after the frame), the maps dealt to two processes (one per core, at a worker's
-   niceness), each map's robots interleaved frame by frame, while the server idles
-   (``http.settle``: the wait, after the load, for its workers' due snapshots and
-   view renewals to end, and the server's CPU seconds meanwhile):
-   frames/s = all frames / (the processes' wall times summed / 2), every core busy.
-   ``http.ratio_to_cpu_bound`` = phase 1's frames/s over this. CPU time per frame
-   (from /proc, so other work on the machine is not in it): the workers', the API
-   process's and the bench's own client threads' in phase 1, and the in-process
-   sessions' here; ``worker_cpu_to_in_process`` compares the first with the last.
+   niceness, kept from slice to slice with their maps), each map's robots interleaved
+   frame by frame, while the server idles (``http.settle``: the waits, after each slice,
+   for its workers' due snapshots and view renewals to end, and the server's CPU
+   seconds meanwhile; the reader pauses too): frames/s = all frames / (the processes'
+   wall times summed / 2), every core busy. ``http.ratio_to_cpu_bound`` = phase 1's
+   frames/s over this. CPU time per frame (from /proc, so other work on the machine is
+   not in it): the workers', the API process's and the bench's own clients' in phase 1,
+   and the in-process sessions' here; ``worker_cpu_to_in_process`` compares the first
+   with the last.
 3. ``events``: three times `event-maps` fresh maps take the same frames from C clients
    each (`event-frames` per client): with no event stream open, with `subscribers` SSE
    streams open on them (read by one asyncio process), and with none again: frames/s
@@ -127,27 +135,32 @@ def created_config(config: dict[str, Any] | None = None) -> dict[str, Any]:
     return new.model_dump(mode="json")
 
 
-def _in_process(
-    maps: list[list[list[dict[str, Any]]]], config: dict[str, Any]
-) -> tuple[int, float, float, int]:
-    """(frames, wall s, CPU s, involuntary context switches) of these maps' frames
-    through MapSession.submit, one process, each map created with `config` (as stored in
-    the map's record)."""
+def _sessions(n: int, config: dict[str, Any]) -> list[Any]:
+    """`n` new maps' sessions in a temporary directory, each created with `config` (as
+    stored in the map's record), in a process niced as a worker is."""
     from service.session import MapSession
     from service.settings import StoreSettings, WorkerSettings
     from service.store import MapRecord
 
     os.nice(WorkerSettings().nice)  # as a worker process: the same share of the cores
-
     work = Path(tempfile.mkdtemp(prefix="covslam-load-"))
     sessions = []
-    for i, _ in enumerate(maps):
+    for i in range(n):
         record = MapRecord(f"m{i}", f"m{i}", "mapping", dict(config), time.time())
         sessions.append(MapSession.create(work / f"m{i}.sqlite", record, StoreSettings()))
+    return sessions
+
+
+def _submit_all(
+    sessions: list[Any], maps: list[list[list[dict[str, Any]]]]
+) -> tuple[int, float, float, int]:
+    """(frames, wall s, CPU s, involuntary context switches) of these maps' frames (per
+    map, per robot) through their sessions' MapSession.submit, each map's robots
+    interleaved frame by frame and the maps in turn."""
     t0, c0 = time.perf_counter(), time.process_time()
     s0 = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw
     n = 0
-    for k in range(max(len(r) for runs in maps for r in runs)):
+    for k in range(max((len(r) for runs in maps for r in runs), default=0)):
         for session, runs in zip(sessions, maps, strict=True):
             for run in runs:
                 if k < len(run):
@@ -155,6 +168,63 @@ def _in_process(
                     n += 1
     switches = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw - s0
     return n, time.perf_counter() - t0, time.process_time() - c0, switches
+
+
+Figures = tuple[int, float, float, int]
+"""(frames, wall s, CPU s, involuntary context switches) of a run of `_submit_all`."""
+
+
+def _in_process(maps: list[list[list[dict[str, Any]]]], config: dict[str, Any]) -> Figures:
+    """`_submit_all` of these maps' frames in new sessions (one process)."""
+    return _submit_all(_sessions(len(maps), config), maps)
+
+
+def _bound_process(conn: Any, n_maps: int, config: dict[str, Any]) -> None:
+    """Process: `n_maps` sessions kept between slices; each message (per map, per robot,
+    the frames a slice posted) is submitted and answered with `_submit_all`'s figures;
+    None ends it."""
+    sessions = _sessions(n_maps, config)
+    conn.send(len(sessions))  # ready: the load's slices may begin
+    while (maps := conn.recv()) is not None:
+        conn.send(_submit_all(sessions, maps))
+
+
+def _bound_rate(runs: list[tuple[int, float, float, int]], cores: int) -> float:
+    """Frames/s of `_submit_all` runs made side by side, every core busy all the time
+    (the processes' wall times summed, shared out over the cores: their frames differ in
+    number, so one finishes first)."""
+    return sum(r[0] for r in runs) / (sum(r[1] for r in runs) / cores)
+
+
+class SlicedBound:
+    """The in-process bound kept beside the server, `cores` processes (map i in process
+    i % cores), fed slice by slice the frames the clients posted in the slice before."""
+
+    def __init__(self, n_maps: int, config: dict[str, Any], cores: int = 2) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.cores = cores
+        self.conns, self.procs = [], []
+        for c in range(cores):
+            parent, child = ctx.Pipe()
+            share = len(range(c, n_maps, cores))
+            proc = ctx.Process(target=_bound_process, args=(child, share, config))
+            proc.start()
+            self.conns.append(parent)
+            self.procs.append(proc)
+        for conn in self.conns:  # started, imported and its maps created
+            conn.recv()
+
+    def run(self, frames: list[list[list[dict[str, Any]]]]) -> list[tuple[int, float, float, int]]:
+        """Every process its maps' frames at once; their figures when all are done."""
+        for c, conn in enumerate(self.conns):
+            conn.send(frames[c :: self.cores])
+        return [conn.recv() for conn in self.conns]
+
+    def close(self) -> None:
+        for conn in self.conns:
+            conn.send(None)
+        for proc in self.procs:
+            proc.join(timeout=60)
 
 
 def cpu_bound(
@@ -267,18 +337,28 @@ async def _post_loop(port: int, map_id: str, bodies: list[bytes], until: float,
     await writer.wait_closed()
 
 
-def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]],
-             limit_s: float) -> tuple[dict[str, Any], list[list[int]]]:  # fmt: skip
-    """Every client posts its frames (at most `limit_s`): (frames/s, POST latency, ...;
-    the frames each client of each map posted)."""
+def post_all(
+    port: int,
+    maps: list[str],
+    frames: list[list[list[dict[str, Any]]]],
+    limit_s: float,
+    start: list[list[int]] | None = None,
+    bodies: list[list[list[bytes]]] | None = None,
+) -> tuple[dict[str, Any], list[list[int]]]:
+    """Every client posts its frames (at most `limit_s`), from its frame `start` on (default
+    0; `bodies`: the frames already encoded): (frames/s, POST latency, ...; the frames each
+    client of each map posted)."""
     rows: list[tuple[float, float, str, int]] = []
-    bodies = [[[json.dumps(f).encode() for f in run] for run in runs] for runs in frames]
+    if bodies is None:
+        bodies = [[[json.dumps(f).encode() for f in run] for run in runs] for runs in frames]
+    if start is None:
+        start = [[0] * len(runs) for runs in frames]
 
     async def clients() -> None:
         await asyncio.gather(*(
-            _post_loop(port, m, run, until, rows, c)
-            for m, runs in zip(maps, bodies, strict=True)
-            for c, run in enumerate(runs)
+            _post_loop(port, m, run[first:], until, rows, c)
+            for m, runs, firsts in zip(maps, bodies, start, strict=True)
+            for c, (run, first) in enumerate(zip(runs, firsts, strict=True))
         ))  # fmt: skip
 
     load0 = _loadavg()
@@ -300,6 +380,7 @@ def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]
         "wall_s": round(wall, 2),
         "frames_per_s": round(len(rows) / wall, 1),
         "post_ms": _stats([r[1] for r in rows]),
+        "post_ms_all": [r[1] for r in rows],
         "clients_cpu_s": round(cpu, 3),
         "per_map_frames_per_s_first_third": thirds[0],
         "per_map_frames_per_s_last_third": thirds[1],
@@ -307,11 +388,14 @@ def post_all(port: int, maps: list[str], frames: list[list[list[dict[str, Any]]]
     }, posted
 
 
-def _reader(url: str, targets: dict[str, str], stop: Any, queue: Any) -> None:
-    """Process: GET each read path of each target map in turn until `stop` is set."""
+def _reader(url: str, targets: dict[str, str], stop: Any, queue: Any, go: Any) -> None:
+    """Process: GET each read path of each target map in turn until `stop` is set, while
+    `go` is (the load's slices, not the bound's)."""
     out: dict[str, list[float]] = {name: [] for name in targets}
     with httpx.Client(base_url=url, timeout=60) as client:
         while not stop.is_set():
+            if not go.wait(0.1):
+                continue
             for name, map_id in targets.items():
                 for path in READ_PATHS:
                     t0 = time.perf_counter()
@@ -458,24 +542,69 @@ def _measure(
         small.append(m)
 
     ctx = multiprocessing.get_context("spawn")
-    stop, queue = ctx.Event(), ctx.Queue()
+    stop, queue, go = ctx.Event(), ctx.Queue(), ctx.Event()
     reader = ctx.Process(target=_reader, args=(server.url, {"idle": idle, "busy": maps[0]},
-                                               stop, queue))  # fmt: skip
+                                               stop, queue, go))  # fmt: skip
     reader.start()
+    # the maps' config as the service created them (the estimator's defaults filled in)
+    config = client.get(f"/v1/maps/{maps[0]}").json()["config"]
+    bound = SlicedBound(len(maps), config)
+    bodies = [[[json.dumps(f).encode() for f in run] for run in runs] for runs in main]
+    at = [[0] * len(runs) for runs in main]
     pids = _worker_pids(client)
-    switches0 = sum(_switches(p) for p in pids)
-    cpu0 = _server_cpu(server, pids)
-    http_run, posted = post_all(server.port, maps, main, limit_s=args.load_s)
-    cpu1 = _server_cpu(server, pids)
-    switches1 = sum(_switches(p) for p in pids)
-    stop.set()
+    slices, bounds, settles = [], [], []
+    cpu = {"workers": 0.0, "api": 0.0, "clients": 0.0, "switches": 0.0}
+    load0 = _loadavg()
+    try:
+        for _ in range(args.slices):
+            # 1. the clients post for a slice of the load's time, the reads beside them
+            go.set()
+            switches0, cpu0 = sum(_switches(p) for p in pids), _server_cpu(server, pids)
+            part, posted = post_all(server.port, maps, main, args.load_s / args.slices,
+                                    start=at, bodies=bodies)  # fmt: skip
+            cpu1, switches1 = _server_cpu(server, pids), sum(_switches(p) for p in pids)
+            go.clear()
+            for key in ("workers", "api"):
+                cpu[key] += cpu1[key] - cpu0[key]
+            cpu["clients"] += part.pop("clients_cpu_s")
+            cpu["switches"] += switches1 - switches0
+            settles.append(_settle(server, client))
+            # 2. the same frames in-process, while the server idles
+            done = [
+                [run[a : a + n] for run, a, n in zip(runs, starts, ns, strict=True)]
+                for runs, starts, ns in zip(main, at, posted, strict=True)
+            ]
+            bounds.append(bound.run(done))
+            at = [
+                [a + n for a, n in zip(firsts, ns, strict=True)]
+                for firsts, ns in zip(at, posted, strict=True)
+            ]
+            slices.append(part)
+    finally:
+        bound.close()
+        stop.set()
+        go.set()
     reads = queue.get(timeout=60)
     reader.join()
+    n = sum(p["frames"] for p in slices)
+    http_wall = sum(p["wall_s"] for p in slices)
+    http_run: dict[str, Any] = {
+        "frames": n,
+        "wall_s": round(http_wall, 2),
+        "frames_per_s": round(n / http_wall, 1),
+        "slices": args.slices,
+        "post_ms": _stats([ms for p in slices for ms in p.pop("post_ms_all")]),
+        # the balancer's effect: per map, the first third of the first slice and the
+        # last third of the last
+        "per_map_frames_per_s_first_third": slices[0]["per_map_frames_per_s_first_third"],
+        "per_map_frames_per_s_last_third": slices[-1]["per_map_frames_per_s_last_third"],
+        "loadavg": [load0, _loadavg()],
+    }
     http_run["placed_at_start"] = placed
     http_run["clients_out_of_frames"] = sum(
-        n == len(run)
-        for runs, ns in zip(main, posted, strict=True)
-        for run, n in zip(runs, ns, strict=True)
+        a == len(run)
+        for runs, starts in zip(main, at, strict=True)
+        for run, a in zip(runs, starts, strict=True)
     )
     status = client.get("/v1/workers").json()
     http_run["moves"] = status.get("moves")
@@ -484,27 +613,38 @@ def _measure(
     ]
     http_run["reads_ms"] = {name: _stats(ms) for name, ms in reads.items()}
     http_run["reads_ms"]["all"] = _stats([v for ms in reads.values() for v in ms])
+    http_run["settle"] = {
+        "s": round(sum(x["s"] for x in settles), 1),
+        "server_cpu_s": round(sum(x["server_cpu_s"] for x in settles), 2),
+    }
     print("http", http_run, flush=True)
-    # 2. the CPU bound of the frames the clients posted (the server is idle meanwhile)
-    done = [
-        [run[:n] for run, n in zip(runs, ns, strict=True)]
-        for runs, ns in zip(main, posted, strict=True)
-    ]
-    # the maps' config as the service created them (the estimator's defaults filled in)
-    config = client.get(f"/v1/maps/{maps[0]}").json()["config"]
-    http_run["settle"] = _settle(server, client)
-    result["cpu_bound"] = cpu_bound(done, config=config)
+    # the bound: every core busy all the time (the processes' wall times summed, shared
+    # out over the cores; their frames differ in number, so one finishes first)
+    walls = [sum(b[c][1] for b in bounds) for c in range(bound.cores)]
+    nb = sum(r[0] for b in bounds for r in b)
+    result["cpu_bound"] = {
+        "frames": nb,
+        "process_wall_s": [round(w, 2) for w in walls],
+        "frames_per_s": round(nb / (sum(walls) / bound.cores), 1),
+        "processes": bound.cores,
+        "cpu_ms_per_frame": round(1e3 * sum(r[2] for b in bounds for r in b) / nb, 2),
+        "involuntary_switches_per_frame": round(sum(r[3] for b in bounds for r in b) / nb, 2),
+    }
     print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
         http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3
     )
-    n = http_run["frames"]
+    # each slice's ratio: how far the machine's speed moved between the slices
+    http_run["ratio_per_slice"] = [
+        round(p["frames"] / p["wall_s"] / _bound_rate(b, bound.cores), 3)
+        for p, b in zip(slices, bounds, strict=True)
+    ]
     http_run["cpu_ms_per_frame"] = {
-        "workers": round(1e3 * (cpu1["workers"] - cpu0["workers"]) / n, 2),
-        "api_process": round(1e3 * (cpu1["api"] - cpu0["api"]) / n, 2),
-        "bench_clients": round(1e3 * http_run.pop("clients_cpu_s") / n, 2),
+        "workers": round(1e3 * cpu["workers"] / n, 2),
+        "api_process": round(1e3 * cpu["api"] / n, 2),
+        "bench_clients": round(1e3 * cpu["clients"] / n, 2),
     }
-    http_run["worker_involuntary_switches_per_frame"] = round((switches1 - switches0) / n, 2)
+    http_run["worker_involuntary_switches_per_frame"] = round(cpu["switches"] / n, 2)
     # the same frames' CPU in a worker against in-process (no other load in the figure)
     http_run["worker_cpu_to_in_process"] = round(
         http_run["cpu_ms_per_frame"]["workers"] / result["cpu_bound"]["cpu_ms_per_frame"], 3
@@ -530,6 +670,7 @@ def _measure(
             time.sleep(3.0)  # let them connect
         name = f"{k + 1}_subscribers_{n_subs}"
         events[name] = post_all(server.port, fresh, phase, limit_s=600)[0]
+        events[name].pop("post_ms_all")
         if proc is not None:
             stop.set()
             events[name]["frame_events_received"] = counts.get(timeout=60)
@@ -591,7 +732,10 @@ def main() -> None:
     parser.add_argument("--maps", type=int, default=8)
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--frames", type=int, default=400, help="at most, per client (1-2)")
-    parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 2")
+    parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 1")
+    parser.add_argument(
+        "--slices", type=int, default=3, help="phase 1 in this many turns with phase 2"
+    )
     parser.add_argument("--event-maps", type=int, default=2)
     parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
     parser.add_argument("--subscribers", type=int, default=200)
