@@ -8,6 +8,7 @@ root, niced (2 cores, shared)::
                                     [--slices 3] [--event-maps 2] [--event-frames 40]
                                     [--subscribers 200] [--runs 5] [--out bench/results]
     python -m bench.load --bound-only 5   # the bound alone, 5 times: the machine's spread
+    python -m bench.load --corunner 3     # the bound alone and beside a co-runner, in turn
 
 Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmarks,
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
@@ -727,6 +728,49 @@ def bound_only(maps: int, clients: int, repeats: int) -> dict[str, Any]:
     }
 
 
+def _corunner(wakes_per_s: float, work_ms: float, stop: Any) -> None:
+    """Process: like the API process beside the workers, `wakes_per_s` wake-ups a second,
+    each `work_ms` of CPU on Python objects (JSON-encoding small documents)."""
+    rng = np.random.default_rng(0)
+    docs = [{f"k{i}": rng.random(20).tolist()} for i in range(3000)]
+    i = 0
+    while not stop.is_set():
+        t0 = time.thread_time()
+        while time.thread_time() - t0 < work_ms / 1e3:
+            json.dumps(docs[i % len(docs)])
+            i += 37
+        time.sleep(1.0 / wakes_per_s)
+
+
+def beside_corunner(maps: int, clients: int, pairs: int) -> dict[str, Any]:
+    """The in-process bound alone and beside `_corunner` (1 000 wake-ups a second, 0.2 ms
+    each: 20 % of a core), in turn, `pairs` times: whether sharing the cores with a
+    process that wakes as often as the API process slows the estimator's CPU per frame."""
+    frames = make_frames(maps, clients, 175)
+    ctx = multiprocessing.get_context("spawn")
+    runs: dict[str, list[dict[str, Any]]] = {"alone": [], "beside": []}
+    for _ in range(pairs):
+        runs["alone"].append(cpu_bound(frames))
+        stop = ctx.Event()
+        proc = ctx.Process(target=_corunner, args=(1000.0, 0.2, stop))
+        proc.start()
+        try:
+            runs["beside"].append(cpu_bound(frames))
+        finally:
+            stop.set()
+            proc.join(timeout=30)
+    return {
+        "command": "python -m bench.load " + " ".join(sys.argv[1:]),
+        "frames": runs["alone"][0]["frames"],
+        "corunner": {"wakes_per_s": 1000, "cpu_ms_per_wake": 0.2},
+        **{
+            f"{name}_{key}": [r[key] for r in rs]
+            for name, rs in runs.items()
+            for key in ("cpu_ms_per_frame", "involuntary_switches_per_frame", "frames_per_s")
+        },
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
@@ -755,8 +799,21 @@ def main() -> None:
         help="no server: the in-process bound N times on the same frames (the first 175 of "
         "each client's run, about what a load phase posts); writes load_bound_only.json",
     )
+    parser.add_argument(
+        "--corunner",
+        type=int,
+        default=0,
+        metavar="N",
+        help="no server: the bound alone and beside a process waking 1000 times a second, "
+        "N times in turn; writes load_corunner.json",
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
+    if args.corunner:
+        args.out.mkdir(parents=True, exist_ok=True)
+        doc = beside_corunner(args.maps, args.clients, args.corunner)
+        (args.out / "load_corunner.json").write_text(json.dumps(doc, indent=2) + "\n")
+        return
     if args.bound_only:
         args.out.mkdir(parents=True, exist_ok=True)
         doc = bound_only(args.maps, args.clients, args.bound_only)
