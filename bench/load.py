@@ -5,7 +5,7 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 root, niced (2 cores, shared)::
 
     nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
-                                    [--slices 3] [--event-maps 2] [--event-frames 40]
+                                    [--slices 3] [--event-maps 2] [--event-frames 100]
                                     [--subscribers 200] [--runs 5] [--out bench/results]
     python -m bench.load --bound-only 5   # the bound alone, 5 times: the machine's spread
     python -m bench.load --corunner 3     # the bound alone and beside a co-runner, in turn
@@ -50,8 +50,9 @@ are summed over its slices; ``ratio_per_slice`` gives each turn's own ratio.
 3. ``events``: three times `event-maps` fresh maps take the same frames from C clients
    each (`event-frames` per client): with no event stream open, with `subscribers` SSE
    streams open on them (read by one asyncio process), and with none again: frames/s
-   and POST p50, the middle phase against the mean of the other two. The maps are
-   deleted afterwards.
+   and POST p50, the middle phase against the mean of the other two, and the CPU a
+   frame of the workers, the API process (whose fan-out writes every event to every
+   stream), the bench's clients and its stream reader. The maps are deleted afterwards.
 4. ``restart``: SIGTERM (seconds until the process group ended), the frames each map's
    log holds beyond its latest snapshot (what a start would replay), then a start on
    the same data: seconds until /readyz answered 200 with every map loaded, and the
@@ -79,6 +80,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import uvloop
 
 from service.frames_io import frame_to_dict
 from service.offline.datasets.indoor_sim import make_world, simulate
@@ -365,7 +367,8 @@ def post_all(
     load0 = _loadavg()
     t0, cpu0 = time.monotonic(), time.process_time()
     until = t0 + limit_s
-    asyncio.run(clients())
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        runner.run(clients())
     wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
     thirds = []
     for lo, hi in ((0.0, 1 / 3), (2 / 3, 1.0)):
@@ -389,23 +392,57 @@ def post_all(
     }, posted
 
 
-def _reader(url: str, targets: dict[str, str], stop: Any, queue: Any, go: Any) -> None:
-    """Process: GET each read path of each target map in turn until `stop` is set, while
-    `go` is (the load's slices, not the bound's)."""
+async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str) -> int:
+    """One GET over a keep-alive connection (a minimal HTTP/1.1 client, as the posting
+    clients'); its status, the body read and dropped."""
+    writer.write(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+    status = int((await reader.readline()).split()[1])
+    length, chunked = 0, False
+    while (line := await reader.readline()) not in (b"\r\n", b""):
+        name, _, value = line.partition(b":")
+        name = name.strip().lower()
+        if name == b"content-length":
+            length = int(value)
+        elif name == b"transfer-encoding" and b"chunked" in value.lower():
+            chunked = True
+    if not chunked:
+        await reader.readexactly(length)
+        return status
+    while size := int((await reader.readline()).split(b";")[0], 16):
+        await reader.readexactly(size + 2)
+    await reader.readline()  # the empty trailer
+    return status
+
+
+async def _read_rounds(
+    port: int, targets: dict[str, str], stop: Any, go: Any
+) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {name: [] for name in targets}
-    with httpx.Client(base_url=url, timeout=60) as client:
-        while not stop.is_set():
-            if not go.wait(0.1):
-                continue
-            for name, map_id in targets.items():
-                for path in READ_PATHS:
-                    t0 = time.perf_counter()
-                    r = client.get(f"/v1/maps/{map_id}" + (f"/{path}" if path else ""))
-                    out[name].append(1e3 * (time.perf_counter() - t0))
-                    if r.status_code != 200:
-                        raise RuntimeError(f"GET {path}: {r.status_code} {r.text}")
-            time.sleep(READ_PAUSE_S)
-    queue.put(out)
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    while not stop.is_set():
+        if not go.is_set():
+            await asyncio.sleep(0.1)
+            continue
+        for name, map_id in targets.items():
+            for path in READ_PATHS:
+                t0 = time.perf_counter()
+                status = await _get(
+                    reader, writer, f"/v1/maps/{map_id}" + (f"/{path}" if path else "")
+                )
+                out[name].append(1e3 * (time.perf_counter() - t0))
+                if status != 200:
+                    raise RuntimeError(f"GET {path}: {status}")
+        await asyncio.sleep(READ_PAUSE_S)
+    writer.close()
+    return out
+
+
+def _reader(port: int, targets: dict[str, str], stop: Any, queue: Any, go: Any) -> None:
+    """Process: GET each read path of each target map in turn until `stop` is set, while
+    `go` is (the load's slices, not the bound's); one keep-alive connection, so that the
+    bench's dashboard takes as little of the service's cores as it can."""
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        queue.put(runner.run(_read_rounds(port, targets, stop, go)))
 
 
 async def _subscribe(port: int, paths: list[str], stop: Any, counts: Any) -> None:
@@ -432,13 +469,19 @@ async def _subscribe(port: int, paths: list[str], stop: Any, counts: Any) -> Non
 
 
 def _subscribers(port: int, paths: list[str], stop: Any, counts: Any) -> None:
-    asyncio.run(_subscribe(port, paths, stop, counts))
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        runner.run(_subscribe(port, paths, stop, counts))
 
 
 def _cpu_s(pid: int) -> float:
     """CPU seconds (user + system) a process has used so far."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _process_cpu_s(proc: Any) -> float:
+    """`_cpu_s` of a started multiprocessing process; 0 for None."""
+    return 0.0 if proc is None or proc.pid is None else _cpu_s(proc.pid)
 
 
 def _switches(pid: int) -> int:
@@ -544,7 +587,7 @@ def _measure(
 
     ctx = multiprocessing.get_context("spawn")
     stop, queue, go = ctx.Event(), ctx.Queue(), ctx.Event()
-    reader = ctx.Process(target=_reader, args=(server.url, {"idle": idle, "busy": maps[0]},
+    reader = ctx.Process(target=_reader, args=(server.port, {"idle": idle, "busy": maps[0]},
                                                stop, queue, go))  # fmt: skip
     reader.start()
     # the maps' config as the service created them (the estimator's defaults filled in)
@@ -554,13 +597,14 @@ def _measure(
     at = [[0] * len(runs) for runs in main]
     pids = _worker_pids(client)
     slices, bounds, settles = [], [], []
-    cpu = {"workers": 0.0, "api": 0.0, "clients": 0.0, "switches": 0.0}
+    cpu = {"workers": 0.0, "api": 0.0, "clients": 0.0, "reader": 0.0, "switches": 0.0}
     load0 = _loadavg()
     try:
         for _ in range(args.slices):
             # 1. the clients post for a slice of the load's time, the reads beside them
             go.set()
             switches0, cpu0 = sum(_switches(p) for p in pids), _server_cpu(server, pids)
+            reader0 = _process_cpu_s(reader)
             part, posted = post_all(server.port, maps, main, args.load_s / args.slices,
                                     start=at, bodies=bodies)  # fmt: skip
             cpu1, switches1 = _server_cpu(server, pids), sum(_switches(p) for p in pids)
@@ -568,6 +612,7 @@ def _measure(
             for key in ("workers", "api"):
                 cpu[key] += cpu1[key] - cpu0[key]
             cpu["clients"] += part.pop("clients_cpu_s")
+            cpu["reader"] += _process_cpu_s(reader) - reader0
             cpu["switches"] += switches1 - switches0
             settles.append(_settle(server, client))
             # 2. the same frames in-process, while the server idles
@@ -644,6 +689,7 @@ def _measure(
         "workers": round(1e3 * cpu["workers"] / n, 2),
         "api_process": round(1e3 * cpu["api"] / n, 2),
         "bench_clients": round(1e3 * cpu["clients"] / n, 2),
+        "bench_reader": round(1e3 * cpu["reader"] / n, 2),
     }
     http_run["worker_involuntary_switches_per_frame"] = round(cpu["switches"] / n, 2)
     # the same frames' CPU in a worker against in-process (no other load in the figure)
@@ -670,8 +716,19 @@ def _measure(
             proc.start()
             time.sleep(3.0)  # let them connect
         name = f"{k + 1}_subscribers_{n_subs}"
+        cpu0 = _server_cpu(server, pids)
+        subs0 = _process_cpu_s(proc)
         events[name] = post_all(server.port, fresh, phase, limit_s=600)[0]
+        cpu1 = _server_cpu(server, pids)
+        n = events[name]["frames"]
         events[name].pop("post_ms_all")
+        # CPU a frame: the service's processes, and the bench's stream reader beside them
+        events[name]["cpu_ms_per_frame"] = {
+            "workers": round(1e3 * (cpu1["workers"] - cpu0["workers"]) / n, 2),
+            "api_process": round(1e3 * (cpu1["api"] - cpu0["api"]) / n, 2),
+            "bench_clients": round(1e3 * events[name].pop("clients_cpu_s") / n, 2),
+            "bench_streams": round(1e3 * (_process_cpu_s(proc) - subs0) / n, 2),
+        }
         if proc is not None:
             stop.set()
             events[name]["frame_events_received"] = counts.get(timeout=60)
@@ -781,7 +838,7 @@ def main() -> None:
         "--slices", type=int, default=3, help="phase 1 in this many turns with phase 2"
     )
     parser.add_argument("--event-maps", type=int, default=2)
-    parser.add_argument("--event-frames", type=int, default=40, help="per client (phase 3)")
+    parser.add_argument("--event-frames", type=int, default=100, help="per client (phase 3)")
     parser.add_argument("--subscribers", type=int, default=200)
     parser.add_argument(
         "--runs",

@@ -13,6 +13,7 @@ import asyncio
 import builtins
 import dataclasses
 import logging
+import math
 import secrets
 import time
 from collections.abc import Callable
@@ -68,6 +69,8 @@ class MapService:
         self._views: dict[str, MapView] = {}
         self._new_ids: set[str] = set()
         self._refreshing: set[tuple[str, bool]] = set()
+        self._refreshed: dict[str, float] = {}
+        """When each map's landmarks and rows were last asked for (monotonic s)."""
         self._tasks: set[asyncio.Task[None]] = set()
         """Maps being created or imported (their first view comes before their record)."""
         self.notifier = Notifier()
@@ -199,6 +202,7 @@ class MapService:
         del self._records[map_id]
         self._keys = {h: k for h, k in self._keys.items() if k.map_id != map_id}
         self._views.pop(map_id, None)
+        self._refreshed.pop(map_id, None)
         self.notifier.forget(map_id)
         try:  # on the worker that has the map open
             await self.pool.call(map_id, DeleteMap())
@@ -251,10 +255,15 @@ class MapService:
     def _refresh(self, map_id: str, *, whole: bool = False) -> None:
         """Ask the map's worker for its live landmarks and held trajectory rows now (one
         request at a time; `whole`: and all of its view); the view it publishes answers
-        the next reads."""
+        the next reads; not `whole`: at most once per `api.view_refresh_s`)."""
         key = (map_id, whole)
         if key in self._refreshing:
             return
+        if not whole:
+            now = time.monotonic()
+            if now - self._refreshed.get(map_id, -math.inf) < self.settings.api.view_refresh_s:
+                return
+            self._refreshed[map_id] = now
         self._refreshing.add(key)
 
         async def refresh() -> None:

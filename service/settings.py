@@ -144,6 +144,15 @@ class ApiSettings(BaseModel):
         "writes, not frames; 0 = a write per wake)",
     )
 
+    view_refresh_s: float = Field(
+        1.0,
+        ge=0,
+        le=60,
+        description="a read that finds a busy map's published landmarks or trajectory "
+        "rows behind the map asks its worker for new ones at most once per this many "
+        "seconds (each costs the worker a joint marginal of the live landmarks, ~5 ms for "
+        "50; an idle worker answers such a read itself; 0 = at every such read)",
+    )
     max_body_bytes: int = Field(
         1 << 20, ge=1024, description="largest request body except imports, bytes (413 above)"
     )

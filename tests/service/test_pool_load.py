@@ -17,7 +17,7 @@ from service.frames_io import frame_to_dict
 from service.maps import MapService
 from service.pipeline.config import MapConfig
 from service.queries import Landmarks, Places, Pose, Summary, Trajectory
-from service.requests import MapRequest, Ping
+from service.requests import MapRequest, Ping, RefreshView
 from service.session import MapSession
 from service.settings import Settings, StoreSettings
 from tests.graph._world import circle_frames
@@ -122,6 +122,53 @@ def test_reads_are_answered_while_the_worker_is_busy(tmp_path: Path) -> None:
             assert math.hypot(mine["x"] - theirs["x"], mine["y"] - theirs["y"]) < 0.01
 
     _run(tmp_path, 1, body)
+
+
+def test_a_busy_map_s_lagging_reads_ask_for_new_parts_once_per_interval(
+    tmp_path: Path,
+) -> None:
+    """While the worker is busy, reads that find the landmarks behind are answered from
+    the view; they ask the worker for new ones at most once per `api.view_refresh_s`, and
+    with 0 at every such read."""
+
+    def refreshes(interval_s: float) -> int:
+        asked: list[bool] = []
+
+        async def body(service: MapService) -> None:
+            service.settings.api.view_refresh_s = interval_s
+            call = service.pool.call
+
+            async def counting(map_id: str, request: Any, **kw: Any) -> Any:
+                if isinstance(request, RefreshView):
+                    asked.append(request.whole)
+                return await call(map_id, request, **kw)
+
+            service.pool.call = counting  # type: ignore[method-assign]
+            busy = await _new_map(service, FRAMES[:20])
+            for k in range(2):  # twice: a frame, a long request, a frame queued, reads
+                started, release = tmp_path / f"started{k}", tmp_path / f"release{k}"
+                # the first frame's view has the landmarks behind it; the worker stays busy
+                first = asyncio.create_task(service.submit(busy, FRAMES[20 + 2 * k]))
+                await asyncio.sleep(0)  # sent first
+                hold = asyncio.create_task(service.query(busy, Hold(str(started), str(release))))
+                await _until(started)
+                second = asyncio.create_task(service.submit(busy, FRAMES[21 + 2 * k]))
+                try:
+                    await first
+                    for _ in range(3):  # from the view, while the worker is busy
+                        assert isinstance(await service.query(busy, Landmarks()), list)
+                finally:
+                    release.touch()
+                await hold
+                await second
+                while service._refreshing:  # the refresh asked for, done
+                    await asyncio.sleep(0.01)
+
+        _run(tmp_path / str(interval_s), 1, body)
+        return len(asked)
+
+    assert refreshes(60.0) == 1
+    assert refreshes(0.0) == 2
 
 
 def test_a_view_lost_in_the_api_process_comes_back_whole(tmp_path: Path) -> None:
