@@ -417,23 +417,28 @@ async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path:
 async def _read_rounds(
     port: int, targets: dict[str, str], stop: Any, go: Any
 ) -> dict[str, list[float]]:
+    """`_reader`'s rounds: ms per GET, per target (a connection per slice: the server
+    closes one left idle through the bound's turn)."""
     out: dict[str, list[float]] = {name: [] for name in targets}
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    connection = None
     while not stop.is_set():
         if not go.is_set():
+            if connection is not None:
+                connection[1].close()
+                connection = None
             await asyncio.sleep(0.1)
             continue
+        if connection is None:
+            connection = await asyncio.open_connection("127.0.0.1", port)
         for name, map_id in targets.items():
             for path in READ_PATHS:
                 t0 = time.perf_counter()
-                status = await _get(
-                    reader, writer, f"/v1/maps/{map_id}" + (f"/{path}" if path else "")
-                )
+                url = f"/v1/maps/{map_id}" + (f"/{path}" if path else "")
+                status = await _get(*connection, url)
                 out[name].append(1e3 * (time.perf_counter() - t0))
                 if status != 200:
                     raise RuntimeError(f"GET {path}: {status}")
         await asyncio.sleep(READ_PAUSE_S)
-    writer.close()
     return out
 
 
