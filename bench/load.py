@@ -4,15 +4,16 @@ One run, one machine, so the ratios compare phases that shared whatever load it 
 (the one-minute load average is recorded with every phase). Run from the repository
 root, niced (2 cores, shared)::
 
-    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 400] [--load-s 30]
-                                    [--slices 3] [--event-maps 2] [--event-frames 100]
+    nice -n 10 python -m bench.load [--maps 8] [--clients 4] [--frames 500] [--load-s 60]
+                                    [--slices 6] [--event-maps 2] [--event-frames 100]
                                     [--subscribers 200] [--runs 5] [--out bench/results]
     python -m bench.load --bound-only 5   # the bound alone, 5 times: the machine's spread
     python -m bench.load --corunner 3     # the bound alone and beside a co-runner, in turn
 
 Frames: a simulated indoor run per client (make_world rooms (2, 2), 100 landmarks,
 ~10 labelled bearings per frame); the clients of a map drive robots r1..rC through the
-same world. Map config: landmark cap 50, the default policy.
+same world. Map config: landmark cap 50, the default policy. The load is the one an
+outside audit put on the service: 8 maps x 4 clients for 60 s.
 
 Phases 1 and 2 take turns, `slices` times (the machine's speed moves from one minute to
 the next by up to 10 %, so a load and a bound a minute apart compare two machines):
@@ -837,10 +838,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--maps", type=int, default=8)
     parser.add_argument("--clients", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=400, help="at most, per client (1-2)")
-    parser.add_argument("--load-s", type=float, default=30.0, help="length of phase 1")
+    parser.add_argument("--frames", type=int, default=500, help="at most, per client (1-2)")
+    parser.add_argument("--load-s", type=float, default=60.0, help="length of phase 1")
     parser.add_argument(
-        "--slices", type=int, default=3, help="phase 1 in this many turns with phase 2"
+        "--slices", type=int, default=6, help="phase 1 in this many turns with phase 2"
     )
     parser.add_argument("--event-maps", type=int, default=2)
     parser.add_argument("--event-frames", type=int, default=100, help="per client (phase 3)")
