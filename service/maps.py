@@ -254,8 +254,8 @@ class MapService:
 
     def _refresh(self, map_id: str, *, whole: bool = False) -> None:
         """Ask the map's worker for its live landmarks and held trajectory rows now (one
-        request at a time; `whole`: and all of its view); the view it publishes answers
-        the next reads; not `whole`: at most once per `api.view_refresh_s`)."""
+        request at a time, and at most once per `api.view_refresh_s`; `whole`: all of its
+        view, at once); the view it publishes answers the next reads."""
         key = (map_id, whole)
         if key in self._refreshing:
             return
