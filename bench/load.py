@@ -155,9 +155,11 @@ def _sessions(n: int, config: dict[str, Any]) -> list[Any]:
     return sessions
 
 
-def _submit_all(
-    sessions: list[Any], maps: list[list[list[dict[str, Any]]]]
-) -> tuple[int, float, float, int]:
+Figures = tuple[int, float, float, int]
+"""(frames, wall s, CPU s, involuntary context switches) of a run of `_submit_all`."""
+
+
+def _submit_all(sessions: list[Any], maps: list[list[list[dict[str, Any]]]]) -> Figures:
     """(frames, wall s, CPU s, involuntary context switches) of these maps' frames (per
     map, per robot) through their sessions' MapSession.submit, each map's robots
     interleaved frame by frame and the maps in turn."""
@@ -172,10 +174,6 @@ def _submit_all(
                     n += 1
     switches = resource.getrusage(resource.RUSAGE_SELF).ru_nivcsw - s0
     return n, time.perf_counter() - t0, time.process_time() - c0, switches
-
-
-Figures = tuple[int, float, float, int]
-"""(frames, wall s, CPU s, involuntary context switches) of a run of `_submit_all`."""
 
 
 def _in_process(maps: list[list[list[dict[str, Any]]]], config: dict[str, Any]) -> Figures:
@@ -193,11 +191,24 @@ def _bound_process(conn: Any, n_maps: int, config: dict[str, Any]) -> None:
         conn.send(_submit_all(sessions, maps))
 
 
-def _bound_rate(runs: list[tuple[int, float, float, int]], cores: int) -> float:
+def _bound_rate(runs: list[Figures], cores: int) -> float:
     """Frames/s of `_submit_all` runs made side by side, every core busy all the time
     (the processes' wall times summed, shared out over the cores: their frames differ in
     number, so one finishes first)."""
     return sum(r[0] for r in runs) / (sum(r[1] for r in runs) / cores)
+
+
+def _bound_figures(processes: list[Figures]) -> dict[str, Any]:
+    """The bound's document from each process's figures (summed over its runs)."""
+    n = sum(r[0] for r in processes)
+    return {
+        "frames": n,
+        "process_wall_s": [round(r[1], 2) for r in processes],
+        "frames_per_s": round(_bound_rate(processes, len(processes)), 1),
+        "processes": len(processes),
+        "cpu_ms_per_frame": round(1e3 * sum(r[2] for r in processes) / n, 2),
+        "involuntary_switches_per_frame": round(sum(r[3] for r in processes) / n, 2),
+    }
 
 
 class SlicedBound:
@@ -218,7 +229,7 @@ class SlicedBound:
         for conn in self.conns:  # started, imported and its maps created
             conn.recv()
 
-    def run(self, frames: list[list[list[dict[str, Any]]]]) -> list[tuple[int, float, float, int]]:
+    def run(self, frames: list[list[list[dict[str, Any]]]]) -> list[Figures]:
         """Every process its maps' frames at once; their figures when all are done."""
         for c, conn in enumerate(self.conns):
             conn.send(frames[c :: self.cores])
@@ -243,16 +254,7 @@ def cpu_bound(
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(cores, mp_context=ctx) as pool:
         results = list(pool.map(_in_process, shares, [config] * cores))
-    n = sum(r[0] for r in results)
-    busy = sum(r[1] for r in results)
-    # the bound: every core busy all the time (the processes' wall times summed, shared
-    # out over the cores; their frames differ in number, so one finishes first)
-    cpu = sum(r[2] for r in results)
-    return {"frames": n, "process_wall_s": [round(r[1], 2) for r in results],
-            "frames_per_s": round(n / (busy / cores), 1), "processes": cores,
-            "cpu_ms_per_frame": round(1e3 * cpu / n, 2),
-            "involuntary_switches_per_frame": round(sum(r[3] for r in results) / n, 2),
-            "loadavg": [load0, _loadavg()]}  # fmt: skip
+    return {**_bound_figures(results), "loadavg": [load0, _loadavg()]}
 
 
 # ------------------------------------------------------------------ the server
@@ -327,18 +329,17 @@ async def _post_loop(port: int, map_id: str, bodies: list[bytes], until: float,
             break
         t0 = time.perf_counter()
         writer.write(head + str(len(body)).encode() + b"\r\n\r\n" + body)
-        status = int((await reader.readline()).split()[1])
-        length = 0
-        while (line := await reader.readline()) not in (b"\r\n", b""):
-            name, _, value = line.partition(b":")
-            if name.strip().lower() == b"content-length":
-                length = int(value)
-        await reader.readexactly(length)
-        if status != 200:
+        if (status := await _response(reader)) != 200:
             raise RuntimeError(f"POST {map_id}: {status}")
         out.append((time.monotonic(), 1e3 * (time.perf_counter() - t0), map_id, client))
     writer.close()
     await writer.wait_closed()
+
+
+def _encoded(frames: list[list[list[dict[str, Any]]]]) -> list[list[list[bytes]]]:
+    """Per map, per client, each frame's JSON body (encoded before a phase, as a robot
+    has its frame ready)."""
+    return [[[json.dumps(f).encode() for f in run] for run in runs] for runs in frames]
 
 
 def post_all(
@@ -354,7 +355,7 @@ def post_all(
     client of each map posted)."""
     rows: list[tuple[float, float, str, int]] = []
     if bodies is None:
-        bodies = [[[json.dumps(f).encode() for f in run] for run in runs] for runs in frames]
+        bodies = _encoded(frames)
     if start is None:
         start = [[0] * len(runs) for runs in frames]
 
@@ -393,10 +394,9 @@ def post_all(
     }, posted
 
 
-async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str) -> int:
-    """One GET over a keep-alive connection (a minimal HTTP/1.1 client, as the posting
-    clients'); its status, the body read and dropped."""
-    writer.write(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+async def _response(reader: asyncio.StreamReader) -> int:
+    """An HTTP/1.1 response's status, its body read and dropped (the bench's minimal
+    keep-alive clients)."""
     status = int((await reader.readline()).split()[1])
     length, chunked = 0, False
     while (line := await reader.readline()) not in (b"\r\n", b""):
@@ -413,6 +413,12 @@ async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path:
         await reader.readexactly(size + 2)
     await reader.readline()  # the empty trailer
     return status
+
+
+async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str) -> int:
+    """One GET over a keep-alive connection; its status."""
+    writer.write(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+    return await _response(reader)
 
 
 async def _read_rounds(
@@ -599,7 +605,7 @@ def _measure(
     # the maps' config as the service created them (the estimator's defaults filled in)
     config = client.get(f"/v1/maps/{maps[0]}").json()["config"]
     bound = SlicedBound(len(maps), config)
-    bodies = [[[json.dumps(f).encode() for f in run] for run in runs] for runs in main]
+    bodies = _encoded(main)
     at = [[0] * len(runs) for runs in main]
     pids = _worker_pids(client)
     slices, bounds, settles = [], [], []
@@ -670,18 +676,13 @@ def _measure(
         "server_cpu_s": round(sum(x["server_cpu_s"] for x in settles), 2),
     }
     print("http", http_run, flush=True)
-    # the bound: every core busy all the time (the processes' wall times summed, shared
-    # out over the cores; their frames differ in number, so one finishes first)
-    walls = [sum(b[c][1] for b in bounds) for c in range(bound.cores)]
-    nb = sum(r[0] for b in bounds for r in b)
-    result["cpu_bound"] = {
-        "frames": nb,
-        "process_wall_s": [round(w, 2) for w in walls],
-        "frames_per_s": round(nb / (sum(walls) / bound.cores), 1),
-        "processes": bound.cores,
-        "cpu_ms_per_frame": round(1e3 * sum(r[2] for b in bounds for r in b) / nb, 2),
-        "involuntary_switches_per_frame": round(sum(r[3] for b in bounds for r in b) / nb, 2),
-    }
+    # each bound process's figures summed over the slices
+    per_process = [
+        (sum(b[c][0] for b in bounds), sum(b[c][1] for b in bounds),
+         sum(b[c][2] for b in bounds), sum(b[c][3] for b in bounds))
+        for c in range(bound.cores)
+    ]  # fmt: skip
+    result["cpu_bound"] = _bound_figures(per_process)
     print("cpu bound", result["cpu_bound"], flush=True)
     http_run["ratio_to_cpu_bound"] = round(
         http_run["frames_per_s"] / result["cpu_bound"]["frames_per_s"], 3

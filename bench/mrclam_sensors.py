@@ -67,6 +67,9 @@ from service.offline.datasets.mrclam import (
 from service.offline.evaluation import Trajectory, fit_landmarks, interpolate
 from service.pipeline.config import slam_config
 
+INLIER_RAD = math.radians(10.0)
+"""A bearing within this of the one to its surveyed landmark from the true pose."""
+
 
 def _truth_at(truth: Trajectory, stamps: np.ndarray) -> np.ndarray:
     """(N, 3) ground-truth poses at `stamps`, held at the ends of its span."""
@@ -99,7 +102,7 @@ def bearing_residuals(
         return _residuals(_truth_at(truth, stamps + shift_s), labels, bearings, survey)
 
     r = residual(0.0)
-    inlier = np.abs(r) <= math.radians(10.0)
+    inlier = np.abs(r) <= INLIER_RAD
     r, stamps, labels, bearings = r[inlier], stamps[inlier], labels[inlier], bearings[inlier]
     rate = wrap_angles(np.diff(truth.theta)) / np.maximum(np.diff(truth.stamps), 1e-3)
     turn_rate = np.interp(stamps, truth.stamps[:-1], rate)
@@ -220,7 +223,7 @@ def data_maps(
     its best delay of section 2)."""
     stamps, labels, bearings, sigmas = _bearings(frames)
     pose = _truth_at(truth, stamps)
-    inlier = np.abs(_residuals(pose, labels, bearings, survey)) <= math.radians(10.0)
+    inlier = np.abs(_residuals(pose, labels, bearings, survey)) <= INLIER_RAD
     triangulated: dict[str, Any] = {}
     for label in set(labels[inlier].tolist()):
         ray = inlier & (labels == label)
